@@ -1,0 +1,150 @@
+"""Pinhole camera and stereo-pair calibration: intrinsics, distortion, pose in the world frame.
+
+Camera frame follows OpenCV: x right, y down, z forward. ``T_world_cam`` maps camera coordinates to
+world coordinates (metres, z up, floor at z = 0): P_w = R·P_c + C.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import cached_property
+
+import numpy as np
+import numpy.typing as npt
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+Matrix = list[list[float]]
+
+
+def _finite(values: npt.ArrayLike, what: str) -> None:
+    if not np.all(np.isfinite(np.asarray(values, dtype=np.float64))):
+        raise ValueError(f"{what} holds NaN or infinity")
+
+
+class PinholeCamera(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    width: int = Field(gt=0, le=16384)
+    height: int = Field(gt=0, le=16384)
+    K: Matrix
+    dist: list[float] = Field(default_factory=lambda: [0.0] * 5)
+    T_world_cam: Matrix
+
+    @field_validator("K")
+    @classmethod
+    def _check_k(cls, k: Matrix) -> Matrix:
+        arr = np.asarray(k, dtype=np.float64)
+        if arr.shape != (3, 3):
+            raise ValueError(f"K must be 3×3, got shape {arr.shape}")
+        _finite(arr, "K")
+        if arr[0, 0] <= 0 or arr[1, 1] <= 0:
+            raise ValueError(f"focal lengths must be positive, got fx={arr[0, 0]}, fy={arr[1, 1]}")
+        return k
+
+    @field_validator("dist")
+    @classmethod
+    def _check_dist(cls, dist: list[float]) -> list[float]:
+        if len(dist) not in (0, 4, 5, 8, 12, 14):
+            raise ValueError(f"distortion needs 0, 4, 5, 8, 12 or 14 coefficients, got {len(dist)}")
+        _finite(dist, "distortion")
+        return dist
+
+    @field_validator("T_world_cam")
+    @classmethod
+    def _check_pose(cls, pose: Matrix) -> Matrix:
+        arr = np.asarray(pose, dtype=np.float64)
+        if arr.shape != (4, 4):
+            raise ValueError(f"T_world_cam must be 4×4, got shape {arr.shape}")
+        _finite(arr, "T_world_cam")
+        rotation = arr[:3, :3]
+        if (
+            not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5)
+            or np.linalg.det(rotation) < 0
+        ):
+            raise ValueError("T_world_cam rotation is not a proper rotation matrix")
+        if not np.allclose(arr[3], [0, 0, 0, 1]):
+            raise ValueError("T_world_cam last row must be [0, 0, 0, 1]")
+        return pose
+
+    @cached_property
+    def K_array(self) -> npt.NDArray[np.float64]:
+        return np.asarray(self.K, dtype=np.float64)
+
+    @cached_property
+    def dist_array(self) -> npt.NDArray[np.float64]:
+        return np.asarray(self.dist, dtype=np.float64)
+
+    @cached_property
+    def T_world_cam_array(self) -> npt.NDArray[np.float64]:
+        return np.asarray(self.T_world_cam, dtype=np.float64)
+
+    @property
+    def focal_px(self) -> float:
+        return float(self.K_array[0, 0])
+
+    @property
+    def position_world(self) -> npt.NDArray[np.float64]:
+        return self.T_world_cam_array[:3, 3]
+
+    def project(self, points_world: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """Pixel (u, v) and depth z of world points (N, 3), ignoring distortion; returns (N, 3)."""
+        points = np.atleast_2d(np.asarray(points_world, dtype=np.float64))
+        T_cam_world = np.linalg.inv(self.T_world_cam_array)
+        p_cam = points @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        uvw = p_cam @ self.K_array.T
+        return np.column_stack([uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2], p_cam[:, 2]])
+
+
+class StereoCalibration(BaseModel):
+    """A stereo pair: the right camera sits to the right of the left one (OpenCV's convention)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    pair: str
+    left: PinholeCamera
+    right: PinholeCamera
+
+    @model_validator(mode="after")
+    def _check_pair(self) -> StereoCalibration:
+        if (self.left.width, self.left.height) != (self.right.width, self.right.height):
+            raise ValueError(
+                f"left image {self.left.width}×{self.left.height} and right image "
+                f"{self.right.width}×{self.right.height} differ in size"
+            )
+        if self.baseline_m < 1e-3:
+            raise ValueError(f"stereo baseline is {self.baseline_m:.4g} m: cameras coincide")
+        return self
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """(width, height), the order OpenCV takes."""
+        return (self.left.width, self.left.height)
+
+    @property
+    def T_right_left(self) -> npt.NDArray[np.float64]:
+        """Maps left-camera coordinates to right-camera coordinates (OpenCV's R, T of stereoRectify)."""
+        return np.linalg.inv(self.right.T_world_cam_array) @ self.left.T_world_cam_array
+
+    @property
+    def baseline_m(self) -> float:
+        return float(np.linalg.norm(self.right.position_world - self.left.position_world))
+
+
+def look_down_pose(x: float, y: float, z: float, yaw_rad: float = 0.0) -> npt.NDArray[np.float64]:
+    """T_world_cam of a camera at (x, y, z) looking straight down; image x along world (cos, sin)."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    x_axis = np.array([c, s, 0.0])
+    z_axis = np.array([0.0, 0.0, -1.0])
+    y_axis = np.cross(z_axis, x_axis)
+    pose = np.eye(4)
+    pose[:3, :3] = np.column_stack([x_axis, y_axis, z_axis])
+    pose[:3, 3] = (x, y, z)
+    return pose
+
+
+def intrinsics_from_hfov(width: int, height: int, hfov_deg: float) -> npt.NDArray[np.float64]:
+    """K of an ideal pinhole with square pixels; principal point at the image centre."""
+    focal_px = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+    return np.array(
+        [[focal_px, 0.0, (width - 1) / 2.0], [0.0, focal_px, (height - 1) / 2.0], [0.0, 0.0, 1.0]]
+    )

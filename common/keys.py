@@ -1,0 +1,47 @@
+"""Key expressions of DESIGN.md, defined once. A Zenoh ``namespace`` prefixes them all."""
+
+from __future__ import annotations
+
+import re
+
+PAIR_ID = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+
+STEREO_ALL = "cam/*/stereo"
+SIM_TRUTH = "sim/truth"
+TILES_ALL = "depth/*/tile"
+DEPTH_ALIVE_ALL = "depth/*/alive"
+MAP_LATEST = "map/latest"
+MAP_UPDATES = "map/updates"
+MAP_HEALTH = "map/health"
+
+
+def check_pair_id(pair: str) -> str:
+    """A pair id becomes one key chunk: no ``/``, ``*`` or other key-expression syntax."""
+    if not PAIR_ID.match(pair):
+        raise ValueError(f"pair id {pair!r} must be 1-64 letters, digits, '_' or '-'")
+    return pair
+
+
+def stereo(pair: str) -> str:
+    return f"cam/{check_pair_id(pair)}/stereo"
+
+
+def calib(pair: str) -> str:
+    return f"cam/{check_pair_id(pair)}/calib"
+
+
+def tile(pair: str) -> str:
+    return f"depth/{check_pair_id(pair)}/tile"
+
+
+def depth_alive(pair: str) -> str:
+    """Liveliness token a depth process holds while it runs (DESIGN.md, Presence)."""
+    return f"depth/{check_pair_id(pair)}/alive"
+
+
+def pair_of(key: str) -> str:
+    """The pair chunk of ``cam/{pair}/…`` or ``depth/{pair}/…``, namespace already stripped."""
+    parts = str(key).split("/")
+    if len(parts) < 3:
+        raise ValueError(f"key {key!r} has no pair chunk")
+    return check_pair_id(parts[-2])

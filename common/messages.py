@@ -1,0 +1,107 @@
+"""Message headers, declared once and used by both sides of every key (DESIGN.md, Key space)."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from common.keys import check_pair_id
+
+STEREO_KIND = "stereo"
+CALIB_KIND = "calib"
+TILE_KIND = "tile"
+TRUTH_KIND = "truth"
+
+MAX_TILE_CELLS = 4000 * 4000
+"""A tile larger than this is not from any camera we know: rejected as impossible."""
+
+
+class _Header(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class StereoFrameHeader(_Header):
+    """``cam/{pair}/stereo``: arrays ``left``/``right`` (raw) or blobs (png/jpeg)."""
+
+    pair: str
+    seq: int = Field(ge=0)
+    stamp_ns: int = Field(ge=0, description="capture time, ns since the Unix epoch")
+    encoding: Literal["raw", "png", "jpeg"] = "raw"
+
+    @field_validator("pair")
+    @classmethod
+    def _pair_id(cls, pair: str) -> str:
+        return check_pair_id(pair)
+
+
+class TileHeader(_Header):
+    """``depth/{pair}/tile``: arrays ``logodds`` (f4), ``height_m`` (f4, NaN unseen), ``count`` (u2).
+
+    The arrays cover lattice window (i0, j0, cols, rows); ``[row, col] = [j - j0, i - i0]``.
+    """
+
+    pair: str
+    seq: int = Field(ge=0)
+    stamp_ns: int = Field(ge=0)
+    resolution_m: float = Field(gt=0)
+    i0: int
+    j0: int
+    cols: int = Field(ge=0)
+    rows: int = Field(ge=0)
+    stage_ms: dict[str, float] = Field(default_factory=dict)
+
+    @field_validator("pair")
+    @classmethod
+    def _pair_id(cls, pair: str) -> str:
+        return check_pair_id(pair)
+
+    @field_validator("resolution_m")
+    @classmethod
+    def _finite_resolution(cls, value: float) -> float:
+        if not math.isfinite(value):
+            raise ValueError("resolution must be finite")
+        return value
+
+    @model_validator(mode="after")
+    def _not_huge(self) -> TileHeader:
+        if self.rows * self.cols > MAX_TILE_CELLS:
+            raise ValueError(
+                f"tile of {self.cols}×{self.rows} cells exceeds {MAX_TILE_CELLS} cells"
+            )
+        return self
+
+
+class TruthObject(BaseModel):
+    """A ground-truth object: oriented box (``size_m`` full extents) or upright cylinder."""
+
+    name: str
+    shape: Literal["box", "cylinder"]
+    moving: bool
+    center_m: tuple[float, float, float]
+    yaw_rad: float
+    size_m: tuple[float, float, float]
+    velocity_mps: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def top_m(self) -> float:
+        return self.center_m[2] + self.size_m[2] / 2
+
+    @property
+    def bottom_m(self) -> float:
+        return self.center_m[2] - self.size_m[2] / 2
+
+
+class TruthHeader(_Header):
+    """``sim/truth`` reply: objects at ``stamp_ns``; array ``occupied`` (u1) over window i0, j0."""
+
+    stamp_ns: int
+    resolution_m: float
+    height_band_m: tuple[float, float]
+    i0: int
+    j0: int
+    cols: int
+    rows: int
+    floor_size_m: tuple[float, float]
+    objects: list[TruthObject]

@@ -1,0 +1,1 @@
+"""overgrid services: camera_sim, depth, fusion; each one process wired to Zenoh."""

@@ -1,0 +1,1 @@
+"""Simulated overhead stereo pairs: a MuJoCo warehouse, rendered headless and published over Zenoh."""

@@ -1,0 +1,3 @@
+from services.camera_sim.service import cli
+
+cli()

@@ -1,0 +1,75 @@
+"""Ceiling grid of downward-looking stereo pairs whose floor footprints overlap and cover the floor."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from common.camera import PinholeCamera, StereoCalibration, intrinsics_from_hfov, look_down_pose
+
+
+class RigSpec(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+    pair_count: int = Field(4, ge=1, le=256)
+    height_m: float = Field(6.0, gt=0.5)
+    baseline_m: float = Field(0.5, gt=0.0)
+    width_px: int = Field(640, ge=64, le=4096)
+    height_px: int = Field(480, ge=48, le=4096)
+    hfov_deg: float = Field(60.0, gt=5.0, lt=170.0)
+
+
+def pair_name(index: int) -> str:
+    return f"p{index}"
+
+
+def _grid_shape(
+    count: int, floor_size_m: tuple[float, float], footprint_m: tuple[float, float]
+) -> tuple[int, int]:
+    """Columns × rows of the ceiling grid that best covers the floor with ``count`` pairs."""
+    best: tuple[float, int, int] = (math.inf, 1, count)
+    for cols in range(1, count + 1):
+        rows = math.ceil(count / cols)
+        stretch = max(
+            floor_size_m[0] / cols / footprint_m[0], floor_size_m[1] / rows / footprint_m[1]
+        )
+        if stretch < best[0]:
+            best = (stretch, cols, rows)
+    return best[1], best[2]
+
+
+def layout_pairs(rig: RigSpec, floor_size_m: tuple[float, float]) -> list[StereoCalibration]:
+    """Calibrations of every pair: the pair's midpoint at a grid cell centre, baseline along x."""
+    K = intrinsics_from_hfov(rig.width_px, rig.height_px, rig.hfov_deg)
+    focal_px = float(K[0, 0])
+    footprint = (rig.width_px * rig.height_m / focal_px, rig.height_px * rig.height_m / focal_px)
+    cols, rows = _grid_shape(rig.pair_count, floor_size_m, footprint)
+    calibrations = []
+    for index in range(rig.pair_count):
+        col, row = index % cols, index // cols
+        cx = (col + 0.5) * floor_size_m[0] / cols
+        cy = (row + 0.5) * floor_size_m[1] / rows
+        cameras = [
+            PinholeCamera(
+                width=rig.width_px,
+                height=rig.height_px,
+                K=K.tolist(),
+                dist=[0.0] * 5,
+                T_world_cam=look_down_pose(cx + dx, cy, rig.height_m).tolist(),
+            )
+            for dx in (-rig.baseline_m / 2, rig.baseline_m / 2)
+        ]
+        calibrations.append(
+            StereoCalibration(pair=pair_name(index), left=cameras[0], right=cameras[1])
+        )
+    return calibrations
+
+
+def mujoco_camera_axes(camera: PinholeCamera) -> tuple[np.ndarray, float]:
+    """MuJoCo ``xyaxes`` (image right, image up in world) and vertical fov of an OpenCV camera."""
+    rotation = camera.T_world_cam_array[:3, :3]
+    xyaxes = np.concatenate([rotation[:, 0], -rotation[:, 1]])
+    fovy_deg = math.degrees(2.0 * math.atan(camera.height / 2.0 / camera.K_array[1, 1]))
+    return xyaxes, fovy_deg

@@ -1,0 +1,242 @@
+"""A warehouse-like scene as data: generated from a seed or loaded from a user's JSON/YAML file.
+
+Moving objects are kinematic: their pose is a pure function of time, so several sim processes
+rendering different pairs, and ``sim/truth``, agree without talking to each other.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from common.messages import TruthObject
+
+ShapeKind = Literal["box", "cylinder", "shelf"]
+
+
+class ObjectSpec(BaseModel):
+    """A static object standing on the floor. ``size_m`` is full extents (x, y, z); a cylinder's
+    diameter is ``size_m[0]``. A shelf is a box-shaped rack: legs, shelves and a top board."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str
+    shape: ShapeKind
+    center_xy_m: tuple[float, float]
+    yaw_rad: float = 0.0
+    size_m: tuple[float, float, float] = Field(description="full extents x, y, z in metres")
+    rgba: tuple[float, float, float, float] = (0.6, 0.45, 0.3, 1.0)
+
+    @model_validator(mode="after")
+    def _positive(self) -> ObjectSpec:
+        if min(self.size_m) <= 0:
+            raise ValueError(f"object {self.name}: sizes must be positive, got {self.size_m}")
+        return self
+
+
+class MoverSpec(BaseModel):
+    """An object that loops along a closed polyline at constant speed (kinematic)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str
+    shape: Literal["box", "cylinder"]
+    size_m: tuple[float, float, float]
+    path_xy_m: list[tuple[float, float]] = Field(min_length=2)
+    speed_mps: float = Field(gt=0)
+    rgba: tuple[float, float, float, float] = (0.2, 0.4, 0.8, 1.0)
+
+    def _segments(self) -> tuple[np.ndarray, np.ndarray, float]:
+        points = np.asarray([*self.path_xy_m, self.path_xy_m[0]], dtype=np.float64)
+        lengths = np.linalg.norm(np.diff(points, axis=0), axis=1)
+        return points, lengths, float(lengths.sum())
+
+    def state_at(self, t_s: float) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Position and velocity (x, y) at time ``t_s`` (seconds, any epoch)."""
+        points, lengths, perimeter = self._segments()
+        s = math.fmod(t_s * self.speed_mps, perimeter)
+        if s < 0:
+            s += perimeter
+        k = int(np.searchsorted(np.cumsum(lengths), s, side="right"))
+        k = min(k, len(lengths) - 1)
+        s_k = s - float(np.sum(lengths[:k]))
+        direction = (points[k + 1] - points[k]) / max(lengths[k], 1e-12)
+        xy = points[k] + direction * s_k
+        v = direction * self.speed_mps
+        return (float(xy[0]), float(xy[1])), (float(v[0]), float(v[1]))
+
+
+class SceneSpec(BaseModel):
+    """The whole scene; the floor spans x ∈ [0, floor_x_m], y ∈ [0, floor_y_m], walls outside it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    floor_size_m: tuple[float, float] = (12.0, 10.0)
+    floor: Literal["textured", "plain"] = "textured"
+    wall_height_m: float = Field(1.2, gt=0)
+    wall_thickness_m: float = Field(0.2, gt=0)
+    texture_seed: int = 0
+    objects: list[ObjectSpec] = Field(default_factory=list)
+    movers: list[MoverSpec] = Field(default_factory=list)
+
+    def truth_objects(self, t_s: float) -> list[TruthObject]:
+        """Every object's box/cylinder at time ``t_s``, walls included."""
+        out = [
+            TruthObject(
+                name=o.name,
+                shape="cylinder" if o.shape == "cylinder" else "box",
+                moving=False,
+                center_m=(o.center_xy_m[0], o.center_xy_m[1], o.size_m[2] / 2),
+                yaw_rad=o.yaw_rad,
+                size_m=o.size_m,
+            )
+            for o in self.objects
+        ]
+        for m in self.movers:
+            (x, y), v = m.state_at(t_s)
+            out.append(
+                TruthObject(
+                    name=m.name,
+                    shape=m.shape,
+                    moving=True,
+                    center_m=(x, y, m.size_m[2] / 2),
+                    yaw_rad=0.0,
+                    size_m=m.size_m,
+                    velocity_mps=v,
+                )
+            )
+        return out + self.walls()
+
+    def walls(self) -> list[TruthObject]:
+        fx, fy = self.floor_size_m
+        t, h = self.wall_thickness_m, self.wall_height_m
+        boxes = {
+            "wall_south": ((fx / 2, -t / 2), (fx + 2 * t, t)),
+            "wall_north": ((fx / 2, fy + t / 2), (fx + 2 * t, t)),
+            "wall_west": ((-t / 2, fy / 2), (t, fy)),
+            "wall_east": ((fx + t / 2, fy / 2), (t, fy)),
+        }
+        return [
+            TruthObject(
+                name=name,
+                shape="box",
+                moving=False,
+                center_m=(cx, cy, h / 2),
+                yaw_rad=0.0,
+                size_m=(sx, sy, h),
+            )
+            for name, ((cx, cy), (sx, sy)) in boxes.items()
+        ]
+
+
+def load_scene(path: Path) -> SceneSpec:
+    """A scene written by hand, JSON or YAML, with the fields of :class:`SceneSpec`."""
+    text = Path(path).read_text()
+    data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+    return SceneSpec.model_validate(data)
+
+
+def _footprint_radius(size_m: tuple[float, float, float]) -> float:
+    return 0.5 * math.hypot(size_m[0], size_m[1])
+
+
+def _distance_to_path(xy: np.ndarray, path: list[tuple[float, float]]) -> float:
+    points = np.asarray([*path, path[0]], dtype=np.float64)
+    best = math.inf
+    for a, b in itertools.pairwise(points):
+        ab = b - a
+        t = float(np.clip(np.dot(xy - a, ab) / max(np.dot(ab, ab), 1e-12), 0.0, 1.0))
+        best = min(best, float(np.linalg.norm(xy - (a + t * ab))))
+    return best
+
+
+def generate_scene(
+    seed: int = 0,
+    floor_size_m: tuple[float, float] = (12.0, 10.0),
+    floor: Literal["textured", "plain"] = "textured",
+    boxes: int = 6,
+    cylinders: int = 3,
+    shelves: int = 2,
+) -> SceneSpec:
+    """Place shelves, boxes and cylinders (tops 0.2–2.0 m) without overlap, clear of two movers' loops."""
+    rng = np.random.default_rng(seed)
+    fx, fy = floor_size_m
+    movers = [
+        MoverSpec(
+            name="mover_cart",
+            shape="box",
+            size_m=(0.6, 0.6, 0.8),
+            speed_mps=0.6,
+            path_xy_m=[(1.2, 1.2), (fx - 1.2, 1.2), (fx - 1.2, 2.2), (1.2, 2.2)],
+        ),
+        MoverSpec(
+            name="mover_bot",
+            shape="cylinder",
+            size_m=(0.5, 0.5, 1.2),
+            speed_mps=0.4,
+            path_xy_m=[(fx / 2, 3.5), (fx / 2, fy - 1.2)],
+            rgba=(0.85, 0.25, 0.2, 1.0),
+        ),
+    ]
+    wanted: list[tuple[ShapeKind, int]] = [
+        ("shelf", shelves),
+        ("box", boxes),
+        ("cylinder", cylinders),
+    ]
+    objects: list[ObjectSpec] = []
+    for shape, count in wanted:
+        for k in range(count):
+            for _attempt in range(500):
+                if shape == "shelf":
+                    size = (float(rng.uniform(1.6, 2.4)), 0.6, float(rng.uniform(1.6, 2.0)))
+                    yaw = float(rng.choice([0.0, math.pi / 2]))
+                elif shape == "box":
+                    size = (
+                        float(rng.uniform(0.4, 1.2)),
+                        float(rng.uniform(0.4, 1.2)),
+                        float(rng.uniform(0.2, 1.5)),
+                    )
+                    yaw = float(rng.uniform(0, math.pi))
+                else:
+                    diameter = float(rng.uniform(0.3, 0.7))
+                    size = (diameter, diameter, float(rng.uniform(0.4, 2.0)))
+                    yaw = 0.0
+                radius = _footprint_radius(size)
+                xy = np.array(
+                    [
+                        rng.uniform(radius + 0.4, fx - radius - 0.4),
+                        rng.uniform(radius + 0.4, fy - radius - 0.4),
+                    ]
+                )
+                clear_of_objects = all(
+                    np.linalg.norm(xy - np.asarray(o.center_xy_m))
+                    > radius + _footprint_radius(o.size_m) + 0.5
+                    for o in objects
+                )
+                clear_of_movers = all(
+                    _distance_to_path(xy, m.path_xy_m) > radius + _footprint_radius(m.size_m) + 0.3
+                    for m in movers
+                )
+                if clear_of_objects and clear_of_movers:
+                    shade = rng.uniform(0.35, 0.8, size=3)
+                    objects.append(
+                        ObjectSpec(
+                            name=f"{shape}_{k}",
+                            shape=shape,
+                            center_xy_m=(float(xy[0]), float(xy[1])),
+                            yaw_rad=yaw,
+                            size_m=size,
+                            rgba=(float(shade[0]), float(shade[1]), float(shade[2]), 1.0),
+                        )
+                    )
+                    break
+    return SceneSpec(
+        floor_size_m=floor_size_m, floor=floor, texture_seed=seed, objects=objects, movers=movers
+    )

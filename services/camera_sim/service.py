@@ -1,0 +1,232 @@
+"""camera_sim process: render each pair at a fixed rate, publish frames, answer calib and truth."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Literal
+
+import zenoh
+from pydantic import Field, model_validator
+
+from common import keys
+from common.codec import WIRE_ENCODING, encode
+from common.lattice import Window, check_resolution
+from common.lifecycle import stop_on_signals
+from common.logs import setup_logging
+from common.messages import CALIB_KIND, STEREO_KIND, TRUTH_KIND, StereoFrameHeader, TruthHeader
+from common.settings import CommaList, ZenohSettings, parse_settings
+from common.zenoh_session import open_session
+from services.camera_sim import truth
+from services.camera_sim.rig import RigSpec, layout_pairs, pair_name
+from services.camera_sim.scene import SceneSpec, generate_scene, load_scene
+
+log = logging.getLogger("camera_sim")
+
+
+class CameraSimSettings(ZenohSettings):
+    seed: int = Field(0, description="seed of the generated scene and its texture")
+    scene: Path | None = Field(
+        None, description="scene file (JSON/YAML SceneSpec) instead of a generated one"
+    )
+    floor: Literal["textured", "plain"] = Field(
+        "textured", description="floor texture; plain is the hard case"
+    )
+    floor_x_m: float = Field(12.0, gt=1.0, le=500.0, description="floor length along x")
+    floor_y_m: float = Field(10.0, gt=1.0, le=500.0, description="floor length along y")
+    pair_count: int = Field(4, ge=1, le=256, description="stereo pairs on the ceiling grid")
+    pairs: CommaList = Field(
+        default_factory=list, description="render only these pairs (e.g. p0,p2)"
+    )
+    camera_height_m: float = Field(
+        6.0, gt=0.5, le=50.0, description="ceiling height of the cameras"
+    )
+    baseline_m: float = Field(0.5, gt=0.0, le=5.0, description="stereo baseline")
+    width_px: int = Field(640, ge=64, le=4096, description="image width")
+    height_px: int = Field(480, ge=48, le=4096, description="image height")
+    hfov_deg: float = Field(60.0, gt=5.0, lt=170.0, description="horizontal field of view")
+    rate_hz: float = Field(2.0, gt=0.0, le=60.0, description="frames per second per pair")
+    vary_lighting: bool = Field(False, description="slowly vary the lighting over time")
+    shadows: bool = Field(False, description="render shadows (slower)")
+    serve_truth: bool = Field(True, description="answer sim/truth queries")
+    frames: int = Field(
+        0, ge=0, description="stop after this many frames per pair (0: run until stopped)"
+    )
+
+    @model_validator(mode="after")
+    def _pairs_exist(self) -> CameraSimSettings:
+        known = {pair_name(k) for k in range(self.pair_count)}
+        unknown = sorted(set(self.pairs) - known)
+        if unknown:
+            raise ValueError(
+                f"--pairs names {unknown}, but --pair-count {self.pair_count} has only p0…p{self.pair_count - 1}"
+            )
+        return self
+
+    def rig(self) -> RigSpec:
+        return RigSpec(
+            pair_count=self.pair_count,
+            height_m=self.camera_height_m,
+            baseline_m=self.baseline_m,
+            width_px=self.width_px,
+            height_px=self.height_px,
+            hfov_deg=self.hfov_deg,
+        )
+
+    def scene_spec(self) -> SceneSpec:
+        if self.scene is not None:
+            return load_scene(self.scene)
+        return generate_scene(self.seed, (self.floor_x_m, self.floor_y_m), self.floor)
+
+
+def _truth_reply(scene: SceneSpec, query: zenoh.Query) -> bytes:
+    """Parameters: ``t`` (s since epoch) or ``stamp_ns``; ``resolution`` (m); ``band`` (h_min,h_max)."""
+    params = dict(query.parameters)
+    stamp_ns = (
+        int(params["stamp_ns"])
+        if "stamp_ns" in params
+        else int(float(params.get("t", time.time())) * 1e9)
+    )
+    resolution_m = check_resolution(float(params.get("resolution", 0.05)))
+    band = tuple(float(v) for v in params.get("band", "0.1,2.0").split(","))
+    if len(band) != 2 or band[0] >= band[1]:
+        raise ValueError(f"band must be h_min,h_max with h_min < h_max, got {params.get('band')}")
+    objects = scene.truth_objects(stamp_ns / 1e9)
+    margin = scene.wall_thickness_m
+    window = Window.covering(
+        -margin,
+        -margin,
+        scene.floor_size_m[0] + margin,
+        scene.floor_size_m[1] + margin,
+        resolution_m,
+    )
+    if window.cols * window.rows > 25_000_000:
+        raise ValueError(
+            f"resolution {resolution_m} m gives a grid of {window.cols}×{window.rows}: too large"
+        )
+    occupied = truth.occupancy(objects, window, resolution_m, (band[0], band[1]))
+    header = TruthHeader(
+        stamp_ns=stamp_ns,
+        resolution_m=resolution_m,
+        height_band_m=(band[0], band[1]),
+        i0=window.i0,
+        j0=window.j0,
+        cols=window.cols,
+        rows=window.rows,
+        floor_size_m=scene.floor_size_m,
+        objects=objects,
+    )
+    return encode(TRUTH_KIND, header, {"occupied": occupied})
+
+
+def main(settings: CameraSimSettings) -> None:
+    from services.camera_sim.render import SceneRenderer  # mujoco only where rendering happens
+
+    setup_logging("camera_sim", settings.log_level)
+    stop = stop_on_signals()
+    scene = settings.scene_spec()
+    calibrations = layout_pairs(settings.rig(), scene.floor_size_m)
+    if settings.pairs:
+        calibrations = [c for c in calibrations if c.pair in settings.pairs]
+    renderer = SceneRenderer(scene, calibrations, settings.shadows, settings.vary_lighting)
+    period_s = 1.0 / settings.rate_hz
+    stats = {"published": 0, "skipped": 0, "render_ms": 0.0}
+
+    with open_session(settings) as session:
+        publishers = {
+            # BLOCK: a frame is never dropped by Zenoh on the way; depth keeps only the latest, so the
+            # queue behind a slow consumer is one frame deep, not unbounded.
+            c.pair: session.declare_publisher(
+                keys.stereo(c.pair),
+                encoding=WIRE_ENCODING,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            for c in calibrations
+        }
+        calib_payloads = {c.pair: encode(CALIB_KIND, c) for c in calibrations}
+        queryables = [
+            session.declare_queryable(
+                keys.calib(c.pair),
+                lambda q, payload=calib_payloads[c.pair]: q.reply(
+                    q.key_expr, payload, encoding=WIRE_ENCODING
+                ),
+            )
+            for c in calibrations
+        ]
+
+        def on_truth(query: zenoh.Query) -> None:
+            try:
+                query.reply(query.key_expr, _truth_reply(scene, query), encoding=WIRE_ENCODING)
+            except (ValueError, KeyError) as error:
+                query.reply_err(
+                    f"sim/truth: {error}; parameters: t or stamp_ns, resolution, band=h_min,h_max"
+                )
+
+        if settings.serve_truth:
+            queryables.append(session.declare_queryable(keys.SIM_TRUTH, on_truth))
+        log.info(
+            "started",
+            extra={
+                "pairs": ",".join(publishers),
+                "rate_hz": settings.rate_hz,
+                "objects": len(scene.objects),
+                "movers": len(scene.movers),
+            },
+        )
+        seq = 0
+        next_tick = time.monotonic()
+        last_summary = time.monotonic()
+        while not stop.is_set() and (settings.frames == 0 or seq < settings.frames):
+            stamp_ns = time.time_ns()
+            started = time.perf_counter()
+            renderer.set_time(stamp_ns / 1e9)
+            for calib in calibrations:
+                left = renderer.render_gray(
+                    f"{calib.pair}_left", calib.left.width, calib.left.height
+                )
+                right = renderer.render_gray(
+                    f"{calib.pair}_right", calib.right.width, calib.right.height
+                )
+                header = StereoFrameHeader(
+                    pair=calib.pair, seq=seq, stamp_ns=stamp_ns, encoding="raw"
+                )
+                publishers[calib.pair].put(
+                    encode(STEREO_KIND, header, {"left": left, "right": right})
+                )
+                stats["published"] += 1
+            stats["render_ms"] += (time.perf_counter() - started) * 1e3
+            seq += 1
+            next_tick += period_s
+            now = time.monotonic()
+            if now > next_tick:  # fell behind: skip the ticks we missed rather than queue them
+                missed = int((now - next_tick) // period_s) + 1
+                stats["skipped"] += missed * len(calibrations)
+                next_tick += missed * period_s
+            if now - last_summary >= 10.0:
+                log.info(
+                    "summary",
+                    extra={
+                        "frames": stats["published"],
+                        "skipped": stats["skipped"],
+                        "render_ms_per_round": stats["render_ms"] / max(seq, 1),
+                    },
+                )
+                last_summary = now
+            stop.wait(max(0.0, next_tick - time.monotonic()))
+        for queryable in queryables:
+            queryable.undeclare()
+    renderer.close()
+    log.info("stopped", extra={"frames": stats["published"], "skipped": stats["skipped"]})
+
+
+def cli(argv: Sequence[str] | None = None) -> None:
+    main(
+        parse_settings(
+            CameraSimSettings,
+            argv,
+            "overgrid camera-sim",
+            "Simulated overhead stereo pairs (MuJoCo), published over Zenoh.",
+        )
+    )

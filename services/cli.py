@@ -1,0 +1,27 @@
+"""``overgrid`` command: one subcommand per service or tool; heavy imports happen only when chosen."""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from collections.abc import Sequence
+
+COMMANDS = {
+    "camera-sim": ("services.camera_sim.service", "simulated overhead stereo pairs (MuJoCo)"),
+    "save-frame": ("services.camera_sim.save_frame", "save one stereo frame of a pair as PNG"),
+}
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help") or args[0] not in COMMANDS:
+        width = max(len(name) for name in COMMANDS)
+        lines = [f"  {name:<{width}}  {help_text}" for name, (_, help_text) in COMMANDS.items()]
+        print("usage: overgrid COMMAND [options]\n\ncommands:\n" + "\n".join(lines))
+        raise SystemExit(0 if args and args[0] in ("-h", "--help") else 2)
+    module = importlib.import_module(COMMANDS[args[0]][0])
+    module.cli(args[1:])
+
+
+if __name__ == "__main__":
+    main()

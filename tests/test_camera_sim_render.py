@@ -1,0 +1,103 @@
+"""Real MuJoCo renders (EGL on CPU) agree with the scene geometry and the published calibration."""
+
+import numpy as np
+import pytest
+
+from services.camera_sim.render import SceneRenderer
+from services.camera_sim.rig import RigSpec, layout_pairs
+from services.camera_sim.scene import ObjectSpec, SceneSpec, generate_scene
+
+BOX = ObjectSpec(name="box_a", shape="box", center_xy_m=(3.3, 2.7), size_m=(1.0, 0.8, 1.25))
+
+
+@pytest.fixture(scope="module")
+def rendered() -> tuple[SceneSpec, list, SceneRenderer]:
+    scene = SceneSpec(objects=[BOX])
+    calibrations = layout_pairs(RigSpec(), scene.floor_size_m)
+    renderer = SceneRenderer(scene, calibrations)
+    renderer.set_time(0.0)
+    yield scene, calibrations, renderer
+    renderer.close()
+
+
+def test_floor_depth_matches_camera_height(rendered) -> None:
+    _, calibrations, renderer = rendered
+    calib = calibrations[0]
+    depth = renderer.render_depth("p0_left", 640, 480)
+    u, v, z = calib.left.project([(1.0, 4.5, 0.0)])[0]  # bare floor, in view
+    assert z == pytest.approx(6.0)
+    assert depth[round(v), round(u)] == pytest.approx(6.0, abs=2e-3)
+
+
+def test_box_top_appears_at_its_height_where_the_calibration_projects_it(rendered) -> None:
+    _, calibrations, renderer = rendered
+    calib = calibrations[0]
+    depth = renderer.render_depth("p0_left", 640, 480)
+    top = 1.25
+    for corner_sign in (
+        (0.4, 0.3),
+        (-0.4, -0.3),
+        (0.4, -0.3),
+    ):  # inside the top face, near its corners
+        point = (BOX.center_xy_m[0] + corner_sign[0], BOX.center_xy_m[1] + corner_sign[1], top)
+        u, v, _z = calib.left.project([point])[0]
+        assert depth[round(v), round(u)] == pytest.approx(6.0 - top, abs=2e-3)
+    # Just outside the box's footprint, the floor (or the box's side) is seen, not the top.
+    u, v, _ = calib.left.project([(BOX.center_xy_m[0] + 0.56, BOX.center_xy_m[1], top)])[0]
+    assert depth[round(v), round(u)] > 6.0 - top + 0.05
+
+
+def test_right_camera_sees_the_same_box_shifted_by_the_disparity(rendered) -> None:
+    _, calibrations, renderer = rendered
+    calib = calibrations[0]
+    point = (BOX.center_xy_m[0], BOX.center_xy_m[1], 1.25)
+    u_left, v_left, z = calib.left.project([point])[0]
+    u_right, v_right, _ = calib.right.project([point])[0]
+    assert v_left == pytest.approx(v_right)
+    assert u_left - u_right == pytest.approx(calib.left.focal_px * calib.baseline_m / z)
+    depth_right = renderer.render_depth("p0_right", 640, 480)
+    assert depth_right[round(v_right), round(u_right)] == pytest.approx(6.0 - 1.25, abs=2e-3)
+
+
+def test_textured_floor_has_texture_and_plain_floor_has_none() -> None:
+    calibrations = layout_pairs(RigSpec(pair_count=1), (12.0, 10.0))
+    stds = {}
+    for floor in ("textured", "plain"):
+        renderer = SceneRenderer(SceneSpec(floor=floor), calibrations)
+        renderer.set_time(0.0)
+        image = renderer.render_gray("p0_left", 640, 480)
+        stds[floor] = float(image[200:280, 280:360].std())
+        renderer.close()
+    assert stds["textured"] > 20.0
+    assert stds["plain"] < 2.0
+
+
+def test_movers_follow_their_path_as_a_pure_function_of_time() -> None:
+    scene = generate_scene(3)
+    mover = scene.movers[0]
+    a = mover.state_at(1234.5)
+    assert a == mover.state_at(1234.5)
+    (x0, y0), (vx, vy) = mover.state_at(100.0)
+    (x1, y1), _ = mover.state_at(100.1)
+    assert np.hypot(x1 - x0, y1 - y0) == pytest.approx(mover.speed_mps * 0.1, rel=1e-3)
+    assert np.hypot(vx, vy) == pytest.approx(mover.speed_mps)
+
+
+def test_generated_scene_respects_the_brief() -> None:
+    scene = generate_scene(0)
+    tops = [o.size_m[2] for o in scene.objects]
+    assert len(scene.objects) >= 8 and len(scene.movers) >= 2
+    assert all(0.2 <= t <= 2.0 for t in tops)
+    assert {o.shape for o in scene.objects} == {"box", "cylinder", "shelf"}
+
+
+def test_pair_footprints_cover_the_floor() -> None:
+    calibrations = layout_pairs(RigSpec(), (12.0, 10.0))
+    xs, ys = np.meshgrid(np.linspace(0.05, 11.95, 60), np.linspace(0.05, 9.95, 50))
+    floor = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)])
+    seen = np.zeros(len(floor), dtype=bool)
+    for calib in calibrations:
+        for camera in (calib.left, calib.right):
+            u, v, _ = camera.project(floor).T
+            seen |= (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    assert seen.all()

@@ -1,0 +1,97 @@
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from common.codec import CodecError, decode, encode
+from common.messages import STEREO_KIND, TILE_KIND, StereoFrameHeader, TileHeader
+
+
+def _frame() -> bytes:
+    header = StereoFrameHeader(pair="p0", seq=7, stamp_ns=123, encoding="raw")
+    left = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    return encode(STEREO_KIND, header, {"left": left, "right": left[::-1]})
+
+
+def test_round_trip_keeps_header_and_arrays() -> None:
+    message = decode(_frame(), STEREO_KIND, StereoFrameHeader)
+    assert message.header.seq == 7 and message.header.pair == "p0"
+    np.testing.assert_array_equal(
+        message.arrays["left"], np.arange(12, dtype=np.uint8).reshape(3, 4)
+    )
+    np.testing.assert_array_equal(
+        message.arrays["right"], np.arange(12, dtype=np.uint8).reshape(3, 4)[::-1]
+    )
+
+
+def test_float_arrays_with_nan_round_trip() -> None:
+    header = TileHeader(
+        pair="p1", seq=0, stamp_ns=1, resolution_m=0.05, i0=-3, j0=4, cols=2, rows=1
+    )
+    heights = np.array([[np.nan, 1.5]], dtype=np.float32)
+    message = decode(encode(TILE_KIND, header, {"height_m": heights}), TILE_KIND, TileHeader)
+    assert message.header.i0 == -3
+    np.testing.assert_array_equal(message.arrays["height_m"], heights)
+
+
+def test_truncated_message_is_rejected() -> None:
+    payload = _frame()
+    with pytest.raises(CodecError, match="msgpack"):
+        decode(payload[: len(payload) // 2], STEREO_KIND, StereoFrameHeader)
+
+
+def test_oversized_message_is_rejected_before_decoding() -> None:
+    with pytest.raises(CodecError, match="exceeds the limit"):
+        decode(_frame(), STEREO_KIND, StereoFrameHeader, max_bytes=64)
+
+
+def test_wrong_kind_and_wrong_header_types_are_rejected() -> None:
+    with pytest.raises(CodecError, match="kind"):
+        decode(_frame(), TILE_KIND, TileHeader)
+    bad = msgpack.packb(
+        {
+            "v": 1,
+            "kind": STEREO_KIND,
+            "header": {"pair": "p0", "seq": "x", "stamp_ns": 1},
+            "arrays": {},
+            "blobs": {},
+        }
+    )
+    with pytest.raises(CodecError, match="seq"):
+        decode(bad, STEREO_KIND, StereoFrameHeader)
+
+
+def test_array_whose_bytes_disagree_with_shape_is_rejected() -> None:
+    bad = msgpack.packb(
+        {
+            "v": 1,
+            "kind": STEREO_KIND,
+            "header": {"pair": "p0", "seq": 1, "stamp_ns": 1},
+            "arrays": {"left": {"dtype": "|u1", "shape": [1000, 1000], "data": b"abc"}},
+            "blobs": {},
+        }
+    )
+    with pytest.raises(CodecError, match="needs 1000000 bytes"):
+        decode(bad, STEREO_KIND, StereoFrameHeader)
+
+
+def test_disallowed_dtype_is_rejected() -> None:
+    bad = msgpack.packb(
+        {
+            "v": 1,
+            "kind": STEREO_KIND,
+            "header": {"pair": "p0", "seq": 1, "stamp_ns": 1},
+            "arrays": {"left": {"dtype": "|O", "shape": [1], "data": b"a"}},
+            "blobs": {},
+        }
+    )
+    with pytest.raises(CodecError, match="dtype"):
+        decode(bad, STEREO_KIND, StereoFrameHeader)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=512))
+def test_random_bytes_only_ever_raise_codec_error(payload: bytes) -> None:
+    with pytest.raises(CodecError):
+        decode(payload, STEREO_KIND, StereoFrameHeader)
