@@ -39,6 +39,11 @@ def depth_alive(pair: str) -> str:
     return f"depth/{check_pair_id(pair)}/alive"
 
 
+def depth_health(pair: str) -> str:
+    """Queryable: JSON counters of one depth process (tiles, skipped, rejected by reason, stage times)."""
+    return f"depth/{check_pair_id(pair)}/health"
+
+
 def pair_of(key: str) -> str:
     """The pair chunk of ``cam/{pair}/…`` or ``depth/{pair}/…``, namespace already stripped."""
     parts = str(key).split("/")

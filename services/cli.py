@@ -8,6 +8,7 @@ from collections.abc import Sequence
 
 COMMANDS = {
     "camera-sim": ("services.camera_sim.service", "simulated overhead stereo pairs (MuJoCo)"),
+    "depth": ("services.depth.service", "depth process of one stereo pair: images → tiles"),
     "save-frame": ("services.camera_sim.save_frame", "save one stereo frame of a pair as PNG"),
 }
 

@@ -1,0 +1,1 @@
+"""Per-pair depth: stereo images → disparity → world points → occupancy tile on the global lattice."""

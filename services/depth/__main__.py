@@ -1,0 +1,3 @@
+from services.depth.service import cli
+
+cli()

@@ -1,0 +1,103 @@
+"""Frame → tile for one pair, with per-stage times. Everything per calibration is done once here."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from common.camera import StereoCalibration
+from common.lattice import check_resolution
+from common.sensor_model import SensorModelParams
+from services.depth.inverse_model import Tile, build_tile
+from services.depth.projection import WorldPoints, project_to_world
+from services.depth.stereo import (
+    MatcherConfig,
+    Rectifier,
+    disparity_px,
+    invalidate_depth_edges,
+    make_matcher,
+)
+
+SEARCH_MARGIN_M = 0.15
+"""Search a little below the floor and above the band's top so their disparities are not clipped."""
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    resolution_m: float = 0.05
+    downscale: int = 2
+    matcher: MatcherConfig = field(default_factory=MatcherConfig)
+    model: SensorModelParams = field(default_factory=SensorModelParams)
+    min_cell_pixels: int = 3
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    tile: Tile
+    points: WorldPoints
+    disparity_px: npt.NDArray[np.float32]
+    stage_ms: dict[str, float]
+
+
+def to_gray(image: np.ndarray) -> npt.NDArray[np.uint8]:
+    if image.dtype != np.uint8:
+        raise ValueError(f"image dtype is {image.dtype}, expected uint8")
+    if image.ndim == 3 and image.shape[2] == 3:
+        return np.asarray(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY))
+    if image.ndim != 2:
+        raise ValueError(f"image shape {image.shape} is neither H×W gray nor H×W×3 colour")
+    return image
+
+
+class DepthPipeline:
+    def __init__(self, calib: StereoCalibration, config: PipelineConfig) -> None:
+        check_resolution(config.resolution_m)
+        self.calib = calib
+        self.config = config
+        self.rectifier = Rectifier.from_calibration(calib, config.downscale)
+        self.rays_world = self.rectifier.pixel_rays_world()
+        self.min_disparity, self.num_disparities = self.rectifier.disparity_band(
+            -SEARCH_MARGIN_M, config.model.obstacle_max_m + SEARCH_MARGIN_M
+        )
+        self.matcher = make_matcher(config.matcher, self.min_disparity, self.num_disparities)
+
+    def check_frame(self, left: np.ndarray, right: np.ndarray) -> None:
+        width, height = self.calib.image_size
+        for side, image in (("left", left), ("right", right)):
+            if image.shape[:2] != (height, width):
+                raise ValueError(
+                    f"{side} image of pair {self.calib.pair} is {image.shape[1]}×{image.shape[0]}, "
+                    f"calibration says {width}×{height}"
+                )
+
+    def process(self, left: np.ndarray, right: np.ndarray) -> FrameResult:
+        self.check_frame(left, right)
+        times = [time.perf_counter()]
+        left_rect, right_rect = self.rectifier.rectify(to_gray(left), to_gray(right))
+        times.append(time.perf_counter())
+        disparity = disparity_px(self.matcher, left_rect, right_rect, self.min_disparity)
+        disparity = invalidate_depth_edges(disparity, self.config.matcher.edge_filter_px)
+        times.append(time.perf_counter())
+        points = project_to_world(
+            disparity,
+            self.rays_world,
+            self.rectifier.C_world,
+            self.rectifier.focal_px,
+            self.rectifier.baseline_m,
+            self.config.model,
+            self.config.downscale,
+        )
+        times.append(time.perf_counter())
+        tile = build_tile(
+            points, self.config.resolution_m, self.config.model, self.config.min_cell_pixels
+        )
+        times.append(time.perf_counter())
+        names = ("rectify", "disparity", "projection", "model")
+        stage_ms = {
+            name: (b - a) * 1e3 for name, a, b in zip(names, times[:-1], times[1:], strict=True)
+        }
+        return FrameResult(tile=tile, points=points, disparity_px=disparity, stage_ms=stage_ms)

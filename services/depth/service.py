@@ -1,0 +1,307 @@
+"""Depth process of one stereo pair: frames in (Zenoh or recordings), tiles out on depth/{pair}/tile."""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+import zenoh
+from pydantic import Field, model_validator
+
+from common import keys
+from common.camera import StereoCalibration
+from common.codec import WIRE_ENCODING, CodecError, decode, encode, pack_arrays
+from common.lifecycle import stop_on_signals
+from common.logs import RateLimitedLog, setup_logging
+from common.messages import CALIB_KIND, STEREO_KIND, TILE_KIND, StereoFrameHeader, TileHeader
+from common.sensor_model import SensorModelParams
+from common.settings import ZenohSettings, parse_settings
+from common.zenoh_session import open_session
+from services.depth.pipeline import DepthPipeline, PipelineConfig
+from services.depth.sources import LatestSlot, load_calibration, recorded_frames
+from services.depth.stereo import MatcherConfig
+
+log = logging.getLogger("depth")
+
+StopWait = Callable[[float], bool]
+"""Waits up to the given seconds; True once the process is asked to stop."""
+
+
+class DepthSettings(ZenohSettings):
+    pair: str = Field(description="stereo pair id this process serves (e.g. p0)")
+    calib: Path | None = Field(
+        None, description="calibration file (YAML/JSON); default: query cam/{pair}/calib"
+    )
+    images: Path | None = Field(
+        None, description="recorded input: folder of image pairs or side-by-side video"
+    )
+    rate_hz: float = Field(
+        0.0, ge=0.0, description="pace for recorded input (0: as fast as processed)"
+    )
+    resolution_m: float = Field(0.05, gt=0.0, le=1.0, description="lattice cell size")
+    downscale: Literal[1, 2, 4] = Field(2, description="process images at 1/downscale resolution")
+    matcher: Literal["sgbm", "bm"] = Field("sgbm", description="stereo matcher")
+    block_size: int = Field(3, ge=1, le=21, description="matcher block size (odd)")
+    edge_filter_px: float = Field(
+        0.75, ge=0.0, description="drop pixels whose 3×3 disparity range exceeds this (0: off)"
+    )
+    disparity_sigma_px: float = Field(0.25, gt=0.0, description="Δd, disparity noise")
+    calibration_sigma_m: float = Field(0.01, ge=0.0, description="ε, calibration error term")
+    obstacle_min_m: float = Field(0.10, ge=0.0, description="lowest height that blocks a robot")
+    obstacle_max_m: float = Field(2.0, gt=0.0, description="highest height that blocks a robot")
+    p_hit: float = Field(0.7, gt=0.5, lt=1.0, description="occupied evidence bound")
+    p_miss: float = Field(0.4, gt=0.0, lt=0.5, description="free evidence bound")
+    max_message_mb: float = Field(32.0, gt=0.0, description="reject larger frame messages")
+    threads: int = Field(1, ge=0, le=64, description="OpenCV threads (0: OpenCV's default)")
+    calib_timeout_s: float = Field(
+        0.0, ge=0.0, description="give up waiting for calibration (0: never)"
+    )
+    summary_s: float = Field(10.0, gt=0.0, description="period of the summary log line")
+
+    @model_validator(mode="after")
+    def _checks(self) -> DepthSettings:
+        keys.check_pair_id(self.pair)
+        if self.block_size % 2 == 0:
+            raise ValueError(f"--block-size must be odd, got {self.block_size}")
+        if self.obstacle_min_m >= self.obstacle_max_m:
+            raise ValueError("--obstacle-min-m must be below --obstacle-max-m")
+        return self
+
+    def pipeline_config(self) -> PipelineConfig:
+        return PipelineConfig(
+            resolution_m=self.resolution_m,
+            downscale=self.downscale,
+            matcher=MatcherConfig(
+                algorithm=self.matcher,
+                block_size=self.block_size,
+                edge_filter_px=self.edge_filter_px,
+            ),
+            model=SensorModelParams(
+                disparity_sigma_px=self.disparity_sigma_px,
+                calibration_sigma_m=self.calibration_sigma_m,
+                obstacle_min_m=self.obstacle_min_m,
+                obstacle_max_m=self.obstacle_max_m,
+                p_hit=self.p_hit,
+                p_miss=self.p_miss,
+            ),
+        )
+
+
+def fetch_calibration(
+    session: zenoh.Session, settings: DepthSettings, stop_wait: StopWait
+) -> StereoCalibration | None:
+    """Ask cam/{pair}/calib until a valid answer arrives; a bad answer is logged, not fatal."""
+    started = time.monotonic()
+    while True:
+        for reply in session.get(keys.calib(settings.pair), timeout=2.0):
+            if reply.ok is None:
+                continue
+            try:
+                return decode(reply.ok.payload.to_bytes(), CALIB_KIND, StereoCalibration).header
+            except CodecError as error:
+                log.error(
+                    "calibration rejected", extra={"pair": settings.pair, "error": str(error)}
+                )
+        if settings.calib_timeout_s and time.monotonic() - started > settings.calib_timeout_s:
+            raise SystemExit(
+                f"no calibration on {keys.calib(settings.pair)} within {settings.calib_timeout_s} s"
+            )
+        log.info("waiting for calibration", extra={"key": keys.calib(settings.pair)})
+        if stop_wait(1.0):
+            return None
+
+
+@dataclass(frozen=True)
+class Frame:
+    header: StereoFrameHeader
+    left: np.ndarray
+    right: np.ndarray
+
+
+class TilePublisher:
+    """Encodes and publishes tiles; keeps the counters the summary log reports."""
+
+    def __init__(self, session: zenoh.Session, pair: str) -> None:
+        # BLOCK: tiles are evidence; a dropped tile is a silent hole in the map.
+        self._publisher = session.declare_publisher(
+            keys.tile(pair),
+            encoding=WIRE_ENCODING,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+        self.pair = pair
+        self.published = 0
+        self.stage_ms_sum: Counter[str] = Counter()
+
+    def publish(
+        self, pipeline: DepthPipeline, left: np.ndarray, right: np.ndarray, seq: int, stamp_ns: int
+    ) -> None:
+        result = pipeline.process(left, right)
+        started = time.perf_counter()
+        packed = pack_arrays(result.tile.arrays())
+        stage_ms = {**result.stage_ms, "encode": (time.perf_counter() - started) * 1e3}
+        window = result.tile.window
+        header = TileHeader(
+            pair=self.pair,
+            seq=seq,
+            stamp_ns=stamp_ns,
+            resolution_m=result.tile.resolution_m,
+            i0=window.i0,
+            j0=window.j0,
+            cols=window.cols,
+            rows=window.rows,
+            stage_ms=stage_ms,
+        )
+        self._publisher.put(encode(TILE_KIND, header, packed_arrays=packed))
+        self.published += 1
+        self.stage_ms_sum.update(stage_ms)
+
+
+def _recorded_loop(
+    settings: DepthSettings, pipeline: DepthPipeline, publisher: TilePublisher, stop_wait: StopWait
+) -> None:
+    period_s = 1.0 / settings.rate_hz if settings.rate_hz else 0.0
+    assert settings.images is not None
+    frames: Iterator[tuple[np.ndarray, np.ndarray]] = recorded_frames(settings.images)
+    for seq, (left, right) in enumerate(frames):
+        try:
+            publisher.publish(pipeline, left, right, seq, time.time_ns())
+        except ValueError as error:
+            log.error("frame rejected", extra={"seq": seq, "error": str(error)})
+        if stop_wait(period_s):
+            return
+
+
+class FrameIntake:
+    """Subscriber side: every message is decoded and checked on arrival, so each bad one is counted
+    and logged; good frames go to a one-deep slot (the worker takes the newest)."""
+
+    def __init__(self, pipeline: DepthPipeline, max_bytes: int) -> None:
+        self._pipeline = pipeline
+        self._max_bytes = max_bytes
+        self._lock = threading.Lock()
+        self._warn = RateLimitedLog(log)
+        self.rejected: Counter[str] = Counter()
+        self.slot: LatestSlot[Frame] = LatestSlot()
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        try:
+            self.slot.put(self._parse(sample.payload.to_bytes()))
+        except (CodecError, KeyError) as error:
+            self._reject("malformed", error)
+        except (ValueError, cv2.error) as error:
+            self._reject("bad_image", error)
+
+    def _parse(self, payload: bytes) -> Frame:
+        message = decode(payload, STEREO_KIND, StereoFrameHeader, self._max_bytes)
+        if message.header.encoding == "raw":
+            left, right = message.arrays["left"], message.arrays["right"]
+        else:
+            left, right = (
+                cv2.imdecode(np.frombuffer(message.blobs[side], np.uint8), cv2.IMREAD_GRAYSCALE)
+                for side in ("left", "right")
+            )
+            if left is None or right is None:
+                raise ValueError(f"{message.header.encoding} images do not decode")
+        self._pipeline.check_frame(left, right)
+        return Frame(message.header, left, right)
+
+    def _reject(self, reason: str, error: Exception) -> None:
+        with self._lock:
+            self.rejected[reason] += 1
+            total = sum(self.rejected.values())
+        self._warn.warning(
+            reason, "frame rejected", reason=reason, error=str(error)[:200], rejected=total
+        )
+
+
+def main(settings: DepthSettings) -> None:
+    setup_logging(f"depth.{settings.pair}", settings.log_level)
+    if settings.threads:
+        cv2.setNumThreads(settings.threads)
+    stop = stop_on_signals()
+    with open_session(settings) as session:
+        calib = (
+            load_calibration(settings.calib)
+            if settings.calib
+            else fetch_calibration(session, settings, stop.wait)
+        )
+        if calib is None:
+            return
+        if calib.pair != settings.pair:
+            log.warning(
+                "calibration names another pair",
+                extra={"calib_pair": calib.pair, "pair": settings.pair},
+            )
+        try:
+            pipeline = DepthPipeline(calib, settings.pipeline_config())
+        except (ValueError, cv2.error) as error:
+            raise SystemExit(f"calibration of pair {settings.pair} is unusable: {error}") from None
+        publisher = TilePublisher(session, settings.pair)
+        intake = FrameIntake(pipeline, int(settings.max_message_mb * 1024 * 1024))
+
+        def health() -> dict[str, Any]:
+            n = max(publisher.published, 1)
+            return {
+                "pair": settings.pair,
+                "tiles": publisher.published,
+                "skipped": intake.slot.replaced,
+                "rejected": dict(intake.rejected),
+                "stage_ms_mean": {k: v / n for k, v in publisher.stage_ms_sum.items()},
+            }
+
+        token = session.liveliness().declare_token(keys.depth_alive(settings.pair))
+        health_queryable = session.declare_queryable(
+            keys.depth_health(settings.pair),
+            lambda q: q.reply(q.key_expr, json.dumps(health()), encoding="application/json"),
+        )
+        log.info(
+            "started",
+            extra={
+                "pair": settings.pair,
+                "disparities": f"{pipeline.min_disparity}+{pipeline.num_disparities}",
+                "baseline_m": calib.baseline_m,
+                "input": str(settings.images or keys.stereo(settings.pair)),
+            },
+        )
+        if settings.images is not None:
+            _recorded_loop(settings, pipeline, publisher, stop.wait)
+        else:
+            subscriber = session.declare_subscriber(keys.stereo(settings.pair), intake.on_sample)
+            last_summary = time.monotonic()
+            while not stop.is_set():
+                frame = intake.slot.take(0.5)
+                if frame is not None:
+                    publisher.publish(
+                        pipeline, frame.left, frame.right, frame.header.seq, frame.header.stamp_ns
+                    )
+                if time.monotonic() - last_summary >= settings.summary_s:
+                    last_summary = time.monotonic()
+                    counters = health()
+                    stage_ms = counters.pop("stage_ms_mean")
+                    log.info(
+                        "summary", extra={**counters, **{f"{k}_ms": v for k, v in stage_ms.items()}}
+                    )
+            subscriber.undeclare()
+        health_queryable.undeclare()
+        token.undeclare()
+    log.info("stopped", extra={"tiles": publisher.published, "rejected": dict(intake.rejected)})
+
+
+def cli(argv: Sequence[str] | None = None) -> None:
+    main(
+        parse_settings(
+            DepthSettings,
+            argv,
+            "overgrid depth",
+            "Depth process of one stereo pair: images → occupancy tiles.",
+        )
+    )

@@ -1,0 +1,99 @@
+"""Inputs of the depth service besides the pipeline: calibration files and recorded stereo images.
+
+Recorded images go through exactly the same pipeline as Zenoh frames, so real cameras can replace the
+simulator. Supported: a folder with ``left/`` and ``right/`` sub-folders (matching sorted file
+names), a folder of ``*_left.*`` / ``*_right.*`` files, or a side-by-side video (left | right).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Generic, TypeVar
+
+import cv2
+import numpy as np
+import yaml
+
+from common.camera import StereoCalibration
+
+T = TypeVar("T")
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"}
+
+
+def load_calibration(path: Path) -> StereoCalibration:
+    """A YAML or JSON file with the fields of :class:`StereoCalibration` (see README)."""
+    text = Path(path).read_text()
+    data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+    return StereoCalibration.model_validate(data)
+
+
+def _image_pairs(folder: Path) -> list[tuple[Path, Path]]:
+    def images(directory: Path, pattern: str = "*") -> list[Path]:
+        return sorted(p for p in directory.glob(pattern) if p.suffix.lower() in IMAGE_SUFFIXES)
+
+    if (folder / "left").is_dir() and (folder / "right").is_dir():
+        lefts, rights = images(folder / "left"), images(folder / "right")
+        if [p.name for p in lefts] != [p.name for p in rights]:
+            raise ValueError(f"{folder}/left and {folder}/right do not hold the same file names")
+        return list(zip(lefts, rights, strict=True))
+    lefts = images(folder, "*_left.*")
+    pairs = [(p, p.with_name(p.name.replace("_left.", "_right."))) for p in lefts]
+    missing = [str(r) for _, r in pairs if not r.exists()]
+    if missing:
+        raise ValueError(f"right images missing for: {missing[:3]}")
+    if not pairs:
+        raise ValueError(f"{folder} holds no left/ and right/ folders and no *_left.* images")
+    return pairs
+
+
+def recorded_frames(source: Path) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Stereo frames from a folder of image pairs or a side-by-side video file."""
+    if source.is_dir():
+        for left_path, right_path in _image_pairs(source):
+            left = cv2.imread(str(left_path), cv2.IMREAD_GRAYSCALE)
+            right = cv2.imread(str(right_path), cv2.IMREAD_GRAYSCALE)
+            if left is None or right is None:
+                raise ValueError(f"cannot read {left_path} or {right_path}")
+            yield left, right
+        return
+    capture = cv2.VideoCapture(str(source))
+    if not capture.isOpened():
+        raise ValueError(f"cannot open {source} as a folder of image pairs or a video")
+    try:
+        while True:
+            ok, frame = capture.read()
+            if not ok:
+                return
+            gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+            half = gray.shape[1] // 2
+            yield gray[:, :half], gray[:, half:]
+    finally:
+        capture.release()
+
+
+class LatestSlot(Generic[T]):
+    """One-deep mailbox: a new item replaces an unread one (counted), so a slow consumer works on
+    the newest frame and memory stays bounded."""
+
+    def __init__(self) -> None:
+        self._item: T | None = None
+        self._cond = threading.Condition()
+        self.replaced = 0
+
+    def put(self, item: T) -> None:
+        with self._cond:
+            if self._item is not None:
+                self.replaced += 1
+            self._item = item
+            self._cond.notify()
+
+    def take(self, timeout_s: float) -> T | None:
+        with self._cond:
+            if self._item is None:
+                self._cond.wait(timeout_s)
+            item, self._item = self._item, None
+            return item

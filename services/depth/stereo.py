@@ -1,0 +1,203 @@
+"""Rectification (maps computed once per calibration) and SGBM disparity over a search band
+derived from the geometry: from the floor's disparity to that of the tallest height of interest."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from common.camera import StereoCalibration
+
+U8 = npt.NDArray[np.uint8]
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+
+
+def scale_intrinsics(K: F64, factor: float) -> F64:
+    """K of the image resized by ``factor`` (< 1 shrinks), keeping pixel centres consistent."""
+    scaled = K.copy()
+    scaled[0, 0] *= factor
+    scaled[1, 1] *= factor
+    scaled[0, 2] = (K[0, 2] + 0.5) * factor - 0.5
+    scaled[1, 2] = (K[1, 2] + 0.5) * factor - 0.5
+    return scaled
+
+
+@dataclass(frozen=True)
+class Rectifier:
+    """Undistort + rectify maps of one calibration at the processing resolution."""
+
+    size: tuple[int, int]
+    """(width, height) of the rectified images."""
+    downscale: int
+    focal_px: float
+    cx_px: float
+    cy_px: float
+    baseline_m: float
+    R_world_rect: F64
+    """Rotation from the rectified left camera frame to the world frame."""
+    C_world: F64
+    """Left camera centre in the world."""
+    _maps_left: tuple[npt.NDArray[np.int16], npt.NDArray[np.uint16]]
+    _maps_right: tuple[npt.NDArray[np.int16], npt.NDArray[np.uint16]]
+
+    @staticmethod
+    def from_calibration(calib: StereoCalibration, downscale: int = 2) -> Rectifier:
+        width, height = calib.image_size
+        if width % downscale or height % downscale:
+            raise ValueError(f"image {width}×{height} is not divisible by downscale {downscale}")
+        size = (width // downscale, height // downscale)
+        K1 = scale_intrinsics(calib.left.K_array, 1.0 / downscale)
+        K2 = scale_intrinsics(calib.right.K_array, 1.0 / downscale)
+        T = calib.T_right_left
+        R1, R2, P1, P2, _Q, _roi1, _roi2 = cv2.stereoRectify(
+            K1,
+            calib.left.dist_array,
+            K2,
+            calib.right.dist_array,
+            size,
+            T[:3, :3].copy(),
+            T[:3, 3].reshape(3, 1).copy(),
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            alpha=0,
+        )
+        if abs(P2[1, 3]) > abs(P2[0, 3]):
+            raise ValueError(
+                f"pair {calib.pair}: cameras are stacked vertically; overgrid needs a horizontal baseline"
+            )
+        if P2[0, 3] >= 0:
+            raise ValueError(
+                f"pair {calib.pair}: the right camera is to the left of the left camera; swap them"
+            )
+        maps_left = cv2.initUndistortRectifyMap(
+            K1, calib.left.dist_array, R1, P1, size, cv2.CV_16SC2
+        )
+        maps_right = cv2.initUndistortRectifyMap(
+            K2, calib.right.dist_array, R2, P2, size, cv2.CV_16SC2
+        )
+        R_world_left = calib.left.T_world_cam_array[:3, :3]
+        return Rectifier(
+            size=size,
+            downscale=downscale,
+            focal_px=float(P1[0, 0]),
+            cx_px=float(P1[0, 2]),
+            cy_px=float(P1[1, 2]),
+            baseline_m=float(-P2[0, 3] / P2[0, 0]),
+            R_world_rect=R_world_left @ R1.T,
+            C_world=calib.left.position_world.copy(),
+            _maps_left=maps_left,
+            _maps_right=maps_right,
+        )
+
+    def rectify(self, left: U8, right: U8) -> tuple[U8, U8]:
+        if self.downscale != 1:
+            # INTER_AREA first: remapping a full-resolution image at half density would alias.
+            left = cv2.resize(left, self.size, interpolation=cv2.INTER_AREA)
+            right = cv2.resize(right, self.size, interpolation=cv2.INTER_AREA)
+        return (
+            cv2.remap(left, *self._maps_left, cv2.INTER_LINEAR),
+            cv2.remap(right, *self._maps_right, cv2.INTER_LINEAR),
+        )
+
+    def pixel_rays_world(self) -> F32:
+        """World direction of every rectified pixel's ray, scaled so that depth z multiplies it:
+        P_world = C + z·ray. Shape (3, H, W)."""
+        width, height = self.size
+        u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+        rays_rect = np.stack(
+            [(u - self.cx_px) / self.focal_px, (v - self.cy_px) / self.focal_px, np.ones_like(u)]
+        )
+        return np.einsum("ij,jhw->ihw", self.R_world_rect, rays_rect).astype(np.float32)
+
+    def disparity_band(self, height_low_m: float, height_high_m: float) -> tuple[int, int]:
+        """(minDisparity, numDisparities) covering surfaces from ``height_low_m`` to ``height_high_m``
+        anywhere in the image; numDisparities is a multiple of 16 as SGBM requires."""
+        rays = self.pixel_rays_world()[:, ::8, ::8].reshape(3, -1)
+        down = -rays[2]
+        if np.any(down <= 1e-6):
+            raise ValueError("some pixels look at or above the horizon: not an overhead camera")
+        disparities = []
+        for height_m in (height_low_m, height_high_m):
+            depth_m = (self.C_world[2] - height_m) / down
+            if np.any(depth_m <= 0):
+                raise ValueError(
+                    f"height {height_m} m is at or above the camera ({self.C_world[2]:.2f} m)"
+                )
+            disparities.append(self.focal_px * self.baseline_m / depth_m)
+        d_min = max(0, math.floor(float(disparities[0].min())) - 1)
+        d_max = math.ceil(float(disparities[1].max())) + 1
+        return d_min, 16 * math.ceil((d_max - d_min) / 16)
+
+
+@dataclass(frozen=True)
+class MatcherConfig:
+    algorithm: Literal["sgbm", "bm"] = "sgbm"
+    block_size: int = 3
+    uniqueness_ratio: int = 10
+    speckle_window: int = 100
+    speckle_range: int = 2
+    edge_filter_px: float = 0.75
+
+
+def make_matcher(
+    config: MatcherConfig, min_disparity: int, num_disparities: int
+) -> cv2.StereoMatcher:
+    """SGBM 3WAY with preFilterCap=63 and P1/P2 ∝ blockSize²: the default preFilterCap=0 locks
+    disparities to whole pixels."""
+    bs = config.block_size
+    if config.algorithm == "bm":
+        matcher = cv2.StereoBM_create(numDisparities=num_disparities, blockSize=max(5, bs | 1))
+        matcher.setMinDisparity(min_disparity)
+        matcher.setUniquenessRatio(config.uniqueness_ratio)
+        matcher.setSpeckleWindowSize(config.speckle_window)
+        matcher.setSpeckleRange(config.speckle_range)
+        matcher.setTextureThreshold(10)
+        return matcher
+    return cv2.StereoSGBM_create(
+        minDisparity=min_disparity,
+        numDisparities=num_disparities,
+        blockSize=bs,
+        P1=8 * bs * bs,
+        P2=32 * bs * bs,
+        disp12MaxDiff=1,
+        preFilterCap=63,
+        uniquenessRatio=config.uniqueness_ratio,
+        speckleWindowSize=config.speckle_window,
+        speckleRange=config.speckle_range,
+        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    )
+
+
+def disparity_px(matcher: cv2.StereoMatcher, left: U8, right: U8, min_disparity: int) -> F32:
+    """Disparity in pixels (float32); invalid pixels are NaN."""
+    raw = matcher.compute(left, right)
+    disparity = raw.astype(np.float32) * (1.0 / 16.0)
+    disparity[raw < min_disparity * 16] = np.nan
+    return disparity
+
+
+_NEIGHBOURHOOD = np.ones((3, 3), np.uint8)
+
+
+def invalidate_depth_edges(disparity: F32, max_range_px: float) -> F32:
+    """NaN where the 3×3 neighbourhood spans more than ``max_range_px`` of disparity.
+
+    At a depth discontinuity block matching returns mixed foreground/background values ("flying
+    pixels") and fattens the foreground; they would put obstacles in the floor around every object.
+    Dropping them costs a pixel of coverage each side of an edge, and the cell stays unknown rather
+    than wrong. ``max_range_px <= 0`` disables the filter.
+    """
+    if max_range_px <= 0:
+        return disparity
+    invalid = np.isnan(disparity)
+    highest = cv2.dilate(np.where(invalid, -np.inf, disparity).astype(np.float32), _NEIGHBOURHOOD)
+    lowest = cv2.erode(np.where(invalid, np.inf, disparity).astype(np.float32), _NEIGHBOURHOOD)
+    filtered = disparity.copy()
+    with np.errstate(over="ignore", invalid="ignore"):  # all-invalid neighbourhoods: -inf - inf
+        filtered[highest - lowest > max_range_px] = np.nan
+    return filtered

@@ -1,0 +1,148 @@
+"""Real camera_sim and depth processes over Zenoh on loopback."""
+
+import json
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+import yaml
+import zenoh
+
+from common import keys
+from common.codec import WIRE_ENCODING, decode, encode
+from common.messages import STEREO_KIND, TILE_KIND, StereoFrameHeader, TileHeader
+from common.png import encode_png
+from services.camera_sim.render import SceneRenderer
+from services.camera_sim.rig import RigSpec, layout_pairs
+from services.camera_sim.scene import generate_scene
+from tests.conftest import Bus, wait_for
+
+pytestmark = pytest.mark.process
+
+
+class TileSink:
+    def __init__(self, session: zenoh.Session, pair: str = "*") -> None:
+        self.tiles: list[TileHeader] = []
+        self.lock = threading.Lock()
+        self.subscriber = session.declare_subscriber(f"depth/{pair}/tile", self._on_tile)
+
+    def _on_tile(self, sample: zenoh.Sample) -> None:
+        message = decode(sample.payload.to_bytes(), TILE_KIND, TileHeader)
+        with self.lock:
+            self.tiles.append(message.header)
+
+    def count(self) -> int:
+        with self.lock:
+            return len(self.tiles)
+
+
+def _health(session: zenoh.Session, pair: str) -> dict:
+    for reply in session.get(keys.depth_health(pair), timeout=3.0):
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_string())
+    return {}
+
+
+def _alive(session: zenoh.Session) -> set[str]:
+    return {
+        keys.pair_of(str(r.ok.key_expr))
+        for r in session.liveliness().get(keys.DEPTH_ALIVE_ALL, timeout=2.0)
+        if r.ok
+    }
+
+
+def test_depth_turns_frames_into_tiles_and_survives_bad_frames(bus: Bus) -> None:
+    sink = TileSink(bus.session)
+    bus.start("camera-sim", "--pair-count", "1", "--rate-hz", "4", "--frames", "400")
+    depth = bus.start("depth", "--pair", "p0")
+    wait_for(lambda: sink.count() >= 3, 60, "three tiles from the depth process")
+    first = sink.tiles[0]
+    assert first.pair == "p0" and first.resolution_m == 0.05
+    assert {"rectify", "disparity", "projection", "model", "encode"} <= set(first.stage_ms)
+    assert "p0" in _alive(bus.session)
+
+    # Malformed input on the pair's key: random bytes, a wrong-typed header, a frame of the wrong size.
+    publisher = bus.session.declare_publisher(keys.stereo("p0"), encoding=WIRE_ENCODING)
+    publisher.put(b"\x00garbage\xff" * 10)
+    publisher.put(msgpack.packb({"v": 1, "kind": "stereo", "header": {"pair": "p0", "seq": "x"}}))
+    small = np.zeros((240, 320), np.uint8)
+    huge_seq = 10**12  # ahead of the sim's sequence, so it is judged on its images, not its order
+    publisher.put(
+        encode(
+            STEREO_KIND,
+            StereoFrameHeader(pair="p0", seq=huge_seq, stamp_ns=time.time_ns()),
+            {"left": small, "right": small},
+        )
+    )
+    wait_for(
+        lambda: sum(_health(bus.session, "p0").get("rejected", {}).values()) >= 3,
+        20,
+        "3 rejections counted",
+    )
+    health = _health(bus.session, "p0")
+    assert (
+        health["rejected"].get("malformed", 0) >= 2 and health["rejected"].get("bad_image", 0) >= 1
+    )
+    before = sink.count()
+    wait_for(lambda: sink.count() >= before + 2, 30, "tiles to keep coming after bad frames")
+    assert depth.poll() is None
+
+    depth.send_signal(signal.SIGINT)
+    assert depth.wait(10) == 0
+    wait_for(lambda: "p0" not in _alive(bus.session), 5, "the liveliness token of p0 to vanish")
+
+
+def test_sigkill_of_the_depth_process_itself_drops_its_token(bus: Bus) -> None:
+    bus.start("camera-sim", "--pair-count", "1", "--rate-hz", "2", "--frames", "400")
+    depth = bus.start("depth", "--pair", "p0")
+    wait_for(lambda: "p0" in _alive(bus.session), 60, "p0 to become alive")
+    children = subprocess.run(
+        ["pgrep", "-P", str(depth.pid)], capture_output=True, text=True
+    ).stdout.split()
+    assert children, "the depth process runs under timeout"
+    killed_at = time.monotonic()
+    subprocess.run(["kill", "-KILL", children[0]], check=True)  # the real process, not `timeout`
+    wait_for(lambda: "p0" not in _alive(bus.session), 15, "the token to vanish")
+    assert time.monotonic() - killed_at < 15
+
+
+def test_recorded_images_and_calibration_file_go_through_the_same_pipeline(
+    bus: Bus, tmp_path: Path
+) -> None:
+    scene = generate_scene(1)
+    calib = layout_pairs(RigSpec(pair_count=1), scene.floor_size_m)[0]
+    renderer = SceneRenderer(scene, [calib])
+    (tmp_path / "left").mkdir()
+    (tmp_path / "right").mkdir()
+    for k, t in enumerate((0.0, 1.0, 2.0)):
+        renderer.set_time(t)
+        (tmp_path / "left" / f"{k:04d}.png").write_bytes(
+            encode_png(renderer.render_gray("p0_left", 640, 480))
+        )
+        (tmp_path / "right" / f"{k:04d}.png").write_bytes(
+            encode_png(renderer.render_gray("p0_right", 640, 480))
+        )
+    renderer.close()
+    calib_file = tmp_path / "calib.yaml"
+    calib_file.write_text(yaml.safe_dump(calib.model_dump(mode="json")))
+    sink = TileSink(bus.session, "cam7")
+    time.sleep(0.5)
+    bus.start(
+        "depth",
+        "--pair",
+        "cam7",
+        "--calib",
+        str(calib_file),
+        "--images",
+        str(tmp_path),
+        "--rate-hz",
+        "2",
+    )
+    wait_for(lambda: sink.count() >= 3, 60, "three tiles from recorded images")
+    assert [t.seq for t in sink.tiles[:3]] == [0, 1, 2]
+    assert all(t.cols * t.rows > 10_000 for t in sink.tiles[:3])

@@ -1,0 +1,82 @@
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from common.sensor_model import (
+    SensorModelParams,
+    cell_occupancy_probability,
+    depth_from_disparity,
+    depth_sigma,
+    in_model_range,
+    logodds,
+    obstacle_likelihood,
+    probability,
+)
+
+PARAMS = SensorModelParams()
+
+
+def test_depth_from_disparity_and_invalid_disparity() -> None:
+    disparity = np.array([46.188, 0.0, -3.0], dtype=np.float32)
+    depth = depth_from_disparity(disparity, 554.256, 0.5)
+    assert depth[0] == pytest.approx(6.0, abs=1e-3)
+    assert np.isnan(depth[1]) and np.isnan(depth[2])
+
+
+def test_depth_sigma_grows_as_depth_squared() -> None:
+    params = SensorModelParams(calibration_sigma_m=0.0)
+    z = np.array([1.0, 2.0, 4.0, 8.0])
+    sigma = depth_sigma(z, 554.256, 0.5, params)
+    np.testing.assert_allclose(sigma / sigma[0], z**2)
+    # DESIGN.md: ≈ 3 cm at the floor, 6 m down, Δd = 0.25 px.
+    assert depth_sigma(np.array([6.0]), 554.256, 0.5, params)[0] == pytest.approx(0.0325, abs=1e-3)
+    assert depth_sigma(np.array([6.0]), 554.256, 0.5, PARAMS)[0] == pytest.approx(0.0425, abs=1e-3)
+
+
+@given(st.lists(st.floats(-0.5, 2.3), min_size=2, max_size=50), st.floats(0.005, 0.2))
+def test_likelihood_is_monotone_in_height_up_to_the_band_top(
+    heights: list[float], sigma: float
+) -> None:
+    h = np.sort(np.asarray(heights, dtype=np.float32))
+    p = obstacle_likelihood(h, np.full_like(h, sigma), PARAMS)
+    assert np.all(np.diff(p) >= -1e-6)
+    assert np.all((p >= 0) & (p <= 1))
+
+
+@given(st.integers(0, 500), st.integers(1, 500))
+def test_cell_probability_stays_within_p_miss_and_p_hit(obstacle: int, pixels: int) -> None:
+    obstacle = min(obstacle, pixels)
+    p = cell_occupancy_probability(np.array([float(obstacle)]), np.array([float(pixels)]), PARAMS)
+    assert PARAMS.p_miss <= p[0] <= PARAMS.p_hit
+
+
+def test_floor_is_free_and_box_top_is_occupied() -> None:
+    sigma = np.full(2, 0.03, dtype=np.float32)
+    p = obstacle_likelihood(np.array([0.0, 0.8], dtype=np.float32), sigma, PARAMS)
+    assert p[0] < 0.01 and p[1] > 0.99
+    cells = cell_occupancy_probability(np.array([0.0, 20.0]), np.array([20.0, 20.0]), PARAMS)
+    assert cells.tolist() == pytest.approx([PARAMS.p_miss, PARAMS.p_hit])
+
+
+def test_aggregation_does_not_grow_with_pixel_count() -> None:
+    few = cell_occupancy_probability(np.array([5.0]), np.array([5.0]), PARAMS)
+    many = cell_occupancy_probability(np.array([500.0]), np.array([500.0]), PARAMS)
+    assert few == pytest.approx(many)
+
+
+def test_surfaces_above_the_band_give_no_evidence() -> None:
+    h = np.array([-0.05, 1.0, 2.05, 3.0], dtype=np.float32)
+    assert in_model_range(h, np.full_like(h, 0.03), PARAMS).tolist() == [True, True, True, False]
+
+
+def test_logodds_round_trip() -> None:
+    p = np.array([0.12, 0.5, 0.97])
+    np.testing.assert_allclose(probability(logodds(p)), p)
+
+
+def test_bad_parameters_are_rejected() -> None:
+    with pytest.raises(ValueError, match="p_miss"):
+        SensorModelParams(p_hit=0.4)
+    with pytest.raises(ValueError, match="band"):
+        SensorModelParams(obstacle_min_m=2.5)
