@@ -17,6 +17,7 @@ from services.camera_sim.scene import SceneSpec
 
 TEXTURE_PX = 512
 TEXTURE_SPAN_M = 4.0
+OBJECT_TEXTURE_SPAN_M = 4.0
 
 
 def procedural_texture(seed: int, size: int = TEXTURE_PX) -> npt.NDArray[np.uint8]:
@@ -148,7 +149,7 @@ def scene_mjcf(
     <texture name="noise" type="2d" builtin="flat" width="{TEXTURE_PX}" height="{TEXTURE_PX}" rgb1="0.5 0.5 0.5"/>
     <material name="floor" texture="noise" texuniform="true" texrepeat="{1 / TEXTURE_SPAN_M} {1 / TEXTURE_SPAN_M}" reflectance="0" specular="0"/>
     <material name="floor_plain" rgba="0.55 0.55 0.55 1" reflectance="0" specular="0"/>
-    <material name="object" texture="noise" texuniform="true" texrepeat="{1 / TEXTURE_SPAN_M} {1 / TEXTURE_SPAN_M}" reflectance="0" specular="0"/>
+    <material name="object" texture="noise" texuniform="true" texrepeat="{1 / OBJECT_TEXTURE_SPAN_M} {1 / OBJECT_TEXTURE_SPAN_M}" reflectance="0" specular="0"/>
   </asset>
   <worldbody>
     <light name="sun0" directional="true" pos="{fx / 3} {fy / 2} 8" dir="0.2 0.1 -1" diffuse="0.45 0.45 0.45" castshadow="{cast}"/>

@@ -225,7 +225,7 @@ def generate_scene(
                     for m in movers
                 )
                 if clear_of_objects and clear_of_movers:
-                    shade = rng.uniform(0.35, 0.8, size=3)
+                    shade = rng.uniform(0.7, 1.0, size=3)
                     objects.append(
                         ObjectSpec(
                             name=f"{shape}_{k}",
