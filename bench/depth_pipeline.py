@@ -15,20 +15,17 @@ import json
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from common.camera import StereoCalibration  # noqa: E402
-from common.codec import encode  # noqa: E402
-from common.messages import TILE_KIND, TileHeader  # noqa: E402
-from services.camera_sim.render import SceneRenderer  # noqa: E402
-from services.camera_sim.rig import RigSpec, layout_pairs  # noqa: E402
-from services.camera_sim.scene import generate_scene  # noqa: E402
-from services.depth.pipeline import DepthPipeline, PipelineConfig  # noqa: E402
+from common.camera import StereoCalibration
+from common.codec import encode
+from common.messages import TILE_KIND, TileHeader
+from services.camera_sim.render import SceneRenderer
+from services.camera_sim.rig import RigSpec, layout_pairs
+from services.camera_sim.scene import generate_scene
+from services.depth.pipeline import DepthPipeline, PipelineConfig
 
 FLOOR_DEPTH_TOL_M = 0.005
 TOP_MIN_HEIGHT_M = 0.15
