@@ -105,3 +105,39 @@ class TruthHeader(_Header):
     rows: int
     floor_size_m: tuple[float, float]
     objects: list[TruthObject]
+
+
+MAP_KIND = "map"
+MAP_UPDATE_KIND = "map_update"
+
+
+class MapHeader(_Header):
+    """``map/latest`` reply: array ``occupancy`` (i1, nav_msgs/OccupancyGrid: -1 unknown, 0..100),
+    row-major from the origin cell; optional ``logodds`` (f4) and ``height_m`` (f4) layers."""
+
+    version: int = Field(ge=0)
+    stamp_ns: int = Field(ge=0, description="newest capture stamp fused into the map")
+    resolution_m: float = Field(gt=0)
+    i0: int
+    j0: int
+    cols: int = Field(ge=0)
+    rows: int = Field(ge=0)
+    pairs: list[str] = Field(default_factory=list, description="pairs whose tiles built the map")
+
+
+class MapUpdateHeader(_Header):
+    """``map/updates``: the changed rectangle (i0, j0, cols, rows) of the map (like nav2's
+    OccupancyGridUpdate), plus the whole map's window so a follower can grow its copy."""
+
+    version: int = Field(ge=0)
+    previous_version: int = Field(ge=0)
+    stamp_ns: int = Field(ge=0)
+    resolution_m: float = Field(gt=0)
+    i0: int
+    j0: int
+    cols: int = Field(ge=0)
+    rows: int = Field(ge=0)
+    map_i0: int
+    map_j0: int
+    map_cols: int = Field(ge=0)
+    map_rows: int = Field(ge=0)

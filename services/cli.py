@@ -9,6 +9,15 @@ from collections.abc import Sequence
 COMMANDS = {
     "camera-sim": ("services.camera_sim.service", "simulated overhead stereo pairs (MuJoCo)"),
     "depth": ("services.depth.service", "depth process of one stereo pair: images → tiles"),
+    "fusion": (
+        "services.fusion.service",
+        "fuses every pair's tiles into one map; serves map/latest",
+    ),
+    "map": (
+        "services.client_cli",
+        "map get -o FILE: save the current map (.yaml+.pgm, .png, .npz)",
+    ),
+    "health": ("services.client_cli", "show the fusion service's health"),
     "save-frame": ("services.camera_sim.save_frame", "save one stereo frame of a pair as PNG"),
 }
 
@@ -21,7 +30,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         print("usage: overgrid COMMAND [options]\n\ncommands:\n" + "\n".join(lines))
         raise SystemExit(0 if args and args[0] in ("-h", "--help") else 2)
     module = importlib.import_module(COMMANDS[args[0]][0])
-    module.cli(args[1:])
+    entry = {"map": "map_cli", "health": "health_cli"}.get(args[0], "cli")
+    getattr(module, entry)(args[1:])
 
 
 if __name__ == "__main__":

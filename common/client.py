@@ -1,0 +1,140 @@
+"""Client of the map service, for any robot: the base install (no OpenCV, no renderer) suffices."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from common import keys
+from common.codec import CodecError, decode
+from common.messages import MAP_UPDATE_KIND, MapUpdateHeader
+from common.occupancy_map import OccupancyMap
+
+Region = tuple[float, float, float, float]
+
+
+class MapUnavailable(RuntimeError):
+    """No fusion service answered, or it answered with an error."""
+
+
+RETRY_PERIOD_S = 0.2
+
+
+def _get(session: zenoh.Session, selector: str, timeout_s: float) -> bytes:
+    """First good reply. A session just opened may not have found the service by scouting yet,
+    so an empty answer is retried until ``timeout_s``; an error reply is final."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        remaining = deadline - time.monotonic()
+        errors = []
+        for reply in session.get(selector, timeout=max(remaining, 0.1)):
+            if reply.ok is not None:
+                return bytes(reply.ok.payload.to_bytes())
+            errors.append(reply.err.payload.to_string() if reply.err is not None else "?")
+        if errors:
+            raise MapUnavailable("; ".join(errors))
+        if time.monotonic() + RETRY_PERIOD_S > deadline:
+            raise MapUnavailable(f"no answer on {selector} within {timeout_s} s")
+        time.sleep(RETRY_PERIOD_S)
+
+
+def latest(
+    session: zenoh.Session,
+    region: Region | None = None,
+    layers: tuple[str, ...] = (),
+    timeout_s: float = 5.0,
+) -> OccupancyMap:
+    """The current map (or a region of it, in metres), with optional ``logodds``/``height`` layers."""
+    parameters = []
+    if region is not None:
+        parameters.append("region=" + ",".join(f"{v:g}" for v in region))
+    if layers:
+        parameters.append("layers=" + ",".join(layers))
+    selector = keys.MAP_LATEST + ("?" + ";".join(parameters) if parameters else "")
+    return OccupancyMap.from_msgpack(_get(session, selector, timeout_s))
+
+
+def latest_encoded(
+    session: zenoh.Session, fmt: str, region: Region | None = None, timeout_s: float = 5.0
+) -> bytes:
+    """The map as the service encodes it: ``png``, ``pgm`` or ``yaml``."""
+    parameters = [f"format={fmt}"] + (
+        ["region=" + ",".join(f"{v:g}" for v in region)] if region else []
+    )
+    return _get(session, keys.MAP_LATEST + "?" + ";".join(parameters), timeout_s)
+
+
+def health(session: zenoh.Session, timeout_s: float = 5.0) -> dict[str, Any]:
+    answer: dict[str, Any] = json.loads(_get(session, keys.MAP_HEALTH, timeout_s))
+    return answer
+
+
+class MapFollower:
+    """A local copy kept current by ``map/updates``; a missed update (version gap) or a grown map
+    triggers one fetch of ``map/latest``."""
+
+    def __init__(self, session: zenoh.Session, timeout_s: float = 5.0) -> None:
+        self._session = session
+        self._timeout_s = timeout_s
+        self._lock = threading.Lock()
+        self.refetches = 0
+        self.applied = 0
+        self._map = latest(session, timeout_s=timeout_s)
+        self._subscriber = session.declare_subscriber(keys.MAP_UPDATES, self._on_update)
+
+    @property
+    def map(self) -> OccupancyMap:
+        with self._lock:
+            return self._map
+
+    def _on_update(self, sample: zenoh.Sample) -> None:
+        try:
+            message = decode(sample.payload.to_bytes(), MAP_UPDATE_KIND, MapUpdateHeader)
+        except CodecError:
+            return
+        h = message.header
+        with self._lock:
+            current = self._map
+            if h.version <= current.version:
+                return
+            same_window = (h.map_i0, h.map_j0, h.map_cols, h.map_rows) == (
+                current.i0,
+                current.j0,
+                current.window.cols,
+                current.window.rows,
+            )
+            if h.previous_version == current.version and same_window:
+                occupancy = current.occupancy.copy()
+                occupancy[
+                    h.j0 - current.j0 : h.j0 - current.j0 + h.rows,
+                    h.i0 - current.i0 : h.i0 - current.i0 + h.cols,
+                ] = message.arrays["occupancy"]
+                self._map = OccupancyMap(
+                    occupancy=occupancy,
+                    resolution_m=current.resolution_m,
+                    i0=current.i0,
+                    j0=current.j0,
+                    version=h.version,
+                    stamp_ns=h.stamp_ns,
+                    pairs=current.pairs,
+                )
+                self.applied += 1
+                return
+        fresh = latest(self._session, timeout_s=self._timeout_s)
+        with self._lock:
+            if fresh.version > self._map.version:
+                self._map = fresh
+            self.refetches += 1
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+def occupied_fraction(occupancy_map: OccupancyMap, threshold: int = 65) -> float:
+    known = occupancy_map.occupancy >= 0
+    return float(np.mean(occupancy_map.occupancy[known] >= threshold)) if known.any() else 0.0

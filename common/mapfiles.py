@@ -1,0 +1,129 @@
+"""Map files a person or nav2 reads: map_server PGM + YAML, a PNG picture, and NPZ arrays."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import yaml
+
+from common.occupancy_map import OccupancyMap
+from common.png import encode_png
+
+# nav2 map_server "trinary" mode pixel values and thresholds.
+PGM_OCCUPIED = 0
+PGM_FREE = 254
+PGM_UNKNOWN = 205
+OCCUPIED_THRESH = 0.65
+FREE_THRESH = 0.25
+
+PICTURE_COLORS = {"free": (255, 255, 255), "occupied": (20, 20, 20), "unknown": (180, 180, 190)}
+
+
+def trinary(occupancy: npt.NDArray[np.int8]) -> npt.NDArray[np.uint8]:
+    """map_server trinary values, rows as stored (origin row first)."""
+    image = np.full(occupancy.shape, PGM_UNKNOWN, np.uint8)
+    image[(occupancy >= 0) & (occupancy <= FREE_THRESH * 100)] = PGM_FREE
+    image[occupancy >= OCCUPIED_THRESH * 100] = PGM_OCCUPIED
+    return image
+
+
+def pgm_bytes(occupancy_map: OccupancyMap) -> bytes:
+    """Binary PGM; rows flipped so the image's bottom row is the origin, as map_server expects."""
+    image = trinary(occupancy_map.occupancy)[::-1]
+    rows, cols = image.shape
+    return f"P5\n{cols} {rows}\n255\n".encode() + np.ascontiguousarray(image).tobytes()
+
+
+def map_yaml(occupancy_map: OccupancyMap, image_name: str) -> str:
+    x0, y0 = occupancy_map.origin_m
+    return yaml.safe_dump(
+        {
+            "image": image_name,
+            "mode": "trinary",
+            "resolution": occupancy_map.resolution_m,
+            "origin": [x0, y0, 0.0],
+            "negate": 0,
+            "occupied_thresh": OCCUPIED_THRESH,
+            "free_thresh": FREE_THRESH,
+        },
+        sort_keys=False,
+    )
+
+
+def write_map_server(occupancy_map: OccupancyMap, yaml_path: Path) -> tuple[Path, Path]:
+    """Write ``NAME.yaml`` and ``NAME.pgm`` beside it; returns both paths."""
+    pgm_path = yaml_path.with_suffix(".pgm")
+    pgm_path.write_bytes(pgm_bytes(occupancy_map))
+    yaml_path.write_text(map_yaml(occupancy_map, pgm_path.name))
+    return yaml_path, pgm_path
+
+
+def read_map_server(yaml_path: Path) -> tuple[dict[str, object], npt.NDArray[np.uint8]]:
+    """The YAML fields and the PGM image (rows as in the file: top row first)."""
+    meta = yaml.safe_load(yaml_path.read_text())
+    data = (yaml_path.parent / str(meta["image"])).read_bytes()
+    magic, size, maxval, pixels = data.split(b"\n", 3)
+    if magic != b"P5" or maxval != b"255":
+        raise ValueError(f"{meta['image']} is not an 8-bit binary PGM")
+    cols, rows = (int(v) for v in size.split())
+    return meta, np.frombuffer(pixels, np.uint8).reshape(rows, cols)
+
+
+def picture(occupancy_map: OccupancyMap, min_width_px: int = 800) -> npt.NDArray[np.uint8]:
+    """RGB picture: free white, occupied black, unknown grey, y up, with a 1 m scale bar."""
+    occ = occupancy_map.occupancy
+    rgb = np.empty((*occ.shape, 3), np.uint8)
+    rgb[:] = PICTURE_COLORS["unknown"]
+    rgb[(occ >= 0) & (occ <= FREE_THRESH * 100)] = PICTURE_COLORS["free"]
+    between = (occ > FREE_THRESH * 100) & (occ < OCCUPIED_THRESH * 100)
+    rgb[between] = (150, 150, 150)
+    rgb[occ >= OCCUPIED_THRESH * 100] = PICTURE_COLORS["occupied"]
+    scale = max(1, -(-min_width_px // max(occ.shape[1], 1)))
+    big = np.repeat(np.repeat(rgb[::-1], scale, axis=0), scale, axis=1)
+    px_per_m = scale / occupancy_map.resolution_m
+    bar_len = round(px_per_m)
+    margin = max(4, scale)
+    if big.shape[1] > bar_len + 2 * margin and big.shape[0] > 4 * margin:
+        y = big.shape[0] - 2 * margin
+        big[y : y + max(2, scale // 2), margin : margin + bar_len] = (220, 30, 30)  # 1 m scale bar
+        big[y - 3 * margin // 2 : y, margin : margin + 2] = (220, 30, 30)
+        big[y - 3 * margin // 2 : y, margin + bar_len - 2 : margin + bar_len] = (220, 30, 30)
+    return big
+
+
+def png_bytes(occupancy_map: OccupancyMap) -> bytes:
+    return encode_png(picture(occupancy_map))
+
+
+def write_npz(occupancy_map: OccupancyMap, path: Path) -> None:
+    layers = {
+        k: v
+        for k, v in (("logodds", occupancy_map.logodds), ("height_m", occupancy_map.height_m))
+        if v is not None
+    }
+    np.savez_compressed(
+        path,
+        occupancy=occupancy_map.occupancy,
+        resolution_m=occupancy_map.resolution_m,
+        origin_m=np.array(occupancy_map.origin_m),
+        version=occupancy_map.version,
+        stamp_ns=occupancy_map.stamp_ns,
+        **layers,
+    )
+
+
+def write_map(occupancy_map: OccupancyMap, path: Path) -> list[Path]:
+    """Write by suffix: .yaml (+ .pgm), .pgm (+ .yaml), .png or .npz."""
+    suffix = path.suffix.lower()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if suffix in (".yaml", ".yml", ".pgm"):
+        return list(write_map_server(occupancy_map, path.with_suffix(".yaml")))
+    if suffix == ".png":
+        path.write_bytes(png_bytes(occupancy_map))
+        return [path]
+    if suffix == ".npz":
+        write_npz(occupancy_map, path)
+        return [path]
+    raise ValueError(f"unknown map file type {suffix!r}: use .yaml, .pgm, .png or .npz")

@@ -1,0 +1,108 @@
+"""The map as a robot sees it: nav_msgs/OccupancyGrid conventions, on the global lattice."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import numpy.typing as npt
+
+from common.codec import decode, encode
+from common.lattice import Window, cell_of
+from common.messages import MAP_KIND, MapHeader
+
+UNKNOWN = -1
+"""nav_msgs/OccupancyGrid: unknown cell; known cells hold the occupancy probability in 0..100."""
+
+
+def occupancy_from_logodds(
+    logodds: npt.NDArray[np.float32], known: npt.NDArray[np.bool_]
+) -> npt.NDArray[np.int8]:
+    probability = 1.0 / (1.0 + np.exp(-logodds.astype(np.float32)))
+    occupancy = np.rint(probability * 100.0).astype(np.int8)
+    occupancy[~known] = UNKNOWN
+    return occupancy
+
+
+@dataclass(frozen=True)
+class OccupancyMap:
+    occupancy: npt.NDArray[np.int8]
+    """[row, col] = [j - j0, i - i0]: row 0 is the lowest y (the origin side)."""
+    resolution_m: float
+    i0: int
+    j0: int
+    version: int
+    stamp_ns: int
+    pairs: list[str] = field(default_factory=list)
+    logodds: npt.NDArray[np.float32] | None = None
+    height_m: npt.NDArray[np.float32] | None = None
+
+    @property
+    def window(self) -> Window:
+        return Window(self.i0, self.j0, self.occupancy.shape[1], self.occupancy.shape[0])
+
+    @property
+    def origin_m(self) -> tuple[float, float]:
+        """World position of the lower-left corner of cell (0, 0), as map_server's ``origin``."""
+        return self.window.origin_m(self.resolution_m)
+
+    def crop(self, region_m: tuple[float, float, float, float]) -> OccupancyMap:
+        """The part of the map covering the metric rectangle (x0, y0, x1, y1)."""
+        x0, y0, x1, y1 = region_m
+        if not (x1 > x0 and y1 > y0):
+            raise ValueError(f"region must be x0,y0,x1,y1 with x1 > x0 and y1 > y0, got {region_m}")
+        part = Window.covering(x0, y0, x1, y1, self.resolution_m).intersect(self.window)
+        rows, cols = part.slices_in(self.window)
+        return replace(
+            self,
+            occupancy=self.occupancy[rows, cols],
+            i0=part.i0,
+            j0=part.j0,
+            logodds=None if self.logodds is None else self.logodds[rows, cols],
+            height_m=None if self.height_m is None else self.height_m[rows, cols],
+        )
+
+    def value_at(self, x_m: float, y_m: float) -> int:
+        """Occupancy of the cell holding world point (x, y); unknown outside the map."""
+        i, j = (int(v) for v in cell_of((x_m, y_m), self.resolution_m))
+        row, col = j - self.j0, i - self.i0
+        if 0 <= row < self.occupancy.shape[0] and 0 <= col < self.occupancy.shape[1]:
+            return int(self.occupancy[row, col])
+        return UNKNOWN
+
+    def to_msgpack(self) -> bytes:
+        header = MapHeader(
+            version=self.version,
+            stamp_ns=self.stamp_ns,
+            resolution_m=self.resolution_m,
+            i0=self.i0,
+            j0=self.j0,
+            cols=self.occupancy.shape[1],
+            rows=self.occupancy.shape[0],
+            pairs=self.pairs,
+        )
+        arrays: dict[str, np.ndarray] = {"occupancy": self.occupancy}
+        if self.logodds is not None:
+            arrays["logodds"] = self.logodds
+        if self.height_m is not None:
+            arrays["height_m"] = self.height_m
+        return encode(MAP_KIND, header, arrays)
+
+    @staticmethod
+    def from_msgpack(payload: bytes, max_bytes: int = 512 * 1024 * 1024) -> OccupancyMap:
+        message = decode(payload, MAP_KIND, MapHeader, max_bytes)
+        h = message.header
+        occupancy = message.arrays.get("occupancy")
+        if occupancy is None or occupancy.dtype != np.int8 or occupancy.shape != (h.rows, h.cols):
+            raise ValueError("map message lacks an int8 occupancy array of the header's shape")
+        return OccupancyMap(
+            occupancy=occupancy,
+            resolution_m=h.resolution_m,
+            i0=h.i0,
+            j0=h.j0,
+            version=h.version,
+            stamp_ns=h.stamp_ns,
+            pairs=list(h.pairs),
+            logodds=message.arrays.get("logodds"),
+            height_m=message.arrays.get("height_m"),
+        )

@@ -1,0 +1,326 @@
+"""Fusion process: tiles in from every pair, one log-odds map out through queryables and updates."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+from pydantic import Field, field_validator
+
+from common import keys
+from common.codec import WIRE_ENCODING, encode
+from common.lattice import Window
+from common.lifecycle import stop_on_signals
+from common.logs import RateLimitedLog, setup_logging
+from common.messages import MAP_UPDATE_KIND, MapUpdateHeader
+from common.occupancy_map import OccupancyMap, occupancy_from_logodds
+from common.settings import CommaList, ZenohSettings, parse_settings
+from common.zenoh_session import open_session
+from services.fusion.grid import FusedGrid, GridParams, TileOutsideMap
+from services.fusion.intake import TileGate, TileRejected
+from services.fusion.persistence import load_grid, save_grid
+from services.fusion.snapshot import CONTENT_TYPES, MapSnapshot, parse_map_query
+
+log = logging.getLogger("fusion")
+
+
+def default_state_dir() -> Path:
+    base = Path(os.environ.get("XDG_STATE_HOME", Path.home() / ".local" / "state"))
+    return base / "overgrid" / "fusion"
+
+
+class FusionSettings(ZenohSettings):
+    resolution_m: float = Field(0.05, gt=0.0, le=1.0, description="map cell size; tiles must match")
+    logodds_min: float = Field(-2.0, lt=0.0, description="lower log-odds clamp (OctoMap: -2)")
+    logodds_max: float = Field(3.5, gt=0.0, description="upper log-odds clamp (OctoMap: 3.5)")
+    decay_after_s: float = Field(
+        5.0, gt=0.0, description="unobserved this long, a cell drifts to unknown"
+    )
+    decay_time_constant_s: float = Field(2.0, gt=0.0, description="time constant of that drift")
+    bounds: CommaList = Field(
+        default_factory=list, description="fixed map bounds x0,y0,x1,y1 in metres (default: grow)"
+    )
+    max_cells: int = Field(25_000_000, gt=0, description="largest map allowed, in cells")
+    max_tile_age_s: float = Field(
+        2.0, gt=0.0, description="drop tiles captured longer ago than this"
+    )
+    max_message_mb: float = Field(64.0, gt=0.0, description="reject larger tile messages")
+    publish_period_s: float = Field(
+        0.1, gt=0.0, description="snapshot refresh and map/updates period"
+    )
+    state_dir: Path = Field(
+        default_factory=default_state_dir, description="where the map is saved and loaded"
+    )
+    save_interval_s: float = Field(10.0, gt=0.0, description="period of state saves")
+    summary_s: float = Field(10.0, gt=0.0, description="period of the summary log line")
+
+    @field_validator("bounds")
+    @classmethod
+    def _four_numbers(cls, bounds: list[str]) -> list[str]:
+        if bounds:
+            values = [float(v) for v in bounds]
+            if len(values) != 4 or values[2] <= values[0] or values[3] <= values[1]:
+                raise ValueError("bounds must be x0,y0,x1,y1 with x1 > x0 and y1 > y0")
+        return bounds
+
+    def grid_params(self) -> GridParams:
+        window = None
+        if self.bounds:
+            x0, y0, x1, y1 = (float(v) for v in self.bounds)
+            window = Window.covering(x0, y0, x1, y1, self.resolution_m)
+        return GridParams(
+            resolution_m=self.resolution_m,
+            logodds_min=self.logodds_min,
+            logodds_max=self.logodds_max,
+            decay_after_s=self.decay_after_s,
+            decay_time_constant_s=self.decay_time_constant_s,
+            max_cells=self.max_cells,
+            bounds=window,
+        )
+
+
+class FusionState:
+    """The grid and its bookkeeping, shared by Zenoh callbacks and the maintenance loop."""
+
+    def __init__(self, settings: FusionSettings, grid: FusedGrid) -> None:
+        self.settings = settings
+        self.grid = grid
+        self.lock = threading.Lock()
+        self.gate = TileGate(
+            settings.resolution_m,
+            settings.max_tile_age_s,
+            int(settings.max_message_mb * 1024 * 1024),
+        )
+        self.accepted: Counter[str] = Counter()
+        self.rejected: Counter[str] = Counter()
+        self.last_tile_s: dict[str, float] = {}
+        self.capture_to_fused_ms: dict[str, float] = {}
+        self.alive: set[str] = set()
+        self.contributors: set[str] = set()
+        self.snapshot = MapSnapshot(self._build_map())
+        self.warn = RateLimitedLog(log)
+
+    def on_tile(self, sample: zenoh.Sample) -> None:
+        payload = sample.payload.to_bytes()
+        now_ns = time.time_ns()
+        try:
+            with self.lock:
+                tile = self.gate.admit(payload, now_ns)
+                self.grid.integrate(
+                    tile.window, tile.logodds, tile.height_m, tile.count, tile.header.stamp_ns
+                )
+                pair = tile.header.pair
+                self.accepted[pair] += 1
+                self.contributors.add(pair)
+                self.last_tile_s[pair] = time.time()
+                self.capture_to_fused_ms[pair] = (time.time_ns() - tile.header.stamp_ns) / 1e6
+        except TileRejected as rejection:
+            self._reject(rejection.reason, str(rejection), str(sample.key_expr))
+        except TileOutsideMap as error:
+            self._reject("outside_map", str(error), str(sample.key_expr))
+
+    def _reject(self, reason: str, detail: str, key: str) -> None:
+        with self.lock:
+            self.rejected[reason] += 1
+            total = sum(self.rejected.values())
+        self.warn.warning(
+            reason, "tile rejected", reason=reason, key=key, error=detail[:200], rejected=total
+        )
+
+    def on_liveliness(self, sample: zenoh.Sample) -> None:
+        try:
+            pair = keys.pair_of(str(sample.key_expr))
+        except ValueError:
+            return
+        with self.lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.alive.add(pair)
+            else:
+                self.alive.discard(pair)
+        log.info(
+            "pair joined" if sample.kind == zenoh.SampleKind.PUT else "pair left",
+            extra={"pair": pair},
+        )
+
+    def _build_map(self) -> OccupancyMap:
+        grid = self.grid
+        return OccupancyMap(
+            occupancy=occupancy_from_logodds(grid.logodds, grid.known),
+            resolution_m=grid.params.resolution_m,
+            i0=grid.window.i0,
+            j0=grid.window.j0,
+            version=grid.version,
+            stamp_ns=grid.stamp_ns,
+            pairs=sorted(self.contributors),
+            logodds=grid.logodds.copy(),
+            height_m=grid.height_m.copy(),
+        )
+
+    def refresh(self) -> tuple[MapSnapshot, Window, int] | None:
+        """A new snapshot if the grid changed since the last one, with the changed window."""
+        with self.lock:
+            if self.grid.version == self.snapshot.version:
+                return None
+            previous = self.snapshot.version
+            self.snapshot = MapSnapshot(self._build_map())
+            return self.snapshot, self.grid.take_dirty(), previous
+
+    def decay(self, elapsed_s: float) -> None:
+        with self.lock:
+            self.grid.decay(time.time(), elapsed_s)
+
+    def health(self) -> dict[str, Any]:
+        now = time.time()
+        with self.lock:
+            pairs = sorted(set(self.accepted) | self.alive)
+            grid = self.grid
+            return {
+                "pairs": {
+                    p: {
+                        "alive": p in self.alive,
+                        "tiles": self.accepted[p],
+                        "last_tile_age_s": round(now - self.last_tile_s[p], 3)
+                        if p in self.last_tile_s
+                        else None,
+                        "capture_to_fused_ms": self.capture_to_fused_ms.get(p),
+                    }
+                    for p in pairs
+                },
+                "tiles_accepted": sum(self.accepted.values()),
+                "tiles_rejected": dict(self.rejected),
+                "map": {
+                    "version": grid.version,
+                    "cols": grid.window.cols,
+                    "rows": grid.window.rows,
+                    "resolution_m": grid.params.resolution_m,
+                    "origin_m": list(grid.window.origin_m(grid.params.resolution_m)),
+                    "known_cells": int(grid.known.sum()),
+                },
+            }
+
+
+def update_payload(snapshot: MapSnapshot, dirty: Window, previous_version: int) -> bytes:
+    full = snapshot.map
+    part = dirty.intersect(full.window)
+    rows, cols = part.slices_in(full.window)
+    header = MapUpdateHeader(
+        version=full.version,
+        previous_version=previous_version,
+        stamp_ns=full.stamp_ns,
+        resolution_m=full.resolution_m,
+        i0=part.i0,
+        j0=part.j0,
+        cols=part.cols,
+        rows=part.rows,
+        map_i0=full.i0,
+        map_j0=full.j0,
+        map_cols=full.window.cols,
+        map_rows=full.window.rows,
+    )
+    arrays = {"occupancy": np.ascontiguousarray(full.occupancy[rows, cols])}
+    return encode(MAP_UPDATE_KIND, header, arrays)
+
+
+def main(settings: FusionSettings) -> None:
+    setup_logging("fusion", settings.log_level)
+    stop = stop_on_signals()
+    params = settings.grid_params()
+    grid = load_grid(params, settings.state_dir) or FusedGrid(params)
+    state = FusionState(settings, grid)
+    if grid.version:
+        log.info(
+            "map restored",
+            extra={"version": grid.version, "cols": grid.window.cols, "rows": grid.window.rows},
+        )
+
+    def on_map_query(query: zenoh.Query) -> None:
+        try:
+            request = parse_map_query(dict(query.parameters))
+        except ValueError as error:
+            query.reply_err(f"map/latest: {error}")
+            return
+        snapshot = state.snapshot
+        query.reply(
+            query.key_expr, snapshot.encoded(request), encoding=CONTENT_TYPES[request.format]
+        )
+
+    def on_health_query(query: zenoh.Query) -> None:
+        query.reply(query.key_expr, json.dumps(state.health()), encoding="application/json")
+
+    with open_session(settings) as session:
+        subscriber = session.declare_subscriber(keys.TILES_ALL, state.on_tile)
+        liveliness = session.liveliness().declare_subscriber(
+            keys.DEPTH_ALIVE_ALL, state.on_liveliness, history=True
+        )
+        map_queryable = session.declare_queryable(keys.MAP_LATEST, on_map_query)
+        health_queryable = session.declare_queryable(keys.MAP_HEALTH, on_health_query)
+        # DROP: a robot on a slow link must never stall fusion; a follower that misses an update sees
+        # the version gap and fetches map/latest instead.
+        updates = session.declare_publisher(
+            keys.MAP_UPDATES,
+            encoding=WIRE_ENCODING,
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
+        log.info(
+            "started",
+            extra={"resolution_m": settings.resolution_m, "state_dir": str(settings.state_dir)},
+        )
+        last = {"decay": time.monotonic(), "save": time.monotonic(), "summary": time.monotonic()}
+        saved_version = grid.version
+        while not stop.wait(settings.publish_period_s):
+            now = time.monotonic()
+            refreshed = state.refresh()
+            if refreshed is not None:
+                snapshot, dirty, previous = refreshed
+                if not dirty.empty:
+                    updates.put(update_payload(snapshot, dirty, previous))
+            if now - last["decay"] >= 1.0:
+                state.decay(now - last["decay"])
+                last["decay"] = now
+            if (
+                now - last["save"] >= settings.save_interval_s
+                and state.snapshot.version != saved_version
+            ):
+                with state.lock:
+                    save_grid(state.grid, settings.state_dir)
+                    saved_version = state.grid.version
+                last["save"] = now
+            if now - last["summary"] >= settings.summary_s:
+                health = state.health()
+                log.info(
+                    "summary",
+                    extra={
+                        "version": health["map"]["version"],
+                        "tiles": health["tiles_accepted"],
+                        "rejected": sum(health["tiles_rejected"].values()),
+                        "alive": ",".join(p for p, v in health["pairs"].items() if v["alive"]),
+                    },
+                )
+                last["summary"] = now
+        subscriber.undeclare()
+        liveliness.undeclare()
+        map_queryable.undeclare()
+        health_queryable.undeclare()
+    with state.lock:
+        path = save_grid(state.grid, settings.state_dir)
+    log.info("stopped", extra={"version": state.grid.version, "saved": str(path)})
+
+
+def cli(argv: Sequence[str] | None = None) -> None:
+    main(
+        parse_settings(
+            FusionSettings,
+            argv,
+            "overgrid fusion",
+            "Fuses every pair's tiles into one occupancy map.",
+        )
+    )
