@@ -132,7 +132,7 @@ class MapFollower:
             self.refetches += 1
 
     def close(self) -> None:
-        self._subscriber.undeclare()
+        self._subscriber.undeclare()  # type: ignore[no-untyped-call]
 
 
 def occupied_fraction(occupancy_map: OccupancyMap, threshold: int = 65) -> float:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -98,20 +99,17 @@ def png_bytes(occupancy_map: OccupancyMap) -> bytes:
 
 
 def write_npz(occupancy_map: OccupancyMap, path: Path) -> None:
-    layers = {
-        k: v
-        for k, v in (("logodds", occupancy_map.logodds), ("height_m", occupancy_map.height_m))
-        if v is not None
+    arrays: dict[str, Any] = {
+        "occupancy": occupancy_map.occupancy,
+        "resolution_m": occupancy_map.resolution_m,
+        "origin_m": np.array(occupancy_map.origin_m),
+        "version": occupancy_map.version,
+        "stamp_ns": occupancy_map.stamp_ns,
     }
-    np.savez_compressed(
-        path,
-        occupancy=occupancy_map.occupancy,
-        resolution_m=occupancy_map.resolution_m,
-        origin_m=np.array(occupancy_map.origin_m),
-        version=occupancy_map.version,
-        stamp_ns=occupancy_map.stamp_ns,
-        **layers,
-    )
+    for name, layer in (("logodds", occupancy_map.logodds), ("height_m", occupancy_map.height_m)):
+        if layer is not None:
+            arrays[name] = layer
+    np.savez_compressed(path, **arrays)
 
 
 def write_map(occupancy_map: OccupancyMap, path: Path) -> list[Path]:

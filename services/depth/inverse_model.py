@@ -64,12 +64,17 @@ def build_tile(
     size = rows * cols
 
     pixels = np.bincount(flat, minlength=size)
-    obstacle = np.bincount(flat, weights=obstacle_likelihood(height, sigma, params), minlength=size)
+    weights = obstacle_likelihood(height, sigma, params)
+    obstacle = np.bincount(flat, weights=weights, minlength=size).astype(np.float64)
     top = np.full(size, -np.inf, dtype=np.float32)
     np.maximum.at(top, flat, height)
 
     updated = pixels >= min_cell_pixels
-    update = np.where(updated, logodds(cell_occupancy_probability(obstacle, pixels, params)), 0.0)
+    update = np.where(
+        updated,
+        logodds(cell_occupancy_probability(obstacle, pixels.astype(np.float64), params)),
+        0.0,
+    )
     return Tile(
         window=window,
         resolution_m=resolution_m,

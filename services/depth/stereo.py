@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -43,8 +43,8 @@ class Rectifier:
     """Rotation from the rectified left camera frame to the world frame."""
     C_world: F64
     """Left camera centre in the world."""
-    _maps_left: tuple[npt.NDArray[np.int16], npt.NDArray[np.uint16]]
-    _maps_right: tuple[npt.NDArray[np.int16], npt.NDArray[np.uint16]]
+    _maps_left: tuple[np.ndarray, np.ndarray]
+    _maps_right: tuple[np.ndarray, np.ndarray]
 
     @staticmethod
     def from_calibration(calib: StereoCalibration, downscale: int = 2) -> Rectifier:
@@ -97,11 +97,11 @@ class Rectifier:
     def rectify(self, left: U8, right: U8) -> tuple[U8, U8]:
         if self.downscale != 1:
             # INTER_AREA first: remapping a full-resolution image at half density would alias.
-            left = cv2.resize(left, self.size, interpolation=cv2.INTER_AREA)
-            right = cv2.resize(right, self.size, interpolation=cv2.INTER_AREA)
+            left = np.asarray(cv2.resize(left, self.size, interpolation=cv2.INTER_AREA))
+            right = np.asarray(cv2.resize(right, self.size, interpolation=cv2.INTER_AREA))
         return (
-            cv2.remap(left, *self._maps_left, cv2.INTER_LINEAR),
-            cv2.remap(right, *self._maps_right, cv2.INTER_LINEAR),
+            np.asarray(cv2.remap(left, *self._maps_left, cv2.INTER_LINEAR), dtype=np.uint8),
+            np.asarray(cv2.remap(right, *self._maps_right, cv2.INTER_LINEAR), dtype=np.uint8),
         )
 
     def pixel_rays_world(self) -> F32:
@@ -112,7 +112,8 @@ class Rectifier:
         rays_rect = np.stack(
             [(u - self.cx_px) / self.focal_px, (v - self.cy_px) / self.focal_px, np.ones_like(u)]
         )
-        return np.einsum("ij,jhw->ihw", self.R_world_rect, rays_rect).astype(np.float32)
+        rays: F32 = np.einsum("ij,jhw->ihw", self.R_world_rect, rays_rect).astype(np.float32)
+        return rays
 
     def disparity_band(self, height_low_m: float, height_high_m: float) -> tuple[int, int]:
         """(minDisparity, numDisparities) covering surfaces from ``height_low_m`` to ``height_high_m``
@@ -152,14 +153,14 @@ def make_matcher(
     resolution among the settings tried (bench/depth_pipeline.py), at the same speed."""
     bs = config.block_size
     if config.algorithm == "bm":
-        matcher = cv2.StereoBM_create(numDisparities=num_disparities, blockSize=max(5, bs | 1))
+        matcher = cv2.StereoBM.create(numDisparities=num_disparities, blockSize=max(5, bs | 1))
         matcher.setMinDisparity(min_disparity)
         matcher.setUniquenessRatio(config.uniqueness_ratio)
         matcher.setSpeckleWindowSize(config.speckle_window)
         matcher.setSpeckleRange(config.speckle_range)
         matcher.setTextureThreshold(10)
         return matcher
-    return cv2.StereoSGBM_create(
+    return cv2.StereoSGBM.create(
         minDisparity=min_disparity,
         numDisparities=num_disparities,
         blockSize=bs,
@@ -174,10 +175,10 @@ def make_matcher(
     )
 
 
-def disparity_px(matcher: cv2.StereoMatcher, left: U8, right: U8, min_disparity: int) -> F32:
+def disparity_px(matcher: Any, left: U8, right: U8, min_disparity: int) -> F32:
     """Disparity in pixels (float32); invalid pixels are NaN."""
-    raw = matcher.compute(left, right)
-    disparity = raw.astype(np.float32) * (1.0 / 16.0)
+    raw = np.asarray(matcher.compute(left, right))
+    disparity: F32 = raw.astype(np.float32) * np.float32(1.0 / 16.0)
     disparity[raw < min_disparity * 16] = np.nan
     return disparity
 

@@ -1,0 +1,129 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from common.lattice import Window
+from services.fusion.grid import FusedGrid, GridParams, TileOutsideMap
+
+P = GridParams()
+
+
+def _integrate(
+    grid: FusedGrid,
+    window: Window,
+    value: float,
+    height: float = 0.0,
+    stamp_ns: int = 1,
+    count: int = 5,
+) -> Window:
+    return grid.integrate(
+        window,
+        np.full(window.shape, value, np.float32),
+        np.full(window.shape, height, np.float32),
+        np.full(window.shape, count, np.uint16),
+        stamp_ns,
+    )
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.integers(-20, 20), st.integers(-20, 20), st.floats(-3, 3)),
+        min_size=1,
+        max_size=25,
+    )
+)
+def test_logodds_never_leave_the_clamp(updates: list[tuple[int, int, float]]) -> None:
+    grid = FusedGrid(P)
+    for i0, j0, value in updates:
+        _integrate(grid, Window(i0, j0, 7, 5), value)
+        assert grid.logodds.min() >= P.logodds_min and grid.logodds.max() <= P.logodds_max
+
+
+def test_overlapping_tiles_stitch_exactly() -> None:
+    grid = FusedGrid(P)
+    a, b = Window(10, 20, 30, 10), Window(25, 25, 30, 10)
+    _integrate(grid, a, 0.4, height=1.0)
+    _integrate(grid, b, -0.3, height=0.5)
+    expected = np.zeros(grid.window.shape, np.float32)
+    expected[a.slices_in(grid.window)] += 0.4
+    expected[b.slices_in(grid.window)] += np.float32(-0.3)
+    np.testing.assert_array_equal(grid.logodds, expected)
+    overlap = a.intersect(b)
+    assert np.all(
+        grid.logodds[overlap.slices_in(grid.window)] == np.float32(0.4) + np.float32(-0.3)
+    )
+    # Height: the occupied pair's top, replaced by the floor where a free observation came last.
+    assert np.all(grid.height_m[overlap.slices_in(grid.window)] == 0.5)
+    only_a = Window(10, 20, 15, 5)
+    assert np.all(grid.height_m[only_a.slices_in(grid.window)] == 1.0)
+    assert not grid.known[Window(0, 0, 5, 5).slices_in(grid.window)].any()
+
+
+def test_height_keeps_the_maximum_over_occupied_observations() -> None:
+    grid = FusedGrid(P)
+    w = Window(0, 0, 4, 4)
+    _integrate(grid, w, 0.8, height=1.2)
+    _integrate(grid, w, 0.8, height=0.9)
+    assert np.all(grid.height_m[w.slices_in(grid.window)] == np.float32(1.2))
+
+
+def test_cells_with_no_pixels_are_not_updated() -> None:
+    grid = FusedGrid(P)
+    w = Window(0, 0, 4, 4)
+    _integrate(grid, w, 0.8, count=0)
+    assert not grid.known.any() and np.all(grid.logodds == 0)
+
+
+def test_decay_returns_unobserved_cells_to_unknown() -> None:
+    grid = FusedGrid(GridParams(decay_after_s=1.0, decay_time_constant_s=0.5))
+    w = Window(0, 0, 10, 10)
+    _integrate(grid, w, 3.5, height=1.0, stamp_ns=int(100e9))
+    assert grid.decay(now_s=100.5, elapsed_s=1.0) == 0  # not stale yet
+    for k in range(30):
+        grid.decay(now_s=102.0 + k, elapsed_s=1.0)
+    region = w.slices_in(grid.window)
+    assert not grid.known[region].any()
+    assert np.all(grid.logodds[region] == 0) and np.all(np.isnan(grid.height_m[region]))
+
+
+def test_fresh_cells_do_not_decay() -> None:
+    grid = FusedGrid(GridParams(decay_after_s=1.0))
+    _integrate(grid, Window(0, 0, 4, 4), 2.0, stamp_ns=int(100e9))
+    grid.decay(now_s=100.2, elapsed_s=1.0)
+    assert np.all(grid.logodds[Window(0, 0, 4, 4).slices_in(grid.window)] == 2.0)
+
+
+def test_map_grows_and_keeps_what_it_had() -> None:
+    grid = FusedGrid(P)
+    _integrate(grid, Window(0, 0, 10, 10), 1.0)
+    before = grid.logodds[Window(0, 0, 10, 10).slices_in(grid.window)].copy()
+    _integrate(grid, Window(-100, 300, 5, 5), -1.0)
+    assert grid.window.contains(Window(-100, 300, 5, 5)) and grid.window.contains(
+        Window(0, 0, 10, 10)
+    )
+    np.testing.assert_array_equal(grid.logodds[Window(0, 0, 10, 10).slices_in(grid.window)], before)
+
+
+def test_fixed_bounds_crop_and_reject_outside() -> None:
+    bounds = Window(0, 0, 100, 100)
+    grid = FusedGrid(GridParams(bounds=bounds))
+    touched = _integrate(grid, Window(90, 90, 20, 20), 1.0)
+    assert touched == Window(90, 90, 10, 10) and grid.window == bounds
+    with pytest.raises(TileOutsideMap):
+        _integrate(grid, Window(500, 500, 5, 5), 1.0)
+
+
+def test_growth_beyond_the_cell_limit_is_refused() -> None:
+    grid = FusedGrid(GridParams(max_cells=200 * 200))
+    with pytest.raises(TileOutsideMap, match="over the limit"):
+        _integrate(grid, Window(0, 0, 1000, 10), 1.0)
+
+
+def test_dirty_window_collects_changes_until_taken() -> None:
+    grid = FusedGrid(P)
+    _integrate(grid, Window(0, 0, 5, 5), 1.0)
+    _integrate(grid, Window(10, 10, 5, 5), 1.0)
+    assert grid.take_dirty() == Window(0, 0, 15, 15)
+    assert grid.take_dirty().empty

@@ -1,0 +1,167 @@
+"""A real fusion process on loopback, fed hand-made tiles, queried by clients in other processes."""
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.client import MapFollower, MapUnavailable, health, latest, latest_encoded
+from common.codec import WIRE_ENCODING
+from common.lattice import Window
+from common.mapfiles import read_map_server
+from common.png import decode_png
+from tests.conftest import REPO, Bus, wait_for
+from tests.tiles import tile_arrays, tile_payload
+
+pytestmark = pytest.mark.process
+
+A, B = Window(0, 0, 40, 30), Window(30, 20, 40, 30)
+
+
+def _start_fusion(bus: Bus, state_dir: Path) -> subprocess.Popen[bytes]:
+    return bus.start(
+        "fusion",
+        "--state-dir",
+        str(state_dir),
+        "--save-interval-s",
+        "1",
+        "--publish-period-s",
+        "0.05",
+    )
+
+
+def _health(bus: Bus) -> dict:
+    return health(bus.session, timeout_s=10)
+
+
+def test_fusion_serves_map_and_health_and_survives_bad_tiles(bus: Bus, tmp_path: Path) -> None:
+    fusion = _start_fusion(bus, tmp_path / "state")
+    publisher = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
+    other = bus.session.declare_publisher("depth/p1/tile", encoding=WIRE_ENCODING)
+    wait_for(lambda: "map" in _health(bus), 30, "fusion to answer map/health")
+    for seq in range(3):
+        publisher.put(tile_payload("p0", A, 1.0, seq=seq, height_m=0.7))
+        other.put(tile_payload("p1", B, -0.5, seq=seq))
+        time.sleep(0.05)
+    wait_for(lambda: _health(bus)["tiles_accepted"] == 6, 10, "six tiles accepted")
+
+    # Bad tiles of every kind: each counted by reason, none crashes fusion.
+    nan = tile_arrays(A, 0.1)
+    nan["logodds"][0, 0] = np.inf
+    bad = [
+        b"\x00\x01garbage",
+        tile_payload("p0", A, 0.1, resolution_m=0.1),
+        tile_payload("p0", A, 0.1, arrays=tile_arrays(Window(0, 0, 3, 3), 0.1)),
+        tile_payload("p0", A, 0.1, arrays=nan),
+        tile_payload("p0", A, 0.1, stamp_ns=time.time_ns() - 60 * 10**9),
+        tile_payload("p0", A, 0.1, stamp_ns=1_000),
+    ]
+    for payload in bad:
+        publisher.put(payload)
+    wait_for(
+        lambda: sum(_health(bus)["tiles_rejected"].values()) == len(bad),
+        10,
+        "every bad tile counted",
+    )
+    rejected = _health(bus)["tiles_rejected"]
+    assert rejected == {"malformed": 1, "resolution": 1, "dimensions": 1, "nan": 1, "stale": 2}
+    publisher.put(tile_payload("p0", A, 1.0, seq=10, height_m=0.7))
+    wait_for(
+        lambda: _health(bus)["tiles_accepted"] == 7, 10, "a good tile to land after the bad ones"
+    )
+    # map/latest serves snapshots refreshed every publish period: wait for the one with all 7 tiles.
+    wait_for(
+        lambda: latest(bus.session, timeout_s=10).version == 7, 10, "the snapshot of version 7"
+    )
+
+    occupancy_map = latest(bus.session, layers=("height", "logodds"), timeout_s=10)
+    assert occupancy_map.resolution_m == 0.05 and occupancy_map.pairs == ["p0", "p1"]
+    assert occupancy_map.value_at(0.3, 0.3) >= 97  # 4 × +1.0 clamps at 3.5
+    assert 0 <= occupancy_map.value_at(3.4, 2.4) <= 20  # only p1's free evidence
+    overlap = occupancy_map.crop((1.55, 1.05, 1.95, 1.45))
+    np.testing.assert_allclose(
+        overlap.logodds, 2.5, atol=1e-6
+    )  # exact stitching: 4·(+1) + 3·(-0.5)
+    assert occupancy_map.value_at(-5.0, -5.0) == -1
+
+    region = latest(bus.session, region=(0.0, 0.0, 1.0, 0.5), timeout_s=10)
+    assert region.occupancy.shape == (10, 20) and (region.i0, region.j0) == (0, 0)
+    png = decode_png(latest_encoded(bus.session, "png", timeout_s=10))
+    assert png.ndim == 3 and png.shape[1] >= 800
+    assert latest_encoded(bus.session, "pgm", timeout_s=10).startswith(b"P5\n")
+    with pytest.raises(MapUnavailable, match="format 'jpg' not one of"):
+        latest_encoded(bus.session, "jpg", timeout_s=10)
+
+    # Another process (the CLI a person runs) gets the map too, as nav2 files.
+    out = tmp_path / "out" / "map.yaml"
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "map", "get", "-o", str(out), *bus.flags()],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 0, result.stderr
+    meta, image = read_map_server(out)
+    assert meta["resolution"] == 0.05 and image.shape == occupancy_map.occupancy.shape
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "health", *bus.flags()],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 0 and "p0" in result.stdout and "p1" in result.stdout
+    assert fusion.poll() is None
+
+
+def test_restart_restores_the_map_and_version_never_goes_back(bus: Bus, tmp_path: Path) -> None:
+    fusion = _start_fusion(bus, tmp_path / "state")
+    publisher = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
+    wait_for(lambda: "map" in _health(bus), 30, "fusion to start")
+    for seq in range(5):
+        publisher.put(tile_payload("p0", A, 0.9, seq=seq))
+        time.sleep(0.05)
+    wait_for(lambda: _health(bus)["tiles_accepted"] == 5, 10, "tiles accepted")
+    before = latest(bus.session, layers=("logodds",), timeout_s=10)
+    fusion.send_signal(signal.SIGTERM)
+    assert fusion.wait(10) == 0
+
+    _start_fusion(bus, tmp_path / "state")
+    wait_for(lambda: "map" in _health(bus), 30, "fusion to restart")
+    after = latest(bus.session, layers=("logodds",), timeout_s=10)
+    assert after.version >= before.version
+    np.testing.assert_array_equal(after.occupancy, before.occupancy)
+    np.testing.assert_array_equal(after.logodds, before.logodds)
+    publisher.put(tile_payload("p0", A, 0.9, seq=6))
+    wait_for(
+        lambda: latest(bus.session, timeout_s=10).version > after.version,
+        10,
+        "the version to move on",
+    )
+
+
+def test_follower_keeps_a_copy_current_from_updates(bus: Bus, tmp_path: Path) -> None:
+    _start_fusion(bus, tmp_path / "state")
+    publisher = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
+    wait_for(lambda: "map" in _health(bus), 30, "fusion to start")
+    publisher.put(tile_payload("p0", Window(0, 0, 64, 64), -0.4, seq=0))
+    wait_for(lambda: latest(bus.session, timeout_s=10).version >= 1, 10, "a first map")
+    follower = MapFollower(bus.session, timeout_s=10)
+    for seq in range(1, 6):
+        publisher.put(tile_payload("p0", Window(5 * seq, 5, 4, 4), 3.0, seq=seq))
+        time.sleep(0.15)
+    wait_for(
+        lambda: latest(bus.session, timeout_s=10).version == follower.map.version,
+        10,
+        "the follower to catch up",
+    )
+    np.testing.assert_array_equal(
+        follower.map.occupancy, latest(bus.session, timeout_s=10).occupancy
+    )
+    assert follower.applied >= 1
+    follower.close()

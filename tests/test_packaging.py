@@ -1,0 +1,29 @@
+import subprocess
+import sys
+
+from tests.conftest import REPO
+
+
+def test_robot_client_imports_no_renderer_and_no_opencv() -> None:
+    code = (
+        "import sys, common.client, common.mapfiles, services.client_cli, services.cli;"
+        "heavy = [m for m in ('cv2', 'mujoco') if m in sys.modules];"
+        "print(heavy); sys.exit(1 if heavy else 0)"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_cli_lists_every_command() -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "--help"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 0
+    for command in ("camera-sim", "depth", "fusion", "map", "health"):
+        assert command in result.stdout

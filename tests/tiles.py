@@ -1,0 +1,46 @@
+"""Hand-made tiles for fusion tests."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from common.codec import encode
+from common.lattice import Window
+from common.messages import TILE_KIND, TileHeader
+
+
+def tile_arrays(
+    window: Window, logodds: float, height_m: float = 0.0, count: int = 5
+) -> dict[str, np.ndarray]:
+    return {
+        "logodds": np.full(window.shape, logodds, np.float32),
+        "height_m": np.full(window.shape, height_m, np.float32),
+        "count": np.full(window.shape, count, np.uint16),
+    }
+
+
+def tile_payload(
+    pair: str,
+    window: Window,
+    logodds: float,
+    seq: int = 0,
+    stamp_ns: int | None = None,
+    resolution_m: float = 0.05,
+    height_m: float = 0.0,
+    arrays: dict[str, np.ndarray] | None = None,
+) -> bytes:
+    header = TileHeader(
+        pair=pair,
+        seq=seq,
+        stamp_ns=time.time_ns() if stamp_ns is None else stamp_ns,
+        resolution_m=resolution_m,
+        i0=window.i0,
+        j0=window.j0,
+        cols=window.cols,
+        rows=window.rows,
+    )
+    return encode(
+        TILE_KIND, header, arrays if arrays is not None else tile_arrays(window, logodds, height_m)
+    )
