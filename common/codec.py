@@ -7,6 +7,7 @@ bytes disagree with its shape — raises :class:`CodecError`, the one error type
 
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
@@ -19,6 +20,7 @@ WIRE_ENCODING = f"application/msgpack;overgrid/{WIRE_VERSION}"
 """Zenoh encoding string of every overgrid msgpack payload; the suffix is the wire version."""
 
 DEFAULT_MAX_MESSAGE_BYTES = 32 * 1024 * 1024
+ZLIB_LEVEL = 1  # fastest: maps are re-encoded every version
 MAX_ARRAY_DIMS = 4
 ALLOWED_DTYPES = frozenset({"|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<f4", "<f8", "|b1"})
 
@@ -40,13 +42,14 @@ PackedArray = dict[str, Any]
 """An array already in wire form, from :func:`pack_arrays`."""
 
 
-def pack_arrays(arrays: dict[str, np.ndarray]) -> dict[str, PackedArray]:
+def pack_arrays(arrays: dict[str, np.ndarray], compress: bool = False) -> dict[str, PackedArray]:
     """The costly part of encoding, separable so a sender can time it and report the time inside
-    the same message's header."""
-    return {name: _pack_array(array) for name, array in arrays.items()}
+    the same message's header. ``compress`` zlib-compresses the data (worth it for maps: mostly
+    uniform cells; not for tiles, whose encode time is on the latency path)."""
+    return {name: _pack_array(array, compress) for name, array in arrays.items()}
 
 
-def _pack_array(array: np.ndarray) -> PackedArray:
+def _pack_array(array: np.ndarray, compress: bool = False) -> PackedArray:
     contiguous = np.ascontiguousarray(array)
     dtype = (
         contiguous.dtype.newbyteorder("<")
@@ -56,13 +59,24 @@ def _pack_array(array: np.ndarray) -> PackedArray:
     contiguous = contiguous.astype(dtype, copy=False)
     if dtype.str not in ALLOWED_DTYPES:
         raise CodecError(f"array dtype {dtype.str} is not one of {sorted(ALLOWED_DTYPES)}")
-    return {"dtype": dtype.str, "shape": list(contiguous.shape), "data": contiguous.tobytes()}
+    packed: PackedArray = {
+        "dtype": dtype.str,
+        "shape": list(contiguous.shape),
+        "data": contiguous.tobytes(),
+    }
+    if compress:
+        packed["data"] = zlib.compress(packed["data"], ZLIB_LEVEL)
+        packed["compression"] = "zlib"
+    return packed
 
 
 def _unpack_array(name: str, obj: Any) -> np.ndarray:
-    if not isinstance(obj, dict) or set(obj) != {"dtype", "shape", "data"}:
-        raise CodecError(f"array {name!r} is not a {{dtype, shape, data}} map")
+    if not isinstance(obj, dict) or set(obj) - {"compression"} != {"dtype", "shape", "data"}:
+        raise CodecError(f"array {name!r} is not a {{dtype, shape, data[, compression]}} map")
     dtype, shape, data = obj["dtype"], obj["shape"], obj["data"]
+    compression = obj.get("compression")
+    if compression not in (None, "zlib"):
+        raise CodecError(f"array {name!r} has compression {compression!r}, accepted: zlib")
     if dtype not in ALLOWED_DTYPES:
         raise CodecError(f"array {name!r} has dtype {dtype!r}, accepted: {sorted(ALLOWED_DTYPES)}")
     if (
@@ -74,9 +88,23 @@ def _unpack_array(name: str, obj: Any) -> np.ndarray:
     if not isinstance(data, bytes):
         raise CodecError(f"array {name!r} data is {type(data).__name__}, expected bytes")
     expected = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+    if compression == "zlib":
+        data = _inflate(name, data, expected)
     if expected != len(data):
         raise CodecError(f"array {name!r}: shape {shape} needs {expected} bytes, got {len(data)}")
     return np.frombuffer(data, dtype=dtype).reshape(shape)
+
+
+def _inflate(name: str, data: bytes, expected: int) -> bytes:
+    """Decompress at most ``expected`` + 1 bytes: a small message cannot expand without bound."""
+    inflater = zlib.decompressobj()
+    try:
+        out = inflater.decompress(data, expected + 1)
+    except zlib.error as error:
+        raise CodecError(f"array {name!r}: bad zlib data: {error}") from None
+    if len(out) != expected or not inflater.eof:
+        raise CodecError(f"array {name!r}: compressed data does not inflate to {expected} bytes")
+    return out
 
 
 def encode(
@@ -85,12 +113,13 @@ def encode(
     arrays: dict[str, np.ndarray] | None = None,
     blobs: dict[str, bytes] | None = None,
     packed_arrays: dict[str, PackedArray] | None = None,
+    compress: bool = False,
 ) -> bytes:
     envelope = {
         "v": WIRE_VERSION,
         "kind": kind,
         "header": header.model_dump(mode="json"),
-        "arrays": {**pack_arrays(arrays or {}), **(packed_arrays or {})},
+        "arrays": {**pack_arrays(arrays or {}, compress), **(packed_arrays or {})},
         "blobs": dict(blobs or {}),
     }
     packed: bytes = msgpack.packb(envelope, use_bin_type=True)

@@ -15,11 +15,25 @@ UNKNOWN = -1
 """nav_msgs/OccupancyGrid: unknown cell; known cells hold the occupancy probability in 0..100."""
 
 
+_LUT_STEPS_PER_UNIT = 256
+_LUT_RANGE = 16.0  # log-odds beyond ±16 are 0 % / 100 % at int8 resolution
+_LUT = np.rint(
+    100.0
+    / (
+        1.0
+        + np.exp(
+            -np.linspace(-_LUT_RANGE, _LUT_RANGE, int(2 * _LUT_RANGE * _LUT_STEPS_PER_UNIT) + 1)
+        )
+    )
+).astype(np.int8)
+
+
 def occupancy_from_logodds(
     logodds: npt.NDArray[np.float32], known: npt.NDArray[np.bool_]
 ) -> npt.NDArray[np.int8]:
-    probability = 1.0 / (1.0 + np.exp(-logodds.astype(np.float32)))
-    occupancy = np.rint(probability * 100.0).astype(np.int8)
+    """nav_msgs occupancy 0..100 (unknown -1) by table lookup: maps are converted often and whole."""
+    index = np.rint((np.clip(logodds, -_LUT_RANGE, _LUT_RANGE) + _LUT_RANGE) * _LUT_STEPS_PER_UNIT)
+    occupancy: npt.NDArray[np.int8] = _LUT[index.astype(np.intp)]
     occupancy[~known] = UNKNOWN
     return occupancy
 
@@ -86,7 +100,7 @@ class OccupancyMap:
             arrays["logodds"] = self.logodds
         if self.height_m is not None:
             arrays["height_m"] = self.height_m
-        return encode(MAP_KIND, header, arrays)
+        return encode(MAP_KIND, header, arrays, compress=True)
 
     @staticmethod
     def from_msgpack(payload: bytes, max_bytes: int = 512 * 1024 * 1024) -> OccupancyMap:

@@ -95,3 +95,46 @@ def test_disallowed_dtype_is_rejected() -> None:
 def test_random_bytes_only_ever_raise_codec_error(payload: bytes) -> None:
     with pytest.raises(CodecError):
         decode(payload, STEREO_KIND, StereoFrameHeader)
+
+
+def test_compressed_arrays_round_trip_and_bombs_are_refused() -> None:
+    header = StereoFrameHeader(pair="p0", seq=1, stamp_ns=1)
+    image = np.zeros((480, 640), np.uint8)
+    payload = encode(STEREO_KIND, header, {"left": image}, compress=True)
+    assert len(payload) < 5000
+    np.testing.assert_array_equal(
+        decode(payload, STEREO_KIND, StereoFrameHeader).arrays["left"], image
+    )
+    import zlib
+
+    bomb = msgpack.packb(
+        {
+            "v": 1,
+            "kind": STEREO_KIND,
+            "header": {"pair": "p0", "seq": 1, "stamp_ns": 1},
+            "arrays": {
+                "left": {
+                    "dtype": "|u1",
+                    "shape": [10],
+                    "data": zlib.compress(bytes(10**8)),
+                    "compression": "zlib",
+                }
+            },
+            "blobs": {},
+        }
+    )
+    with pytest.raises(CodecError, match="does not inflate to 10 bytes"):
+        decode(bomb, STEREO_KIND, StereoFrameHeader)
+    bad = msgpack.packb(
+        {
+            "v": 1,
+            "kind": STEREO_KIND,
+            "header": {"pair": "p0", "seq": 1, "stamp_ns": 1},
+            "arrays": {
+                "left": {"dtype": "|u1", "shape": [10], "data": b"xx", "compression": "lz4"}
+            },
+            "blobs": {},
+        }
+    )
+    with pytest.raises(CodecError, match="compression"):
+        decode(bad, STEREO_KIND, StereoFrameHeader)

@@ -12,9 +12,18 @@ import numpy as np
 import numpy.typing as npt
 
 from common.lattice import Window
+from common.occupancy_map import UNKNOWN, occupancy_from_logodds
 from services.fusion import rules
 
 GROWTH_CHUNK_CELLS = 64
+LAYER_FILLS = (
+    ("logodds", 0.0),
+    ("height_m", np.nan),
+    ("known", False),
+    ("last_seen_s", 0.0),
+    ("occupancy", UNKNOWN),
+)
+"""Every per-cell array of the grid and the value of a cell never observed."""
 """The map grows in chunks so a stream of tiles at its edge does not reallocate every time."""
 
 
@@ -60,6 +69,8 @@ class FusedGrid:
         self.height_m = np.full(self.window.shape, np.nan, np.float32)
         self.known = np.zeros(self.window.shape, np.bool_)
         self.last_seen_s = np.zeros(self.window.shape, np.float64)
+        self.occupancy = np.full(self.window.shape, UNKNOWN, np.int8)
+        """nav_msgs view of ``logodds``/``known``, kept current cell by cell as they change."""
         self.version = 0
         self.stamp_ns = 0
         self.dirty = Window(0, 0, 0, 0)
@@ -74,12 +85,7 @@ class FusedGrid:
                 f"covering {needed} needs a map of {target.cols}×{target.rows} cells, over the limit of {self.params.max_cells}"
             )
         old_slices = self.window.slices_in(target)
-        for name, fill in (
-            ("logodds", 0.0),
-            ("height_m", np.nan),
-            ("known", False),
-            ("last_seen_s", 0.0),
-        ):
+        for name, fill in LAYER_FILLS:
             old = getattr(self, name)
             grown = np.full(target.shape, fill, dtype=old.dtype)
             grown[old_slices] = old
@@ -110,10 +116,12 @@ class FusedGrid:
         rules.add_logodds_clamped(
             logodds, update, observed, self.params.logodds_min, self.params.logodds_max
         )
-        rules.height_with_max(height, tile_height, observed & (update > 0))
-        rules.height_overwrite_where_free(height, tile_height, observed & (update <= 0))
+        occupied = update > 0
+        rules.height_with_max(height, tile_height, observed & occupied)
+        rules.height_overwrite_where_free(height, tile_height, observed & ~occupied)
         self.known[in_map] |= observed
-        self.last_seen_s[in_map][observed] = stamp_ns / 1e9
+        np.copyto(self.last_seen_s[in_map], stamp_ns / 1e9, where=observed)
+        self.occupancy[in_map] = occupancy_from_logodds(logodds, self.known[in_map])
         self.stamp_ns = max(self.stamp_ns, stamp_ns)
         self.version += 1
         self.dirty = self.dirty.union(part)
@@ -130,6 +138,14 @@ class FusedGrid:
         self.height_m[forgotten] = np.nan
         self.known[forgotten] = False
         rows, cols = np.nonzero(stale)
+        changed = Window(
+            int(cols.min()),
+            int(rows.min()),
+            int(cols.max() - cols.min()) + 1,
+            int(rows.max() - rows.min()) + 1,
+        )
+        box = changed.slices_in(Window(0, 0, self.window.cols, self.window.rows))
+        self.occupancy[box] = occupancy_from_logodds(self.logodds[box], self.known[box])
         self.dirty = self.dirty.union(
             Window(
                 self.window.i0 + int(cols.min()),

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from common.lattice import Window
+from common.occupancy_map import occupancy_from_logodds
 from services.fusion.grid import FusedGrid, GridParams
 
 log = logging.getLogger("fusion.state")
@@ -66,6 +67,7 @@ def load_grid(params: GridParams, state_dir: Path) -> FusedGrid | None:
                 part = saved.intersect(grid.window)
                 for name, array in layers.items():
                     getattr(grid, name)[part.slices_in(grid.window)] = array[part.slices_in(saved)]
+            grid.occupancy = occupancy_from_logodds(grid.logodds, grid.known)
             grid.version = int(data["version"])
             grid.stamp_ns = int(data["stamp_ns"])
     except Exception as error:  # any unreadable file: keep it for inspection, start empty

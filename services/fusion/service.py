@@ -22,15 +22,16 @@ from common.lattice import Window
 from common.lifecycle import stop_on_signals
 from common.logs import RateLimitedLog, setup_logging
 from common.messages import MAP_UPDATE_KIND, MapUpdateHeader
-from common.occupancy_map import OccupancyMap, occupancy_from_logodds
+from common.occupancy_map import OccupancyMap
 from common.settings import CommaList, ZenohSettings, parse_settings
 from common.zenoh_session import open_session
 from services.fusion.grid import FusedGrid, GridParams, TileOutsideMap
 from services.fusion.intake import TileGate, TileRejected
 from services.fusion.persistence import load_grid, save_grid
-from services.fusion.snapshot import CONTENT_TYPES, MapSnapshot, parse_map_query
+from services.fusion.snapshot import CONTENT_TYPES, MapQuery, MapSnapshot, parse_map_query
 
 log = logging.getLogger("fusion")
+DEFAULT_QUERY = MapQuery()
 
 
 def default_state_dir() -> Path:
@@ -107,6 +108,7 @@ class FusionState:
         self.alive: set[str] = set()
         self.contributors: set[str] = set()
         self.snapshot = MapSnapshot(self._build_map())
+        self._layered: MapSnapshot | None = None
         self.warn = RateLimitedLog(log)
 
     def on_tile(self, sample: zenoh.Sample) -> None:
@@ -151,19 +153,30 @@ class FusionState:
             extra={"pair": pair},
         )
 
-    def _build_map(self) -> OccupancyMap:
+    def _build_map(self, with_layers: bool = False) -> OccupancyMap:
+        """Copy of the grid's occupancy (and, if asked, its layers); call with the lock held."""
         grid = self.grid
         return OccupancyMap(
-            occupancy=occupancy_from_logodds(grid.logodds, grid.known),
+            occupancy=grid.occupancy.copy(),
             resolution_m=grid.params.resolution_m,
             i0=grid.window.i0,
             j0=grid.window.j0,
             version=grid.version,
             stamp_ns=grid.stamp_ns,
             pairs=sorted(self.contributors),
-            logodds=grid.logodds.copy(),
-            height_m=grid.height_m.copy(),
+            logodds=grid.logodds.copy() if with_layers else None,
+            height_m=grid.height_m.copy() if with_layers else None,
         )
+
+    def snapshot_for(self, query: MapQuery) -> MapSnapshot:
+        """The current snapshot; one with layers (rarely asked: a tool, not a robot) is built from
+        the grid when asked, once per map version."""
+        if not query.layers:
+            return self.snapshot
+        with self.lock:
+            if self._layered is None or self._layered.version != self.grid.version:
+                self._layered = MapSnapshot(self._build_map(with_layers=True))
+            return self._layered
 
     def refresh(self) -> tuple[MapSnapshot, Window, int] | None:
         """A new snapshot if the grid changed since the last one, with the changed window."""
@@ -171,8 +184,13 @@ class FusionState:
             if self.grid.version == self.snapshot.version:
                 return None
             previous = self.snapshot.version
-            self.snapshot = MapSnapshot(self._build_map())
-            return self.snapshot, self.grid.take_dirty(), previous
+            snapshot = MapSnapshot(self._build_map())
+            dirty = self.grid.take_dirty()
+        # Encode the default answer here, off the query path and outside the lock, before clients
+        # can see this snapshot: no query waits for a compression.
+        snapshot.encoded(DEFAULT_QUERY)
+        self.snapshot = snapshot
+        return snapshot, dirty, previous
 
     def decay(self, elapsed_s: float) -> None:
         with self.lock:
@@ -248,7 +266,7 @@ def main(settings: FusionSettings) -> None:
         except ValueError as error:
             query.reply_err(f"map/latest: {error}")
             return
-        snapshot = state.snapshot
+        snapshot = state.snapshot_for(request)
         query.reply(
             query.key_expr, snapshot.encoded(request), encoding=CONTENT_TYPES[request.format]
         )
