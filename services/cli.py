@@ -7,6 +7,7 @@ import sys
 from collections.abc import Sequence
 
 COMMANDS = {
+    "up": ("services.up", "run everything on this box on the simulated scene; save the map"),
     "camera-sim": ("services.camera_sim.service", "simulated overhead stereo pairs (MuJoCo)"),
     "depth": ("services.depth.service", "depth process of one stereo pair: images → tiles"),
     "fusion": (

@@ -77,7 +77,10 @@ class CameraSimSettings(ZenohSettings):
 
     def scene_spec(self) -> SceneSpec:
         if self.scene is not None:
-            return load_scene(self.scene)
+            try:
+                return load_scene(self.scene)
+            except (OSError, ValueError) as error:  # pydantic's ValidationError is a ValueError
+                raise SystemExit(f"--scene {self.scene}: {error}") from None
         return generate_scene(self.seed, (self.floor_x_m, self.floor_y_m), self.floor)
 
 

@@ -1,0 +1,214 @@
+"""``overgrid up``: the whole system on this box — camera_sim, one depth process per pair, fusion —
+as separate OS processes that find each other by scouting; progress while it runs; map files at the
+end; every child stopped, none left behind."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any, Literal
+
+from pydantic import Field
+
+from common.client import MapUnavailable, health, latest
+from common.lifecycle import stop_on_signals
+from common.mapfiles import write_map
+from common.settings import ZenohSettings, parse_settings
+from common.zenoh_session import open_session
+
+STOP_TIMEOUT_S = 10.0
+LOG_TAIL_LINES = 15
+
+
+class UpSettings(ZenohSettings):
+    pairs: int = Field(
+        4, ge=1, le=64, description="stereo pairs to simulate, one depth process each"
+    )
+    seed: int = Field(0, description="scene seed")
+    scene: Path | None = Field(None, description="scene file instead of a generated one")
+    floor: Literal["textured", "plain"] = Field("textured", description="floor texture")
+    rate_hz: float = Field(2.0, gt=0.0, le=30.0, description="frames per second per pair")
+    duration_s: float = Field(0.0, ge=0.0, description="stop after this long (0: run until Ctrl-C)")
+    out: Path = Field(Path("out"), description="where the map, report and logs go")
+    progress_s: float = Field(2.0, gt=0.0, description="period of the progress line")
+
+
+@dataclass
+class Child:
+    name: str
+    process: subprocess.Popen[bytes]
+    log_path: Path
+    log_file: IO[bytes]
+
+    def tail(self) -> str:
+        lines = self.log_path.read_text(errors="replace").splitlines()
+        return "\n".join(lines[-LOG_TAIL_LINES:])
+
+
+def _zenoh_flags(settings: ZenohSettings) -> list[str]:
+    flags = ["--mode", settings.mode]
+    for endpoint in settings.connect:
+        flags += ["--connect", endpoint]
+    # --listen stays with `up` itself: children would fight over the same endpoints.
+    if settings.config:
+        flags += ["--config", str(settings.config)]
+    if settings.no_multicast_scouting:
+        flags.append("--no-multicast-scouting")
+    if settings.namespace:
+        flags += ["--namespace", settings.namespace]
+    return flags
+
+
+def _commands(settings: UpSettings) -> list[tuple[str, list[str]]]:
+    sim = [
+        "camera-sim",
+        "--pair-count",
+        str(settings.pairs),
+        "--seed",
+        str(settings.seed),
+        "--floor",
+        settings.floor,
+        "--rate-hz",
+        str(settings.rate_hz),
+    ]
+    if settings.scene:
+        sim += ["--scene", str(settings.scene)]
+    commands = [
+        ("fusion", ["fusion", "--state-dir", str(settings.out / "state")]),
+        ("camera_sim", sim),
+    ]
+    commands += [(f"depth_p{k}", ["depth", "--pair", f"p{k}"]) for k in range(settings.pairs)]
+    return commands
+
+
+def start_children(settings: UpSettings) -> list[Child]:
+    logs = settings.out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    children = []
+    for name, args in _commands(settings):
+        log_path = logs / f"{name}.log"
+        log_file = open(log_path, "wb")  # noqa: SIM115 - closed in stop_children
+        # A new session: the terminal's Ctrl-C reaches `up` alone, which saves the map first.
+        process = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", *args, *_zenoh_flags(settings)],
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        children.append(Child(name, process, log_path, log_file))
+    return children
+
+
+def stop_children(children: list[Child]) -> list[str]:
+    """SIGINT, then SIGKILL after a grace period; returns the names of those that had to be killed."""
+    for child in children:
+        if child.process.poll() is None:
+            child.process.send_signal(signal.SIGINT)
+    killed = []
+    deadline = time.monotonic() + STOP_TIMEOUT_S
+    for child in children:
+        try:
+            child.process.wait(max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            child.process.kill()
+            child.process.wait()
+            killed.append(child.name)
+        child.log_file.close()
+    return killed
+
+
+def progress_line(
+    answer: dict[str, Any], previous: dict[str, int], elapsed_s: float, period_s: float
+) -> str:
+    m = answer["map"]
+    known = m["known_cells"] / max(m["cols"] * m["rows"], 1)
+    rates = []
+    for pair, row in sorted(answer["pairs"].items()):
+        rate = (row["tiles"] - previous.get(pair, 0)) / period_s
+        previous[pair] = row["tiles"]
+        rates.append(f"{pair} {rate:.1f}/s" + ("" if row["alive"] else " DEAD"))
+    rejected = sum(answer["tiles_rejected"].values())
+    return (
+        f"[{elapsed_s:6.1f} s] map v{m['version']} {m['cols']}×{m['rows']} known {known:.0%} "
+        f"tiles {answer['tiles_accepted']} rejected {rejected} | " + "  ".join(rates)
+    )
+
+
+def save_outputs(settings: UpSettings, session: Any, answer: dict[str, Any] | None) -> list[Path]:
+    occupancy_map = latest(session, layers=("height", "logodds"), timeout_s=10)
+    if occupancy_map.window.empty:
+        raise MapUnavailable("the map is still empty: no tile has arrived")
+    written = write_map(occupancy_map, settings.out / "map.yaml") + write_map(
+        occupancy_map, settings.out / "map.png"
+    )
+    report = {
+        "map": {
+            "version": occupancy_map.version,
+            "resolution_m": occupancy_map.resolution_m,
+            "origin_m": list(occupancy_map.origin_m),
+            "cols": occupancy_map.window.cols,
+            "rows": occupancy_map.window.rows,
+            "pairs": occupancy_map.pairs,
+        },
+        "health": answer,
+    }
+    (settings.out / "report.json").write_text(json.dumps(report, indent=2))
+    return [*written, settings.out / "report.json"]
+
+
+def main(settings: UpSettings) -> None:
+    stop = stop_on_signals()
+    settings.out.mkdir(parents=True, exist_ok=True)
+    children = start_children(settings)
+    print(
+        f"overgrid up: {len(children)} processes, logs in {settings.out / 'logs'}; Ctrl-C to stop",
+        flush=True,
+    )
+    started = time.monotonic()
+    failed: Child | None = None
+    answer: dict[str, Any] | None = None
+    previous: dict[str, int] = {}
+    with open_session(settings) as session:
+        while not stop.wait(settings.progress_s):
+            failed = next((c for c in children if c.process.poll() is not None), None)
+            if failed is not None:
+                break
+            elapsed = time.monotonic() - started
+            try:
+                answer = health(session, timeout_s=2.0)
+                print(progress_line(answer, previous, elapsed, settings.progress_s), flush=True)
+            except MapUnavailable:
+                print(f"[{elapsed:6.1f} s] waiting for fusion …", flush=True)
+            if settings.duration_s and elapsed >= settings.duration_s:
+                break
+        written: list[Path] = []
+        if failed is None or failed.name != "fusion":
+            try:
+                written = save_outputs(settings, session, answer)
+            except MapUnavailable as error:
+                print(f"no map to save: {error}", file=sys.stderr)
+    killed = stop_children(children)
+    for path in written:
+        print(f"wrote {path}")
+    if killed:
+        print(f"had to kill: {', '.join(killed)}", file=sys.stderr)
+    if failed is not None:
+        print(
+            f"{failed.name} died (exit {failed.process.returncode}); its last log lines:\n{failed.tail()}",
+            file=sys.stderr,
+        )
+        raise SystemExit(1)
+
+
+def cli(argv: Sequence[str] | None = None) -> None:
+    main(
+        parse_settings(
+            UpSettings, argv, "overgrid up", "Run the whole system on this box (simulated scene)."
+        )
+    )
