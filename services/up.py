@@ -8,6 +8,7 @@ import json
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -166,6 +167,26 @@ def main(settings: UpSettings) -> None:
     stop = stop_on_signals()
     settings.out.mkdir(parents=True, exist_ok=True)
     children = start_children(settings)
+    try:
+        failed, written = _supervise(settings, children, stop)
+    finally:  # whatever happened above, no child outlives `up`
+        killed = stop_children(children)
+    for path in written:
+        print(f"wrote {path}")
+    if killed:
+        print(f"had to kill: {', '.join(killed)}", file=sys.stderr)
+    if failed is not None:
+        print(
+            f"{failed.name} died (exit {failed.process.returncode}); its last log lines:\n{failed.tail()}",
+            file=sys.stderr,
+        )
+        raise SystemExit(1)
+
+
+def _supervise(
+    settings: UpSettings, children: list[Child], stop: threading.Event
+) -> tuple[Child | None, list[Path]]:
+    """Show progress until the duration, Ctrl-C or a child's death; then save the map."""
     print(
         f"overgrid up: {len(children)} processes, logs in {settings.out / 'logs'}; Ctrl-C to stop",
         flush=True,
@@ -174,6 +195,7 @@ def main(settings: UpSettings) -> None:
     failed: Child | None = None
     answer: dict[str, Any] | None = None
     previous: dict[str, int] = {}
+    written: list[Path] = []
     with open_session(settings) as session:
         while not stop.wait(settings.progress_s):
             failed = next((c for c in children if c.process.poll() is not None), None)
@@ -187,23 +209,12 @@ def main(settings: UpSettings) -> None:
                 print(f"[{elapsed:6.1f} s] waiting for fusion …", flush=True)
             if settings.duration_s and elapsed >= settings.duration_s:
                 break
-        written: list[Path] = []
         if failed is None or failed.name != "fusion":
             try:
                 written = save_outputs(settings, session, answer)
             except MapUnavailable as error:
                 print(f"no map to save: {error}", file=sys.stderr)
-    killed = stop_children(children)
-    for path in written:
-        print(f"wrote {path}")
-    if killed:
-        print(f"had to kill: {', '.join(killed)}", file=sys.stderr)
-    if failed is not None:
-        print(
-            f"{failed.name} died (exit {failed.process.returncode}); its last log lines:\n{failed.tail()}",
-            file=sys.stderr,
-        )
-        raise SystemExit(1)
+    return failed, written
 
 
 def cli(argv: Sequence[str] | None = None) -> None:
