@@ -26,6 +26,7 @@ from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import generate_scene
 from services.depth.pipeline import DepthPipeline, PipelineConfig
+from services.depth.stereo import stereo_rectify
 
 FLOOR_DEPTH_TOL_M = 0.005
 TOP_MIN_HEIGHT_M = 0.15
@@ -38,18 +39,7 @@ def seed_pipeline(
     160 disparities, a 5×5 median blur, reprojectImageTo3D, a height threshold. Returns the depth
     image (rectified left camera z, NaN invalid) and the obstacle mask."""
     size = calib.image_size
-    T = calib.T_right_left
-    R1, R2, P1, P2, Q, _, _ = cv2.stereoRectify(
-        calib.left.K_array,
-        calib.left.dist_array,
-        calib.right.K_array,
-        calib.right.dist_array,
-        size,
-        T[:3, :3].copy(),
-        T[:3, 3].reshape(3, 1).copy(),
-        flags=cv2.CALIB_ZERO_DISPARITY,
-        alpha=0,
-    )
+    R1, R2, P1, P2, Q = stereo_rectify(calib, calib.left.K_array, calib.right.K_array, size)
     map_l = cv2.initUndistortRectifyMap(
         calib.left.K_array, calib.left.dist_array, R1, P1, size, cv2.CV_32FC1
     )

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -102,26 +103,16 @@ class MapFollower:
             current = self._map
             if h.version <= current.version:
                 return
-            same_window = (h.map_i0, h.map_j0, h.map_cols, h.map_rows) == (
-                current.i0,
-                current.j0,
-                current.window.cols,
-                current.window.rows,
-            )
-            if h.previous_version == current.version and same_window:
+            if h.previous_version == current.version and h.map_window == current.window:
                 occupancy = current.occupancy.copy()
-                occupancy[
-                    h.j0 - current.j0 : h.j0 - current.j0 + h.rows,
-                    h.i0 - current.i0 : h.i0 - current.i0 + h.cols,
-                ] = message.arrays["occupancy"]
-                self._map = OccupancyMap(
+                occupancy[h.window.slices_in(current.window)] = message.arrays["occupancy"]
+                self._map = replace(
+                    current,
                     occupancy=occupancy,
-                    resolution_m=current.resolution_m,
-                    i0=current.i0,
-                    j0=current.j0,
                     version=h.version,
                     stamp_ns=h.stamp_ns,
-                    pairs=current.pairs,
+                    logodds=None,
+                    height_m=None,
                 )
                 self.applied += 1
                 return

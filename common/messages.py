@@ -8,6 +8,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from common.keys import check_pair_id
+from common.lattice import Window
 
 STEREO_KIND = "stereo"
 CALIB_KIND = "calib"
@@ -20,6 +21,20 @@ MAX_TILE_CELLS = 4000 * 4000
 
 class _Header(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class _OnLattice(_Header):
+    """A header describing arrays over lattice window (i0, j0, cols, rows) at ``resolution_m``."""
+
+    resolution_m: float = Field(gt=0)
+    i0: int
+    j0: int
+    cols: int = Field(ge=0)
+    rows: int = Field(ge=0)
+
+    @property
+    def window(self) -> Window:
+        return Window(self.i0, self.j0, self.cols, self.rows)
 
 
 class StereoFrameHeader(_Header):
@@ -36,7 +51,7 @@ class StereoFrameHeader(_Header):
         return check_pair_id(pair)
 
 
-class TileHeader(_Header):
+class TileHeader(_OnLattice):
     """``depth/{pair}/tile``: arrays ``logodds`` (f4), ``height_m`` (f4, NaN unseen), ``count`` (u2).
 
     The arrays cover lattice window (i0, j0, cols, rows); ``[row, col] = [j - j0, i - i0]``.
@@ -45,11 +60,6 @@ class TileHeader(_Header):
     pair: str
     seq: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
-    resolution_m: float = Field(gt=0)
-    i0: int
-    j0: int
-    cols: int = Field(ge=0)
-    rows: int = Field(ge=0)
     stage_ms: dict[str, float] = Field(default_factory=dict)
 
     @field_validator("pair")
@@ -93,16 +103,11 @@ class TruthObject(BaseModel):
         return self.center_m[2] - self.size_m[2] / 2
 
 
-class TruthHeader(_Header):
+class TruthHeader(_OnLattice):
     """``sim/truth`` reply: objects at ``stamp_ns``; array ``occupied`` (u1) over window i0, j0."""
 
     stamp_ns: int
-    resolution_m: float
     height_band_m: tuple[float, float]
-    i0: int
-    j0: int
-    cols: int
-    rows: int
     floor_size_m: tuple[float, float]
     objects: list[TruthObject]
 
@@ -111,33 +116,27 @@ MAP_KIND = "map"
 MAP_UPDATE_KIND = "map_update"
 
 
-class MapHeader(_Header):
+class MapHeader(_OnLattice):
     """``map/latest`` reply: array ``occupancy`` (i1, nav_msgs/OccupancyGrid: -1 unknown, 0..100),
     row-major from the origin cell; optional ``logodds`` (f4) and ``height_m`` (f4) layers."""
 
     version: int = Field(ge=0)
     stamp_ns: int = Field(ge=0, description="newest capture stamp fused into the map")
-    resolution_m: float = Field(gt=0)
-    i0: int
-    j0: int
-    cols: int = Field(ge=0)
-    rows: int = Field(ge=0)
     pairs: list[str] = Field(default_factory=list, description="pairs whose tiles built the map")
 
 
-class MapUpdateHeader(_Header):
+class MapUpdateHeader(_OnLattice):
     """``map/updates``: the changed rectangle (i0, j0, cols, rows) of the map (like nav2's
     OccupancyGridUpdate), plus the whole map's window so a follower can grow its copy."""
 
     version: int = Field(ge=0)
     previous_version: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
-    resolution_m: float = Field(gt=0)
-    i0: int
-    j0: int
-    cols: int = Field(ge=0)
-    rows: int = Field(ge=0)
     map_i0: int
     map_j0: int
     map_cols: int = Field(ge=0)
     map_rows: int = Field(ge=0)
+
+    @property
+    def map_window(self) -> Window:
+        return Window(self.map_i0, self.map_j0, self.map_cols, self.map_rows)

@@ -28,6 +28,26 @@ def scale_intrinsics(K: F64, factor: float) -> F64:
     return scaled
 
 
+def stereo_rectify(
+    calib: StereoCalibration, K_left: F64, K_right: F64, size: tuple[int, int]
+) -> tuple[F64, F64, F64, F64, F64]:
+    """OpenCV's R1, R2, P1, P2, Q for the pair, principal points aligned (zero-disparity)."""
+    T = calib.T_right_left
+    R1, R2, P1, P2, Q, _roi1, _roi2 = cv2.stereoRectify(
+        K_left,
+        calib.left.dist_array,
+        K_right,
+        calib.right.dist_array,
+        size,
+        T[:3, :3].copy(),
+        T[:3, 3].reshape(3, 1).copy(),
+        flags=cv2.CALIB_ZERO_DISPARITY,
+        alpha=0,
+    )
+    R1, R2, P1, P2, Q = (np.asarray(m, dtype=np.float64) for m in (R1, R2, P1, P2, Q))
+    return R1, R2, P1, P2, Q
+
+
 @dataclass(frozen=True)
 class Rectifier:
     """Undistort + rectify maps of one calibration at the processing resolution."""
@@ -54,18 +74,7 @@ class Rectifier:
         size = (width // downscale, height // downscale)
         K1 = scale_intrinsics(calib.left.K_array, 1.0 / downscale)
         K2 = scale_intrinsics(calib.right.K_array, 1.0 / downscale)
-        T = calib.T_right_left
-        R1, R2, P1, P2, _Q, _roi1, _roi2 = cv2.stereoRectify(
-            K1,
-            calib.left.dist_array,
-            K2,
-            calib.right.dist_array,
-            size,
-            T[:3, :3].copy(),
-            T[:3, 3].reshape(3, 1).copy(),
-            flags=cv2.CALIB_ZERO_DISPARITY,
-            alpha=0,
-        )
+        R1, R2, P1, P2, _Q = stereo_rectify(calib, K1, K2, size)
         if abs(P2[1, 3]) > abs(P2[0, 3]):
             raise ValueError(
                 f"pair {calib.pair}: cameras are stacked vertically; overgrid needs a horizontal baseline"

@@ -80,7 +80,7 @@ class TileGate:
         self.newest_stamp_ns[h.pair] = h.stamp_ns
         return AcceptedTile(
             h,
-            Window(h.i0, h.j0, h.cols, h.rows),
+            h.window,
             layers["logodds"],
             layers["height_m"],
             layers["count"],
