@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from common.codec import WIRE_ENCODING
 from common.mapfiles import map_yaml, pgm_bytes, png_bytes
@@ -80,14 +80,8 @@ class MapSnapshot:
     def _encode(self, query: MapQuery) -> bytes:
         view = self.map.crop(query.region) if query.region else self.map
         if query.format == "msgpack":
-            return OccupancyMap(
-                occupancy=view.occupancy,
-                resolution_m=view.resolution_m,
-                i0=view.i0,
-                j0=view.j0,
-                version=view.version,
-                stamp_ns=view.stamp_ns,
-                pairs=view.pairs,
+            return replace(
+                view,
                 logodds=view.logodds if "logodds" in query.layers else None,
                 height_m=view.height_m if "height" in query.layers else None,
             ).to_msgpack()
