@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -26,7 +27,7 @@ class MapUnavailable(RuntimeError):
 RETRY_PERIOD_S = 0.2
 
 
-def _get(session: zenoh.Session, selector: str, timeout_s: float) -> bytes:
+def query_first(session: zenoh.Session, selector: str, timeout_s: float) -> bytes:
     """First good reply. A session just opened may not have found the service by scouting yet,
     so an empty answer is retried until ``timeout_s``; an error reply is final."""
     deadline = time.monotonic() + timeout_s
@@ -57,7 +58,7 @@ def latest(
     if layers:
         parameters.append("layers=" + ",".join(layers))
     selector = keys.MAP_LATEST + ("?" + ";".join(parameters) if parameters else "")
-    return OccupancyMap.from_msgpack(_get(session, selector, timeout_s))
+    return OccupancyMap.from_msgpack(query_first(session, selector, timeout_s))
 
 
 def latest_encoded(
@@ -67,11 +68,11 @@ def latest_encoded(
     parameters = [f"format={fmt}"] + (
         ["region=" + ",".join(f"{v:g}" for v in region)] if region else []
     )
-    return _get(session, keys.MAP_LATEST + "?" + ";".join(parameters), timeout_s)
+    return query_first(session, keys.MAP_LATEST + "?" + ";".join(parameters), timeout_s)
 
 
 def health(session: zenoh.Session, timeout_s: float = 5.0) -> dict[str, Any]:
-    answer: dict[str, Any] = json.loads(_get(session, keys.MAP_HEALTH, timeout_s))
+    answer: dict[str, Any] = json.loads(query_first(session, keys.MAP_HEALTH, timeout_s))
     return answer
 
 
@@ -79,9 +80,16 @@ class MapFollower:
     """A local copy kept current by ``map/updates``; a missed update (version gap) or a grown map
     triggers one fetch of ``map/latest``."""
 
-    def __init__(self, session: zenoh.Session, timeout_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        timeout_s: float = 5.0,
+        on_change: Callable[[OccupancyMap, float], None] | None = None,
+    ) -> None:
+        """``on_change(map, arrival_s)`` is called with each new version (arrival: epoch seconds)."""
         self._session = session
         self._timeout_s = timeout_s
+        self._on_change = on_change
         self._lock = threading.Lock()
         self.refetches = 0
         self.applied = 0
@@ -94,11 +102,13 @@ class MapFollower:
             return self._map
 
     def _on_update(self, sample: zenoh.Sample) -> None:
+        arrival_s = time.time()
         try:
             message = decode(sample.payload.to_bytes(), MAP_UPDATE_KIND, MapUpdateHeader)
         except CodecError:
             return
         h = message.header
+        changed: OccupancyMap | None = None
         with self._lock:
             current = self._map
             if h.version <= current.version:
@@ -115,12 +125,15 @@ class MapFollower:
                     height_m=None,
                 )
                 self.applied += 1
-                return
-        fresh = latest(self._session, timeout_s=self._timeout_s)
-        with self._lock:
-            if fresh.version > self._map.version:
-                self._map = fresh
-            self.refetches += 1
+                changed = self._map
+        if changed is None:
+            fresh = latest(self._session, timeout_s=self._timeout_s)
+            with self._lock:
+                self.refetches += 1
+                if fresh.version > self._map.version:
+                    self._map = changed = fresh
+        if changed is not None and self._on_change is not None:
+            self._on_change(changed, arrival_s)
 
     def close(self) -> None:
         self._subscriber.undeclare()  # type: ignore[no-untyped-call]

@@ -7,6 +7,7 @@ import re
 PAIR_ID = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
 
 STEREO_ALL = "cam/*/stereo"
+CALIB_ALL = "cam/*/calib"
 SIM_TRUTH = "sim/truth"
 TILES_ALL = "depth/*/tile"
 DEPTH_ALIVE_ALL = "depth/*/alive"

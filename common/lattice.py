@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -110,3 +111,17 @@ class Window:
         ys = cell_center(np.arange(self.j0, self.j1), resolution_m)
         x_grid, y_grid = np.meshgrid(xs, ys)
         return x_grid, y_grid
+
+
+A = TypeVar("A", bound=np.generic)
+
+
+def reframe(
+    array: npt.NDArray[A], window: Window, onto: Window, fill: float | bool
+) -> npt.NDArray[A]:
+    """``array`` (covering ``window``) seen on window ``onto``: shared cells copied, others ``fill``."""
+    out = np.full(onto.shape, fill, dtype=array.dtype)
+    part = window.intersect(onto)
+    if not part.empty:
+        out[part.slices_in(onto)] = array[part.slices_in(window)]
+    return out

@@ -19,7 +19,13 @@ PGM_UNKNOWN = 205
 OCCUPIED_THRESH = 0.65
 FREE_THRESH = 0.25
 
-PICTURE_COLORS = {"free": (255, 255, 255), "occupied": (20, 20, 20), "unknown": (180, 180, 190)}
+PICTURE_COLORS = {
+    "free": (255, 255, 255),
+    "occupied": (20, 20, 20),
+    "unknown": (180, 180, 190),
+    "scale": (220, 30, 30),
+    "truth": (30, 110, 230),
+}
 
 
 def trinary(occupancy: npt.NDArray[np.int8]) -> npt.NDArray[np.uint8]:
@@ -72,8 +78,20 @@ def read_map_server(yaml_path: Path) -> tuple[dict[str, object], npt.NDArray[np.
     return meta, np.frombuffer(pixels, np.uint8).reshape(rows, cols)
 
 
-def picture(occupancy_map: OccupancyMap, min_width_px: int = 800) -> npt.NDArray[np.uint8]:
-    """RGB picture: free white, occupied black, unknown grey, y up, with a 1 m scale bar."""
+def _outline(mask: npt.NDArray[np.bool_]) -> npt.NDArray[np.bool_]:
+    """Pixels of ``mask`` with a 4-neighbour outside it: a one-pixel contour."""
+    padded = np.pad(mask, 1)
+    inner = padded[:-2, 1:-1] & padded[2:, 1:-1] & padded[1:-1, :-2] & padded[1:-1, 2:]
+    return mask & ~inner
+
+
+def picture(
+    occupancy_map: OccupancyMap,
+    min_width_px: int = 800,
+    truth: npt.NDArray[np.bool_] | None = None,
+) -> npt.NDArray[np.uint8]:
+    """RGB picture: free white, occupied black, unknown grey, y up, with a 1 m scale bar; the
+    outlines of ``truth`` (cells on the map's window that are truly occupied) drawn over it."""
     occ = occupancy_map.occupancy
     rgb = np.empty((*occ.shape, 3), np.uint8)
     rgb[:] = PICTURE_COLORS["unknown"]
@@ -83,19 +101,26 @@ def picture(occupancy_map: OccupancyMap, min_width_px: int = 800) -> npt.NDArray
     rgb[occ >= OCCUPIED_THRESH * 100] = PICTURE_COLORS["occupied"]
     scale = max(1, -(-min_width_px // max(occ.shape[1], 1)))
     big = np.repeat(np.repeat(rgb[::-1], scale, axis=0), scale, axis=1)
+    if truth is not None:
+        big_truth = np.repeat(np.repeat(truth[::-1], scale, axis=0), scale, axis=1)
+        contour = _outline(big_truth)
+        if scale >= 4:  # two pixels wide where there is room, so it reads at a glance
+            contour |= _outline(big_truth & ~contour)
+        big[contour] = PICTURE_COLORS["truth"]
     px_per_m = scale / occupancy_map.resolution_m
     bar_len = round(px_per_m)
     margin = max(4, scale)
     if big.shape[1] > bar_len + 2 * margin and big.shape[0] > 4 * margin:
         y = big.shape[0] - 2 * margin
-        big[y : y + max(2, scale // 2), margin : margin + bar_len] = (220, 30, 30)  # 1 m scale bar
-        big[y - 3 * margin // 2 : y, margin : margin + 2] = (220, 30, 30)
-        big[y - 3 * margin // 2 : y, margin + bar_len - 2 : margin + bar_len] = (220, 30, 30)
+        red = PICTURE_COLORS["scale"]
+        big[y : y + max(2, scale // 2), margin : margin + bar_len] = red  # 1 m scale bar
+        big[y - 3 * margin // 2 : y, margin : margin + 2] = red
+        big[y - 3 * margin // 2 : y, margin + bar_len - 2 : margin + bar_len] = red
     return big
 
 
-def png_bytes(occupancy_map: OccupancyMap) -> bytes:
-    return encode_png(picture(occupancy_map))
+def png_bytes(occupancy_map: OccupancyMap, truth: npt.NDArray[np.bool_] | None = None) -> bytes:
+    return encode_png(picture(occupancy_map, truth=truth))
 
 
 def write_npz(occupancy_map: OccupancyMap, path: Path) -> None:
@@ -112,14 +137,16 @@ def write_npz(occupancy_map: OccupancyMap, path: Path) -> None:
     np.savez_compressed(path, **arrays)
 
 
-def write_map(occupancy_map: OccupancyMap, path: Path) -> list[Path]:
-    """Write by suffix: .yaml (+ .pgm), .pgm (+ .yaml), .png or .npz."""
+def write_map(
+    occupancy_map: OccupancyMap, path: Path, truth: npt.NDArray[np.bool_] | None = None
+) -> list[Path]:
+    """Write by suffix: .yaml (+ .pgm), .pgm (+ .yaml), .png (with ``truth`` outlined) or .npz."""
     suffix = path.suffix.lower()
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix in (".yaml", ".yml", ".pgm"):
         return list(write_map_server(occupancy_map, path.with_suffix(".yaml")))
     if suffix == ".png":
-        path.write_bytes(png_bytes(occupancy_map))
+        path.write_bytes(png_bytes(occupancy_map, truth))
         return [path]
     if suffix == ".npz":
         write_npz(occupancy_map, path)

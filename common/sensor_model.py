@@ -25,7 +25,7 @@ class SensorModelParams:
     obstacle_max_m: float = 2.0
     p_hit: float = 0.7
     p_miss: float = 0.4
-    occupied_fraction: float = 0.25
+    occupied_fraction: float = 0.5
     """Share of a cell's pixels in the obstacle band that counts as fully occupied evidence."""
 
     def __post_init__(self) -> None:

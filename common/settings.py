@@ -91,20 +91,20 @@ def build_parser(
     parser = argparse.ArgumentParser(prog=prog, description=description)
     for name, field in settings_cls.model_fields.items():
         help_text = f"{field.description or ''} [env {env_name(name)}]"
+        extra = field.json_schema_extra if isinstance(field.json_schema_extra, dict) else {}
+        flag = flag_name(str(extra.get("flag", name)))  # a field may not shadow BaseModel (json)
         if _is_bool(field.annotation):
             parser.add_argument(
-                flag_name(name),
+                flag,
                 dest=name,
                 action=argparse.BooleanOptionalAction,
                 default=None,
                 help=help_text,
             )
         elif _is_list(field.annotation):
-            parser.add_argument(
-                flag_name(name), dest=name, action="append", default=None, help=help_text
-            )
+            parser.add_argument(flag, dest=name, action="append", default=None, help=help_text)
         else:
-            parser.add_argument(flag_name(name), dest=name, default=None, help=help_text)
+            parser.add_argument(flag, dest=name, default=None, help=help_text)
     return parser
 
 

@@ -18,7 +18,12 @@ COMMANDS = {
         "services.client_cli",
         "map get -o FILE: save the current map (.yaml+.pgm, .png, .npz)",
     ),
+    "eval": (
+        "services.evaluation.service",
+        "score the running map against the simulator's ground truth",
+    ),
     "health": ("services.client_cli", "show the fusion service's health"),
+    "router": ("services.router", "a Zenoh router for boxes that multicast scouting cannot reach"),
     "save-frame": ("services.camera_sim.save_frame", "save one stereo frame of a pair as PNG"),
 }
 

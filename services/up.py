@@ -18,10 +18,15 @@ from typing import IO, Any, Literal
 from pydantic import Field
 
 from common.client import MapUnavailable, health, latest
+from common.codec import CodecError
+from common.lattice import reframe
 from common.lifecycle import stop_on_signals
 from common.mapfiles import write_map
 from common.settings import ZenohSettings, parse_settings
 from common.zenoh_session import open_session
+from services.evaluation.service import Evaluator, Recorder
+from services.evaluation.service import report as evaluation_report
+from services.evaluation.service import table as evaluation_table
 
 STOP_TIMEOUT_S = 10.0
 LOG_TAIL_LINES = 15
@@ -125,7 +130,11 @@ def stop_children(children: list[Child]) -> list[str]:
 
 
 def progress_line(
-    answer: dict[str, Any], previous: dict[str, int], elapsed_s: float, period_s: float
+    answer: dict[str, Any],
+    previous: dict[str, int],
+    elapsed_s: float,
+    period_s: float,
+    iou: float | None = None,
 ) -> str:
     m = answer["map"]
     known = m["known_cells"] / max(m["cols"] * m["rows"], 1)
@@ -137,19 +146,76 @@ def progress_line(
     rejected = sum(answer["tiles_rejected"].values())
     return (
         f"[{elapsed_s:6.1f} s] map v{m['version']} {m['cols']}×{m['rows']} known {known:.0%} "
-        f"tiles {answer['tiles_accepted']} rejected {rejected} | " + "  ".join(rates)
+        f"tiles {answer['tiles_accepted']} rejected {rejected}"
+        + (f" IoU {iou:.3f}" if iou is not None else "")
+        + " | "
+        + "  ".join(rates)
     )
 
 
-def save_outputs(settings: UpSettings, session: Any, answer: dict[str, Any] | None) -> list[Path]:
+class Scoring:
+    """The evaluation that runs alongside: made once the map exists, it records the stream from
+    then on and scores the map against the simulator's ground truth."""
+
+    def __init__(self, session: Any) -> None:
+        self.session = session
+        self.evaluator: Evaluator | None = None
+        self.recorder: Recorder | None = None
+        self.error: str | None = None
+
+    def start(self, resolution_m: float) -> None:
+        if self.evaluator is not None:
+            return
+        try:
+            self.evaluator = Evaluator(self.session, resolution_m, timeout_s=5.0)
+            self.recorder = Recorder(self.session, self.evaluator.window, resolution_m)
+        except (MapUnavailable, CodecError) as error:
+            self.error = str(error)
+
+    def iou(self) -> float | None:
+        if self.evaluator is None:
+            return None
+        try:
+            return self.evaluator.scores(latest(self.session, timeout_s=2.0))[0].iou
+        except (MapUnavailable, CodecError):
+            return None
+
+    def report(self) -> dict[str, Any]:
+        if self.evaluator is None:
+            return {"error": self.error or "never started: no map"}
+        try:
+            return evaluation_report(self.evaluator, self.recorder)
+        except (MapUnavailable, CodecError) as error:
+            return {"error": str(error)}
+
+    def truth_on(self, occupancy_map: Any) -> Any:
+        if self.evaluator is None:
+            return None
+        try:
+            truth = self.evaluator.truth(occupancy_map.stamp_ns)
+        except (MapUnavailable, CodecError):
+            return None
+        return reframe(truth.occupied, truth.header.window, occupancy_map.window, False)
+
+    def close(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close()
+
+
+def save_outputs(
+    settings: UpSettings, session: Any, answer: dict[str, Any] | None, scoring: Scoring
+) -> list[Path]:
     occupancy_map = latest(session, layers=("height", "logodds"), timeout_s=10)
     if occupancy_map.window.empty:
         raise MapUnavailable("the map is still empty: no tile has arrived")
     written = write_map(occupancy_map, settings.out / "map.yaml") + write_map(
-        occupancy_map, settings.out / "map.png"
+        occupancy_map, settings.out / "map.png", truth=scoring.truth_on(occupancy_map)
     )
+    evaluation = scoring.report()
     report = {
+        **evaluation,
         "map": {
+            **evaluation.get("map", {}),
             "version": occupancy_map.version,
             "resolution_m": occupancy_map.resolution_m,
             "origin_m": list(occupancy_map.origin_m),
@@ -160,6 +226,8 @@ def save_outputs(settings: UpSettings, session: Any, answer: dict[str, Any] | No
         "health": answer,
     }
     (settings.out / "report.json").write_text(json.dumps(report, indent=2))
+    if "targets" in evaluation:
+        print(evaluation_table(evaluation), flush=True)
     return [*written, settings.out / "report.json"]
 
 
@@ -197,23 +265,33 @@ def _supervise(
     previous: dict[str, int] = {}
     written: list[Path] = []
     with open_session(settings) as session:
-        while not stop.wait(settings.progress_s):
-            failed = next((c for c in children if c.process.poll() is not None), None)
-            if failed is not None:
-                break
-            elapsed = time.monotonic() - started
-            try:
-                answer = health(session, timeout_s=2.0)
-                print(progress_line(answer, previous, elapsed, settings.progress_s), flush=True)
-            except MapUnavailable:
-                print(f"[{elapsed:6.1f} s] waiting for fusion …", flush=True)
-            if settings.duration_s and elapsed >= settings.duration_s:
-                break
-        if failed is None or failed.name != "fusion":
-            try:
-                written = save_outputs(settings, session, answer)
-            except MapUnavailable as error:
-                print(f"no map to save: {error}", file=sys.stderr)
+        scoring = Scoring(session)
+        try:
+            while not stop.wait(settings.progress_s):
+                failed = next((c for c in children if c.process.poll() is not None), None)
+                if failed is not None:
+                    break
+                elapsed = time.monotonic() - started
+                try:
+                    answer = health(session, timeout_s=2.0)
+                except MapUnavailable:
+                    print(f"[{elapsed:6.1f} s] waiting for fusion …", flush=True)
+                else:
+                    if answer["map"]["cols"]:
+                        scoring.start(answer["map"]["resolution_m"])
+                    line = progress_line(
+                        answer, previous, elapsed, settings.progress_s, scoring.iou()
+                    )
+                    print(line, flush=True)
+                if settings.duration_s and elapsed >= settings.duration_s:
+                    break
+            if failed is None or failed.name != "fusion":
+                try:
+                    written = save_outputs(settings, session, answer, scoring)
+                except MapUnavailable as error:
+                    print(f"no map to save: {error}", file=sys.stderr)
+        finally:
+            scoring.close()
     return failed, written
 
 

@@ -1,5 +1,6 @@
 """``overgrid up`` runs the whole system as real processes and leaves nothing behind."""
 
+import json
 import signal
 import subprocess
 import sys
@@ -8,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from common.mapfiles import read_map_server
+from common.mapfiles import PICTURE_COLORS, read_map_server
 from common.png import decode_png
 from tests.conftest import REPO, Bus, wait_for
 
@@ -53,8 +54,17 @@ def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_pa
     meta, image = read_map_server(tmp_path / "run" / "map.yaml")
     assert meta["resolution"] == 0.05 and image.size > 10_000
     assert (image == 254).mean() > 0.2  # a real map: much free floor
-    assert decode_png((tmp_path / "run" / "map.png").read_bytes()).shape[1] >= 800
-    assert (tmp_path / "run" / "report.json").exists()
+    picture = decode_png((tmp_path / "run" / "map.png").read_bytes())
+    assert picture.shape[1] >= 800
+    assert (picture == PICTURE_COLORS["truth"]).all(axis=2).sum() > 1000  # truth outlines drawn
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert 0.2 < report["iou"] <= 1 and report["false_free_rate"] < 0.2, report
+    for key in ("precision", "recall", "unknown_fraction", "length_error_mean_pct"):
+        assert 0 <= report[key] < 100, key
+    assert {"name", "true_length_m", "length_m", "width_m"} <= set(report["objects"][0])
+    assert report["capture_to_map_ms"]["n"] > 5 and report["capture_to_map_ms"]["p50"] > 0
+    assert {"camera", "disparity", "model"} <= set(report["stage_ms"])
+    assert "moving_appear_s" in report and "moving_clear_s" in report
     assert _children_of(bus.namespace) == []
 
 

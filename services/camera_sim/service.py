@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Literal
 
@@ -84,6 +84,16 @@ class CameraSimSettings(ZenohSettings):
         return generate_scene(self.seed, (self.floor_x_m, self.floor_y_m), self.floor)
 
 
+def _answer(key: str, payload: bytes) -> Callable[[zenoh.Query], None]:
+    """Reply on the queryable's own key, so a ``cam/*/calib`` query gets one answer per pair
+    (replies on the query's wildcard key would be consolidated into one)."""
+
+    def reply(query: zenoh.Query) -> None:
+        query.reply(key, payload, encoding=WIRE_ENCODING)
+
+    return reply
+
+
 def _truth_reply(scene: SceneSpec, query: zenoh.Query) -> bytes:
     """Parameters: ``t`` (s since epoch) or ``stamp_ns``; ``resolution`` (m); ``band`` (h_min,h_max)."""
     params = dict(query.parameters)
@@ -150,13 +160,8 @@ def main(settings: CameraSimSettings) -> None:
         }
         calib_payloads = {c.pair: encode(CALIB_KIND, c) for c in calibrations}
         queryables = [
-            session.declare_queryable(
-                keys.calib(c.pair),
-                lambda q, payload=calib_payloads[c.pair]: q.reply(
-                    q.key_expr, payload, encoding=WIRE_ENCODING
-                ),
-            )
-            for c in calibrations
+            session.declare_queryable(keys.calib(c.pair), _answer(keys.calib(c.pair), payload))
+            for c, payload in zip(calibrations, calib_payloads.values(), strict=True)
         ]
 
         def on_truth(query: zenoh.Query) -> None:

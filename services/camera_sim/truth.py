@@ -33,3 +33,15 @@ def occupancy(
         if obj.top_m >= band_m[0] and obj.bottom_m <= band_m[1]:
             grid |= footprint_mask(obj, window, resolution_m).astype(np.uint8)
     return grid
+
+
+def top_heights(
+    objects: list[TruthObject], window: Window, resolution_m: float
+) -> npt.NDArray[np.float64]:
+    """Per cell, the highest object top over it (0: bare floor): the surface an overhead camera sees."""
+    heights = np.zeros(window.shape, dtype=np.float64)
+    for obj in objects:
+        heights = np.where(
+            footprint_mask(obj, window, resolution_m), np.maximum(heights, obj.top_m), heights
+        )
+    return heights

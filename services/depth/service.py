@@ -125,6 +125,7 @@ class Frame:
     header: StereoFrameHeader
     left: np.ndarray
     right: np.ndarray
+    received_ns: int
 
 
 class TilePublisher:
@@ -142,12 +143,23 @@ class TilePublisher:
         self.stage_ms_sum: Counter[str] = Counter()
 
     def publish(
-        self, pipeline: DepthPipeline, left: np.ndarray, right: np.ndarray, seq: int, stamp_ns: int
+        self,
+        pipeline: DepthPipeline,
+        left: np.ndarray,
+        right: np.ndarray,
+        seq: int,
+        stamp_ns: int,
+        upstream_ms: dict[str, float] | None = None,
     ) -> None:
+        """``upstream_ms``: times before processing began (camera, queue), reported with the stages."""
         result = pipeline.process(left, right)
         started = time.perf_counter()
         packed = pack_arrays(result.tile.arrays())
-        stage_ms = {**result.stage_ms, "encode": (time.perf_counter() - started) * 1e3}
+        stage_ms = {
+            **(upstream_ms or {}),
+            **result.stage_ms,
+            "encode": (time.perf_counter() - started) * 1e3,
+        }
         window = result.tile.window
         header = TileHeader(
             pair=self.pair,
@@ -212,7 +224,7 @@ class FrameIntake:
             if left is None or right is None:
                 raise ValueError(f"{message.header.encoding} images do not decode")
         self._pipeline.check_frame(left, right)
-        return Frame(message.header, left, right)
+        return Frame(message.header, left, right, time.time_ns())
 
     def _reject(self, reason: str, error: Exception) -> None:
         with self._lock:
@@ -280,8 +292,19 @@ def main(settings: DepthSettings) -> None:
             while not stop.is_set():
                 frame = intake.slot.take(0.5)
                 if frame is not None:
+                    # camera: capture → arrival here (exposure/readout, or the sim's render, and
+                    # transport); queue: waiting here for the worker.
+                    upstream_ms = {
+                        "camera": (frame.received_ns - frame.header.stamp_ns) / 1e6,
+                        "queue": (time.time_ns() - frame.received_ns) / 1e6,
+                    }
                     publisher.publish(
-                        pipeline, frame.left, frame.right, frame.header.seq, frame.header.stamp_ns
+                        pipeline,
+                        frame.left,
+                        frame.right,
+                        frame.header.seq,
+                        frame.header.stamp_ns,
+                        upstream_ms,
                     )
                 if time.monotonic() - last_summary >= settings.summary_s:
                     last_summary = time.monotonic()

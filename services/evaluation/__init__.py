@@ -1,0 +1,1 @@
+"""Scoring the map against ground truth."""

@@ -1,0 +1,243 @@
+"""How good a map is against ground truth: cell scores, object sizes, moving-object latencies.
+
+Pure numpy/OpenCV over lattice arrays: the same code scores a live system (``overgrid eval``) and
+hand-made maps in the tests. Every array here lies on one lattice window (``[row, col] = [j, i]``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from common.camera import StereoCalibration
+from common.lattice import Window, reframe
+from common.mapfiles import FREE_THRESH, OCCUPIED_THRESH
+from common.messages import TruthObject
+from common.occupancy_map import UNKNOWN, OccupancyMap
+from services.camera_sim.truth import footprint_mask
+
+Mask = npt.NDArray[np.bool_]
+OCCUPIED_MIN = round(OCCUPIED_THRESH * 100)
+FREE_MAX = round(FREE_THRESH * 100)
+
+
+def occupancy_on(occupancy_map: OccupancyMap, window: Window) -> npt.NDArray[np.int8]:
+    """The map's nav_msgs occupancy over ``window``; cells the map does not cover are unknown."""
+    return reframe(occupancy_map.occupancy, occupancy_map.window, window, UNKNOWN)
+
+
+def seen_by_cameras(
+    calibrations: Sequence[StereoCalibration],
+    window: Window,
+    resolution_m: float,
+    surface_m: npt.NDArray[np.float64] | None = None,
+) -> Mask:
+    """Cells whose visible surface (height ``surface_m``, else the floor) lies inside both images of
+    some pair: what stereo can measure. A tall top near the edge of a view can leave it while the
+    floor beside it stays in, so the surface height matters."""
+    x, y = window.cell_centers(resolution_m)
+    z = np.zeros(x.size) if surface_m is None else surface_m.ravel()
+    floor = np.column_stack([x.ravel(), y.ravel(), z])
+    seen = np.zeros(x.size, np.bool_)
+    for calib in calibrations:
+        in_both = np.ones(x.size, np.bool_)
+        for camera in (calib.left, calib.right):
+            uvz = camera.project(floor)
+            in_both &= (
+                (uvz[:, 2] > 0)
+                & (uvz[:, 0] >= 0)
+                & (uvz[:, 0] <= camera.width - 1)
+                & (uvz[:, 1] >= 0)
+                & (uvz[:, 1] <= camera.height - 1)
+            )
+        seen |= in_both
+    return seen.reshape(window.shape)
+
+
+@dataclass(frozen=True)
+class CellScores:
+    iou: float
+    precision: float
+    recall: float
+    false_free_rate: float
+    """Truth occupied, map free: the error that drives a robot into an obstacle."""
+    unknown_fraction: float
+    """Share of the seen free floor the map still calls unknown."""
+    truth_cells: int
+    map_cells: int
+
+
+def _ratio(numerator: int, denominator: int) -> float:
+    return numerator / denominator if denominator else math.nan
+
+
+def score_cells(occupancy: npt.NDArray[np.int8], truth: Mask, seen: Mask) -> CellScores:
+    """Scores over the cells some camera sees; ``occupancy`` and ``truth`` share one window."""
+    occupied = (occupancy >= OCCUPIED_MIN) & seen
+    free = (occupancy >= 0) & (occupancy <= FREE_MAX) & seen
+    truth_seen = truth & seen
+    hits = int(np.count_nonzero(occupied & truth_seen))
+    union = int(np.count_nonzero(occupied | truth_seen))
+    floor = seen & ~truth
+    return CellScores(
+        iou=_ratio(hits, union),
+        precision=_ratio(hits, int(np.count_nonzero(occupied))),
+        recall=_ratio(hits, int(np.count_nonzero(truth_seen))),
+        false_free_rate=_ratio(
+            int(np.count_nonzero(free & truth_seen)), int(np.count_nonzero(truth_seen))
+        ),
+        unknown_fraction=_ratio(
+            int(np.count_nonzero(floor & (occupancy == UNKNOWN))), int(np.count_nonzero(floor))
+        ),
+        truth_cells=int(np.count_nonzero(truth_seen)),
+        map_cells=int(np.count_nonzero(occupied)),
+    )
+
+
+ANGLE_STEPS = np.deg2rad(np.arange(0.0, 90.0, 0.25))
+
+
+def oriented_extent(points_xy: npt.NDArray[np.float64]) -> tuple[float, float, float]:
+    """Smallest-area rectangle around the points over all orientations: (length, width, yaw)."""
+    c, s = np.cos(ANGLE_STEPS), np.sin(ANGLE_STEPS)
+    along = points_xy[:, :1] * c + points_xy[:, 1:] * s  # (N, angles)
+    across = -points_xy[:, :1] * s + points_xy[:, 1:] * c
+    extent_a = along.max(axis=0) - along.min(axis=0)
+    extent_b = across.max(axis=0) - across.min(axis=0)
+    best = int(np.argmin(extent_a * extent_b))
+    a, b = float(extent_a[best]), float(extent_b[best])
+    return max(a, b), min(a, b), float(ANGLE_STEPS[best])
+
+
+@dataclass(frozen=True)
+class ObjectSize:
+    name: str
+    true_length_m: float
+    true_width_m: float
+    length_m: float
+    width_m: float
+
+    @property
+    def found(self) -> bool:
+        return self.length_m > 0
+
+    @property
+    def errors_pct(self) -> tuple[float, float]:
+        return (
+            100 * abs(self.length_m - self.true_length_m) / self.true_length_m,
+            100 * abs(self.width_m - self.true_width_m) / self.true_width_m,
+        )
+
+
+def true_extent(obj: TruthObject) -> tuple[float, float]:
+    if obj.shape == "cylinder":
+        return obj.size_m[0], obj.size_m[0]
+    return max(obj.size_m[:2]), min(obj.size_m[:2])
+
+
+def measure_object(
+    occupied: Mask, window: Window, resolution_m: float, obj: TruthObject, margin_m: float = 0.2
+) -> ObjectSize:
+    """The object's size as the map shows it: the connected components of occupied cells that meet
+    its true footprint, kept within ``margin_m`` of it (so a neighbour touching it is not measured
+    too), then the oriented bounding box of those cells (cell centres ± half a cell)."""
+    length_true, width_true = true_extent(obj)
+    grown = obj.model_copy(
+        update={"size_m": (obj.size_m[0] + 2 * margin_m, obj.size_m[1] + 2 * margin_m, 0.0)}
+    )
+    candidates = occupied & footprint_mask(grown, window, resolution_m)
+    count, labels = cv2.connectedComponents(candidates.astype(np.uint8), connectivity=8)
+    touching = np.unique(labels[candidates & footprint_mask(obj, window, resolution_m)])
+    touching = touching[touching > 0]
+    if count <= 1 or touching.size == 0:
+        return ObjectSize(obj.name, length_true, width_true, 0.0, 0.0)
+    rows, cols = np.nonzero(np.isin(labels, touching))
+    x, y = window.cell_centers(resolution_m)
+    points = np.column_stack([x[rows, cols], y[rows, cols]])
+    length, width, _ = oriented_extent(points)
+    return ObjectSize(
+        obj.name, length_true, width_true, length + resolution_m, width + resolution_m
+    )
+
+
+@dataclass(frozen=True)
+class MapSample:
+    """The map as a client saw it: when it became visible (s since the epoch), occupied cells."""
+
+    visible_s: float
+    occupied: Mask
+
+
+@dataclass(frozen=True)
+class Tick:
+    """One capture of the scene: its stamp, where the movers were, and per cell the time from
+    capture until the frame that saw the cell reached its depth process (NaN: no pair saw it)."""
+
+    stamp_s: float
+    mover_cells: Mask
+    camera_s: npt.NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class Latencies:
+    appear_s: list[float]
+    clear_s: list[float]
+    missed_appear: int
+    """Cells a mover entered that never turned occupied while it stayed (given ``settle_s``)."""
+    missed_clear: int
+
+
+def moving_latencies(
+    ticks: Sequence[Tick], samples: Sequence[MapSample], settle_s: float = 2.0
+) -> Latencies:
+    """For each cell a mover enters at a capture, the time until the map shows it occupied; for each
+    cell it leaves (that the map showed occupied), the time until the map no longer does. Counted
+    from the capture that first shows the change, less that frame's camera time (the sim's render),
+    and only while the cell stays as it became. A cell whose change never showed within
+    ``settle_s`` (or before it changed back) is counted as missed."""
+    appear: list[float] = []
+    clear: list[float] = []
+    missed = {True: 0, False: 0}
+    if not samples or len(ticks) < 2:
+        return Latencies(appear, clear, 0, 0)
+    visible = np.array([s.visible_s for s in samples])
+    shown = np.stack([s.occupied for s in samples])
+    stamps = np.array([t.stamp_s for t in ticks])
+    inside = np.stack([t.mover_cells for t in ticks])
+    for k in range(1, len(ticks)):
+        for row, col in zip(*np.nonzero(inside[k] != inside[k - 1]), strict=True):
+            now_inside = bool(inside[k, row, col])
+            camera_s = float(ticks[k].camera_s[row, col])
+            if math.isnan(camera_s):
+                continue  # no pair saw the cell at this capture
+            if not now_inside:
+                before = np.nonzero(visible < stamps[k])[0]
+                if before.size == 0 or not shown[before[-1], row, col]:
+                    continue  # the map never showed it occupied: nothing to clear
+            changes_back = np.nonzero(inside[k + 1 :, row, col] != now_inside)[0]
+            until = stamps[k + 1 + changes_back[0]] if changes_back.size else math.inf
+            hit = np.nonzero(
+                (visible >= stamps[k]) & (visible < until) & (shown[:, row, col] == now_inside)
+            )[0]
+            if hit.size:
+                latency = float(visible[hit[0]] - stamps[k]) - camera_s
+                (appear if now_inside else clear).append(latency)
+            elif min(until, visible[-1]) - stamps[k] >= settle_s:
+                missed[now_inside] += 1
+    return Latencies(appear, clear, missed[True], missed[False])
+
+
+def percentiles(values: Sequence[float]) -> dict[str, float]:
+    if not values:
+        return {"p50": math.nan, "p99": math.nan, "n": 0}
+    array = np.asarray(values, dtype=np.float64)
+    return {
+        "p50": float(np.percentile(array, 50)),
+        "p99": float(np.percentile(array, 99)),
+        "n": int(array.size),
+    }

@@ -1,0 +1,389 @@
+"""``overgrid eval``: score a running system's map against the simulator's ground truth.
+
+It asks ``sim/truth`` for the scene at the map's capture time and ``cam/*/calib`` for what the
+cameras can see, watches ``map/updates`` and ``depth/*/tile`` for a while (movers, latencies), and
+reports a table or JSON. ``overgrid up`` runs the same :class:`Recorder` and :func:`report`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import zenoh
+from pydantic import Field
+
+from common import keys
+from common.camera import StereoCalibration
+from common.client import MapFollower, MapUnavailable, latest, query_first
+from common.codec import CodecError, decode
+from common.lattice import Window
+from common.lifecycle import stop_on_signals
+from common.messages import CALIB_KIND, TILE_KIND, TRUTH_KIND, TileHeader, TruthHeader
+from common.occupancy_map import OccupancyMap
+from common.settings import ZenohSettings, parse_settings
+from common.zenoh_session import open_session
+from services.camera_sim.truth import footprint_mask, top_heights
+from services.evaluation import metrics
+
+OBSTACLE_BAND_M = (0.10, 2.0)
+MAX_RECORD_S = 120.0
+"""The recorder keeps this much history: a long ``up`` run is scored on its last two minutes."""
+
+TARGETS = {
+    "iou": (">=", 0.90),
+    "false_free_rate": ("<=", 0.005),
+    "length_error_mean_pct": ("<=", 1.5),
+    "length_error_max_pct": ("<=", 4.0),
+    "unknown_fraction": ("<=", 0.05),
+    "moving_appear_s": ("<=", 0.2),
+    "moving_clear_s": ("<=", 1.0),
+    "capture_to_map_p50_ms": ("<=", 50.0),
+}
+
+
+class EvalSettings(ZenohSettings):
+    watch_s: float = Field(
+        10.0, ge=0.0, le=MAX_RECORD_S, description="watch the stream this long for latencies"
+    )
+    json_output: bool = Field(
+        False, description="print JSON instead of a table", json_schema_extra={"flag": "json"}
+    )
+    timeout_s: float = Field(10.0, gt=0.0, description="wait this long for each service")
+
+
+@dataclass(frozen=True)
+class Truth:
+    header: TruthHeader
+    occupied: npt.NDArray[np.bool_]
+
+
+def query_truth(
+    session: zenoh.Session, stamp_ns: int, resolution_m: float, timeout_s: float = 5.0
+) -> Truth:
+    selector = (
+        f"{keys.SIM_TRUTH}?stamp_ns={stamp_ns};resolution={resolution_m:g};"
+        f"band={OBSTACLE_BAND_M[0]:g},{OBSTACLE_BAND_M[1]:g}"
+    )
+    message = decode(query_first(session, selector, timeout_s), TRUTH_KIND, TruthHeader)
+    return Truth(message.header, message.arrays["occupied"].astype(np.bool_))
+
+
+def query_calibrations(session: zenoh.Session, timeout_s: float = 5.0) -> list[StereoCalibration]:
+    """Every pair's calibration; asked again until some camera answers (a new session may not
+    have found them by scouting yet) or ``timeout_s`` passes."""
+    deadline = time.monotonic() + timeout_s
+    found: dict[str, StereoCalibration] = {}
+    while not found and time.monotonic() < deadline:
+        for reply in session.get(keys.CALIB_ALL, timeout=max(deadline - time.monotonic(), 0.1)):
+            if reply.ok is not None:
+                try:
+                    header = decode(reply.ok.payload.to_bytes(), CALIB_KIND, StereoCalibration)
+                except CodecError:
+                    continue
+                found[header.header.pair] = header.header
+        if not found:
+            time.sleep(0.2)
+    return [found[pair] for pair in sorted(found)]
+
+
+@dataclass
+class Recorder:
+    """Watches ``map/updates`` (the map as clients see it, with arrival times) and the tiles (stamps,
+    stage times, which cells each capture saw and how long its frame took to reach depth)."""
+
+    session: zenoh.Session
+    window: Window
+    resolution_m: float
+    samples: deque[tuple[metrics.MapSample, int]] = field(default_factory=deque)
+    tiles: deque[tuple[float, TileHeader]] = field(default_factory=deque)
+    camera_s: dict[int, npt.NDArray[np.float32]] = field(default_factory=dict)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def __post_init__(self) -> None:
+        self.started_s = time.time()
+        self._tiles = self.session.declare_subscriber(keys.TILES_ALL, self._on_tile)
+        self._follower = MapFollower(self.session, on_change=self._on_map)
+
+    def _on_map(self, occupancy_map: OccupancyMap, arrival_s: float) -> None:
+        occupied = metrics.occupancy_on(occupancy_map, self.window) >= metrics.OCCUPIED_MIN
+        with self._lock:
+            self.samples.append((metrics.MapSample(arrival_s, occupied), occupancy_map.stamp_ns))
+            while self.samples and self.samples[0][0].visible_s < arrival_s - MAX_RECORD_S:
+                self.samples.popleft()
+
+    def _on_tile(self, sample: zenoh.Sample) -> None:
+        arrival_s = time.time()
+        try:
+            message = decode(sample.payload.to_bytes(), TILE_KIND, TileHeader)
+        except CodecError:
+            return
+        h = message.header
+        part = h.window.intersect(self.window)
+        if h.resolution_m != self.resolution_m or part.empty:
+            return
+        seen = message.arrays["count"][part.slices_in(h.window)] > 0
+        camera_s = np.float32(h.stage_ms.get("camera", 0.0) / 1e3)
+        with self._lock:
+            self.tiles.append((arrival_s, h))
+            per_cell = self.camera_s.setdefault(
+                h.stamp_ns, np.full(self.window.shape, np.nan, np.float32)
+            )
+            view = per_cell[part.slices_in(self.window)]
+            view[seen] = np.fmin(view[seen], camera_s)
+            while self.tiles and self.tiles[0][0] < arrival_s - MAX_RECORD_S:
+                self.tiles.popleft()
+            for stamp in [s for s in self.camera_s if s < (arrival_s - MAX_RECORD_S) * 1e9]:
+                del self.camera_s[stamp]
+
+    def close(self) -> None:
+        self._follower.close()
+        self._tiles.undeclare()  # type: ignore[no-untyped-call]
+
+    def snapshot(
+        self,
+    ) -> tuple[list[tuple[metrics.MapSample, int]], list[tuple[float, TileHeader]], dict[int, Any]]:
+        with self._lock:
+            return list(self.samples), list(self.tiles), dict(self.camera_s)
+
+
+class Evaluator:
+    """What stays fixed while the system runs: the lattice window of the scene, what the cameras
+    see. Made once; scores any number of map snapshots."""
+
+    def __init__(self, session: zenoh.Session, resolution_m: float, timeout_s: float) -> None:
+        self.session = session
+        self.resolution_m = resolution_m
+        self.timeout_s = timeout_s
+        first = query_truth(session, time.time_ns(), resolution_m, timeout_s)
+        self.window = first.header.window
+        self.floor_size_m = first.header.floor_size_m
+        self.calibrations = query_calibrations(session, timeout_s)
+        if not self.calibrations:
+            raise MapUnavailable("no camera answered on cam/*/calib")
+        static = [o for o in first.header.objects if not o.moving]
+        self.seen = metrics.seen_by_cameras(
+            self.calibrations,
+            self.window,
+            resolution_m,
+            top_heights(static, self.window, resolution_m),
+        )
+
+    def truth(self, stamp_ns: int) -> Truth:
+        return query_truth(self.session, stamp_ns, self.resolution_m, self.timeout_s)
+
+    def scores(self, occupancy_map: OccupancyMap) -> tuple[metrics.CellScores, Truth]:
+        truth = self.truth(occupancy_map.stamp_ns or time.time_ns())
+        occupancy = metrics.occupancy_on(occupancy_map, self.window)
+        return metrics.score_cells(occupancy, truth.occupied, self.seen), truth
+
+    def _inside_floor(self, center_m: Sequence[float]) -> bool:
+        return 0 <= center_m[0] <= self.floor_size_m[0] and 0 <= center_m[1] <= self.floor_size_m[1]
+
+    def objects(self, occupancy_map: OccupancyMap, truth: Truth) -> list[metrics.ObjectSize]:
+        occupied = metrics.occupancy_on(occupancy_map, self.window) >= metrics.OCCUPIED_MIN
+        return [
+            metrics.measure_object(occupied, self.window, self.resolution_m, obj)
+            for obj in truth.header.objects
+            if not obj.moving
+            and self._inside_floor(obj.center_m)
+            and obj.top_m >= OBSTACLE_BAND_M[0]
+        ]
+
+    def ticks(self, camera_s: dict[int, npt.NDArray[np.float32]]) -> list[metrics.Tick]:
+        ticks = []
+        for stamp_ns in sorted(camera_s):
+            movers = np.zeros(self.window.shape, np.bool_)
+            for obj in self.truth(stamp_ns).header.objects:
+                if obj.moving:
+                    movers |= footprint_mask(obj, self.window, self.resolution_m)
+            ticks.append(metrics.Tick(stamp_ns / 1e9, movers, camera_s[stamp_ns]))
+        return ticks
+
+
+def _capture_to_map_s(
+    samples: list[tuple[metrics.MapSample, int]], tiles: list[tuple[float, TileHeader]]
+) -> tuple[list[float], list[float]]:
+    """Per tile: capture → the first map version at or after its arrival that includes its stamp;
+    the same less the tile's camera time."""
+    visible = np.array([s.visible_s for s, _ in samples])
+    stamps = np.array([stamp for _, stamp in samples])
+    total, excluding_camera = [], []
+    for arrival_s, h in tiles:
+        later = np.nonzero((visible >= arrival_s) & (stamps >= h.stamp_ns))[0]
+        if later.size:
+            latency = float(visible[later[0]]) - h.stamp_ns / 1e9
+            total.append(latency)
+            excluding_camera.append(latency - h.stage_ms.get("camera", 0.0) / 1e3)
+    return total, excluding_camera
+
+
+def _mean(values: Sequence[float]) -> float:
+    return float(np.mean(values)) if values else math.nan
+
+
+def report(evaluator: Evaluator, recorder: Recorder | None) -> dict[str, Any]:
+    """Everything ``overgrid eval --json`` prints and ``report.json`` holds."""
+    occupancy_map = latest(evaluator.session, timeout_s=evaluator.timeout_s)
+    if occupancy_map.resolution_m != evaluator.resolution_m:
+        raise MapUnavailable(
+            f"map resolution {occupancy_map.resolution_m} m ≠ {evaluator.resolution_m} m"
+        )
+    scores, truth = evaluator.scores(occupancy_map)
+    sizes = evaluator.objects(occupancy_map, truth)
+    found = [s for s in sizes if s.found]
+    errors_pct = [e for s in found for e in s.errors_pct]
+    errors_m = [
+        abs(a - b)
+        for s in found
+        for a, b in ((s.length_m, s.true_length_m), (s.width_m, s.true_width_m))
+    ]
+    out: dict[str, Any] = {
+        "map": {
+            "version": occupancy_map.version,
+            "stamp_ns": occupancy_map.stamp_ns,
+            "resolution_m": occupancy_map.resolution_m,
+            "cols": occupancy_map.window.cols,
+            "rows": occupancy_map.window.rows,
+            "pairs": occupancy_map.pairs,
+        },
+        "iou": scores.iou,
+        "precision": scores.precision,
+        "recall": scores.recall,
+        "false_free_rate": scores.false_free_rate,
+        "unknown_fraction": scores.unknown_fraction,
+        "seen_cells": int(evaluator.seen.sum()),
+        "length_error_mean_pct": _mean(errors_pct),
+        "length_error_max_pct": max(errors_pct, default=math.nan),
+        "length_error_mean_m": _mean(errors_m),
+        "objects": [
+            {
+                "name": s.name,
+                "true_length_m": s.true_length_m,
+                "true_width_m": s.true_width_m,
+                "length_m": s.length_m,
+                "width_m": s.width_m,
+                "length_error_pct": s.errors_pct[0] if s.found else None,
+                "width_error_pct": s.errors_pct[1] if s.found else None,
+            }
+            for s in sizes
+        ],
+        "objects_missed": [s.name for s in sizes if not s.found],
+    }
+    if recorder is not None:
+        samples, tiles, camera_s = recorder.snapshot()
+        latencies = metrics.moving_latencies(evaluator.ticks(camera_s), [s for s, _ in samples])
+        total, excluding_camera = _capture_to_map_s(samples, tiles)
+        stages = sorted({name for _, h in tiles for name in h.stage_ms})
+        appear, clear = (
+            metrics.percentiles(latencies.appear_s),
+            metrics.percentiles(latencies.clear_s),
+        )
+        out |= {
+            "watched_s": round(time.time() - recorder.started_s, 1),
+            "moving_appear_s": appear["p50"],
+            "moving_clear_s": clear["p50"],
+            "moving": {
+                "appear_s": appear,
+                "clear_s": clear,
+                "missed_appear_cells": latencies.missed_appear,
+                "missed_clear_cells": latencies.missed_clear,
+            },
+            "capture_to_map_ms": _ms(metrics.percentiles(total)),
+            "capture_to_map_excl_camera_ms": _ms(metrics.percentiles(excluding_camera)),
+            "stage_ms": {
+                name: metrics.percentiles(
+                    [h.stage_ms[name] for _, h in tiles if name in h.stage_ms]
+                )
+                for name in stages
+            },
+        }
+        out["capture_to_map_p50_ms"] = out["capture_to_map_excl_camera_ms"]["p50"]
+    out["targets"] = {
+        name: {"value": out[name], "target": f"{op} {bound:g}", "met": _meets(out[name], op, bound)}
+        for name, (op, bound) in TARGETS.items()
+        if name in out
+    }
+    return out
+
+
+def _ms(row: dict[str, float]) -> dict[str, float]:
+    return {k: (v * 1e3 if k != "n" else v) for k, v in row.items()}
+
+
+def _meets(value: float, op: str, bound: float) -> bool:
+    if value is None or math.isnan(value):
+        return False
+    return value >= bound if op == ">=" else value <= bound
+
+
+def table(result: dict[str, Any]) -> str:
+    """The report as a person reads it."""
+    lines = [
+        f"map v{result['map']['version']}  {result['map']['cols']}×{result['map']['rows']} cells "
+        f"@ {result['map']['resolution_m']} m  pairs {','.join(result['map']['pairs'])}",
+        "",
+        f"{'metric':<28}{'value':>12}  target",
+    ]
+    for name, row in result["targets"].items():
+        mark = "ok" if row["met"] else "MISSED"
+        lines.append(f"{name:<28}{row['value']:>12.4g}  {row['target']:<8} {mark}")
+    lines.append(f"{'precision':<28}{result['precision']:>12.4g}")
+    lines.append(f"{'recall':<28}{result['recall']:>12.4g}")
+    lines += ["", f"{'object':<16}{'length m':>18}{'width m':>18}{'err %':>14}"]
+    for row in result["objects"]:
+        if row["length_error_pct"] is None:
+            lines.append(f"{row['name']:<16}  not found in the map")
+            continue
+        lines.append(
+            f"{row['name']:<16}{row['true_length_m']:>9.3f}→{row['length_m']:<8.3f}"
+            f"{row['true_width_m']:>9.3f}→{row['width_m']:<8.3f}"
+            f"{row['length_error_pct']:>6.1f} {row['width_error_pct']:>6.1f}"
+        )
+    if "stage_ms" in result:
+        lines += ["", f"{'stage (ms)':<16}{'p50':>8}{'p99':>8}"]
+        for name, row in result["stage_ms"].items():
+            lines.append(f"{name:<16}{row['p50']:>8.1f}{row['p99']:>8.1f}")
+        c = result["capture_to_map_ms"]
+        lines.append(f"{'capture→map':<16}{c['p50']:>8.1f}{c['p99']:>8.1f}  (camera time included)")
+    return "\n".join(lines)
+
+
+def main(settings: EvalSettings) -> None:
+    stop = stop_on_signals()
+    with open_session(settings) as session:
+        try:
+            current = latest(session, timeout_s=settings.timeout_s)
+            evaluator = Evaluator(session, current.resolution_m, settings.timeout_s)
+        except (MapUnavailable, CodecError) as error:
+            raise SystemExit(f"overgrid eval: {error}") from None
+        recorder = None
+        if settings.watch_s > 0:
+            recorder = Recorder(session, evaluator.window, evaluator.resolution_m)
+            print(f"watching the stream for {settings.watch_s:g} s …", flush=True)
+            stop.wait(settings.watch_s)
+        try:
+            result = report(evaluator, recorder)
+        finally:
+            if recorder is not None:
+                recorder.close()
+    print(json.dumps(result, indent=2) if settings.json_output else table(result))
+
+
+def cli(argv: Sequence[str] | None = None) -> None:
+    main(
+        parse_settings(
+            EvalSettings,
+            argv,
+            "overgrid eval",
+            "Score the running system's map against the simulator's ground truth.",
+        )
+    )

@@ -1,0 +1,124 @@
+"""The scoring of ``overgrid eval`` on hand-made maps whose errors are known exactly."""
+
+import math
+
+import numpy as np
+import pytest
+
+from common.lattice import Window
+from common.messages import TruthObject
+from common.occupancy_map import UNKNOWN, OccupancyMap
+from services.camera_sim.rig import RigSpec, layout_pairs
+from services.camera_sim.truth import footprint_mask, top_heights
+from services.evaluation import metrics
+
+RES = 0.05
+WINDOW = Window(0, 0, 80, 60)  # 4 m × 3 m
+
+
+def _box(name: str, x: float, y: float, length: float, width: float, yaw: float = 0.0):
+    return TruthObject(
+        name=name,
+        shape="box",
+        moving=False,
+        center_m=(x, y, 0.5),
+        yaw_rad=yaw,
+        size_m=(length, width, 1.0),
+    )
+
+
+def test_cell_scores_count_exactly() -> None:
+    truth = np.zeros(WINDOW.shape, bool)
+    truth[10:20, 10:20] = True  # 100 occupied cells
+    occupancy = np.zeros(WINDOW.shape, np.int8)  # all free …
+    occupancy[10:20, 10:18] = 100  # 80 found
+    occupancy[10:20, 18] = 50  # 10 in between (neither occupied nor free)
+    occupancy[40, 40 : 20 + 40] = 100  # 20 false occupied
+    occupancy[0:5, :] = UNKNOWN  # 400 unknown floor cells
+    seen = np.ones(WINDOW.shape, bool)
+    scores = metrics.score_cells(occupancy, truth, seen)
+    assert scores.iou == pytest.approx(80 / (100 + 20))
+    assert scores.precision == pytest.approx(80 / 100)
+    assert scores.recall == pytest.approx(80 / 100)
+    assert scores.false_free_rate == pytest.approx(10 / 100)  # column 19 reads free
+    assert scores.unknown_fraction == pytest.approx(400 / (WINDOW.cols * WINDOW.rows - 100))
+
+
+def test_unseen_cells_are_not_scored() -> None:
+    truth = np.zeros(WINDOW.shape, bool)
+    truth[10:20, 10:20] = True
+    occupancy = np.full(WINDOW.shape, UNKNOWN, np.int8)
+    seen = np.zeros(WINDOW.shape, bool)
+    seen[30:, :] = True  # the object is outside every view
+    scores = metrics.score_cells(occupancy, truth, seen)
+    assert math.isnan(scores.recall) and scores.unknown_fraction == 1.0
+
+
+def test_object_sizes_from_the_map() -> None:
+    true_box = _box("b", 2.0, 1.5, 1.0, 0.5)
+    measured_as = _box("m", 2.0, 1.5, 1.1, 0.5)  # the map shows it 10 % too long
+    occupied = footprint_mask(measured_as, WINDOW, RES)
+    occupied[50, 70] = True  # a speck elsewhere is not part of the object
+    size = metrics.measure_object(occupied, WINDOW, RES, true_box)
+    assert (size.true_length_m, size.true_width_m) == (1.0, 0.5)
+    assert size.length_m == pytest.approx(1.1) and size.width_m == pytest.approx(0.5)
+    assert size.errors_pct == pytest.approx((10.0, 0.0))
+
+
+def test_rotated_object_is_measured_along_its_own_axes() -> None:
+    box = _box("r", 2.0, 1.5, 1.6, 0.6, yaw=0.5)
+    size = metrics.measure_object(footprint_mask(box, WINDOW, RES), WINDOW, RES, box)
+    assert size.errors_pct[0] < 5 and size.errors_pct[1] < 10
+
+
+def test_missing_object_is_reported_not_measured() -> None:
+    box = _box("gone", 2.0, 1.5, 1.0, 0.5)
+    size = metrics.measure_object(np.zeros(WINDOW.shape, bool), WINDOW, RES, box)
+    assert not size.found
+
+
+def test_seen_mask_follows_the_visible_surface() -> None:
+    calib = layout_pairs(RigSpec(pair_count=1), (12.0, 10.0))[0]
+    window = Window(-20, -20, 280, 240)
+    floor = metrics.seen_by_cameras([calib], window, RES)
+    tall = np.full(window.shape, 2.0)
+    high = metrics.seen_by_cameras([calib], window, RES, tall)
+    assert high.sum() < floor.sum() * 0.7  # a 2 m surface fills less of the view than the floor
+    assert not (high & ~floor).any()
+    wall = _box("w", -0.1, 5.0, 0.2, 10.0)
+    heights = top_heights([wall], window, RES)
+    assert heights.max() == pytest.approx(1.0)
+
+
+def _line_world(cells_inside: list[int]) -> np.ndarray:
+    mask = np.zeros((1, 10), bool)
+    mask[0, cells_inside] = True
+    return mask
+
+
+def test_moving_latencies_from_capture_less_camera_time() -> None:
+    """A mover steps right one cell per capture (every 0.5 s); the map shows each change 0.3 s
+    after the capture, of which 0.1 s is the camera's own."""
+    camera = np.full((1, 10), 0.1, np.float32)
+    ticks = [metrics.Tick(k * 0.5, _line_world([k, k + 1]), camera) for k in range(6)]
+    samples = [metrics.MapSample(k * 0.5 + 0.3, _line_world([k, k + 1])) for k in range(6)]
+    latencies = metrics.moving_latencies(ticks, samples)
+    assert latencies.appear_s == pytest.approx([0.2] * 5)
+    assert latencies.clear_s == pytest.approx([0.2] * 5)
+    assert latencies.missed_appear == 0
+
+
+def test_a_mover_the_map_never_shows_is_missed() -> None:
+    camera = np.zeros((1, 10), np.float32)
+    ticks = [
+        metrics.Tick(k * 0.5, _line_world([3]) if k else _line_world([]), camera) for k in range(8)
+    ]
+    samples = [metrics.MapSample(k * 0.5 + 0.1, _line_world([])) for k in range(8)]
+    latencies = metrics.moving_latencies(ticks, samples)
+    assert latencies.appear_s == [] and latencies.missed_appear == 1
+
+
+def test_occupancy_on_another_window_fills_unknown() -> None:
+    m = OccupancyMap(np.full((2, 3), 100, np.int8), RES, i0=5, j0=5, version=1, stamp_ns=0)
+    out = metrics.occupancy_on(m, Window(4, 4, 5, 5))
+    assert (out[1:3, 1:4] == 100).all() and (out == UNKNOWN).sum() == 25 - 6
