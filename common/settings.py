@@ -47,7 +47,9 @@ class OvergridSettings(BaseSettings):
 class ZenohSettings(OvergridSettings):
     """Zenoh session flags shared by every service, after zenoh-python's examples' ``common.py``."""
 
-    mode: Literal["peer", "client", "router"] = Field("peer", description="Zenoh session mode")
+    mode: Literal["peer", "client", "router"] | None = Field(
+        None, description="Zenoh session mode (default: the config file's, else peer)"
+    )
     connect: CommaList = Field(default_factory=list, description="endpoints to connect to")
     listen: CommaList = Field(default_factory=list, description="endpoints to listen on")
     config: Path | None = Field(

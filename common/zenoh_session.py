@@ -18,7 +18,8 @@ from common.settings import ZenohSettings
 def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
     config_path = settings.config or os.environ.get("ZENOH_CONFIG")
     config = zenoh.Config.from_file(str(config_path)) if config_path else zenoh.Config()
-    config.insert_json5("mode", json.dumps(settings.mode))
+    if settings.mode or not config_path:
+        config.insert_json5("mode", json.dumps(settings.mode or "peer"))
     if settings.connect:
         config.insert_json5("connect/endpoints", json.dumps(settings.connect))
     if settings.listen:

@@ -4,7 +4,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-system_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libglx-mesa0 python3-venv python3-pip)
+system_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libglx-mesa0 python3-venv python3-pip openssl)
 missing=()
 if command -v dpkg >/dev/null 2>&1; then
   for pkg in "${system_packages[@]}"; do

@@ -25,7 +25,9 @@ DEFAULT_LISTEN = "tcp/[::]:7447"
 
 
 class RouterSettings(ZenohSettings):
-    mode: Literal["peer", "client", "router"] = Field("router", description="Zenoh session mode")
+    mode: Literal["peer", "client", "router"] | None = Field(
+        "router", description="Zenoh session mode"
+    )
 
 
 def main(settings: RouterSettings) -> None:

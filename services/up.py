@@ -58,7 +58,7 @@ class Child:
 
 
 def _zenoh_flags(settings: ZenohSettings) -> list[str]:
-    flags = ["--mode", settings.mode]
+    flags = ["--mode", settings.mode] if settings.mode else []
     for endpoint in settings.connect:
         flags += ["--connect", endpoint]
     # --listen stays with `up` itself: children would fight over the same endpoints.

@@ -1,0 +1,95 @@
+"""Every service stops cleanly on SIGTERM within 2 s and leaves no process behind."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from common.client import health
+from tests.conftest import REPO, Bus, free_port, wait_for
+
+pytestmark = pytest.mark.process
+
+STOP_WITHIN_S = 2.0
+
+
+def _start(args: list[str], log: Path) -> subprocess.Popen[bytes]:
+    # No `timeout` wrapper here: SIGTERM must reach the service itself. The finally below kills it.
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *args],
+        cwd=REPO,
+        stdout=open(log, "wb"),  # closed when the process object is collected
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+
+
+def _running_in_group(pgid: int) -> bool:
+    result = subprocess.run(["pgrep", "-g", str(pgid)], capture_output=True, text=True)
+    return bool(result.stdout.split())
+
+
+def _terminate_and_time(process: subprocess.Popen[bytes]) -> float:
+    started = time.monotonic()
+    process.send_signal(signal.SIGTERM)
+    process.wait(30)
+    return time.monotonic() - started
+
+
+@pytest.mark.parametrize(
+    "service, ready",
+    [
+        (["router", "--listen", "tcp/127.0.0.1:{port}"], "router"),
+        (["fusion", "--state-dir", "{tmp}/state"], "fusion"),
+        (["camera-sim", "--pair-count", "1", "--rate-hz", "2"], "camera-sim"),
+        (["depth", "--pair", "p0"], "depth"),
+    ],
+    ids=lambda v: v if isinstance(v, str) else v[0],
+)
+def test_sigterm_stops_the_service_within_2_s(
+    bus: Bus, tmp_path: Path, service: list[str], ready: str
+) -> None:
+    args = [a.format(port=free_port(), tmp=tmp_path) for a in service]
+    if ready == "depth":
+        bus.start("camera-sim", "--pair-count", "1", "--rate-hz", "2")
+    log = tmp_path / "service.log"
+    process = _start([*args, *bus.flags()], log)
+    try:
+        if ready == "fusion":
+            wait_for(lambda: "map" in health(bus.session, timeout_s=2), 30, "fusion up")
+        else:
+            marker = b"msg=started"
+            wait_for(lambda: marker in log.read_bytes(), 60, f"{ready} started")
+            time.sleep(1.0)  # running, not just started
+        elapsed = _terminate_and_time(process)
+        print(f"{ready}: stopped {elapsed:.2f} s after SIGTERM")
+        assert process.returncode == 0, log.read_text()
+        assert elapsed <= STOP_WITHIN_S
+        assert b"stopped" in log.read_bytes()
+        assert not _running_in_group(process.pid)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+
+
+def test_sigterm_stops_up_and_every_child(bus: Bus, tmp_path: Path) -> None:
+    log = tmp_path / "up.log"
+    process = _start(["up", "--pairs", "1", "--out", str(tmp_path / "run"), *bus.flags()], log)
+    try:
+        wait_for(lambda: b"map v" in log.read_bytes(), 90, "up to show a map")
+        elapsed = _terminate_and_time(process)
+        print(f"up: stopped with its children {elapsed:.2f} s after SIGTERM (map saved first)")
+        assert process.returncode == 0, log.read_text()
+        assert (tmp_path / "run" / "map.pgm").exists()
+        namespace_flag = f"--namespace {bus.namespace}"
+        leftover = subprocess.run(["pgrep", "-f", namespace_flag], capture_output=True, text=True)
+        assert leftover.stdout.split() == []
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
