@@ -48,6 +48,18 @@ def test_sigkilled_depth_is_dead_within_2_s_decays_and_rejoins(bus: Bus, tmp_pat
     wait_for(lambda: _alive(bus, "p0"), 60, "p0 alive again")
     wait_for(lambda: (latest(bus.session).occupancy >= 0).sum() > 5000, 60, "p0's cells again")
 
+    # A new pair while running: one more camera and one more depth process, nothing restarted.
+    before = latest(bus.session)
+    bus.start("camera-sim", "--pair-count", "2", "--pairs", "p1", "--rate-hz", "2")
+    bus.start("depth", "--pair", "p1")
+    wait_for(lambda: _alive(bus, "p1"), 60, "p1 alive")
+    wait_for(
+        lambda: latest(bus.session).window.union(before.window) != before.window,
+        60,
+        "the map to grow over p1's view",
+    )
+    assert "p1" in latest(bus.session).pairs
+
 
 def test_sigkilled_fusion_restarts_with_its_map(bus: Bus, tmp_path: Path) -> None:
     state = tmp_path / "state"
