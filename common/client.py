@@ -27,22 +27,29 @@ class MapUnavailable(RuntimeError):
 RETRY_PERIOD_S = 0.2
 
 
-def query_first(session: zenoh.Session, selector: str, timeout_s: float) -> bytes:
-    """First good reply. A session just opened may not have found the service by scouting yet,
-    so an empty answer is retried until ``timeout_s``; an error reply is final."""
+def query_all(session: zenoh.Session, selector: str, timeout_s: float) -> list[bytes]:
+    """Every good reply. A session just opened may not have found the services by scouting yet,
+    so an empty answer is retried until ``timeout_s``; error replies with no good one are final."""
     deadline = time.monotonic() + timeout_s
     while True:
         remaining = deadline - time.monotonic()
-        errors = []
+        answers, errors = [], []
         for reply in session.get(selector, timeout=max(remaining, 0.1)):
             if reply.ok is not None:
-                return bytes(reply.ok.payload.to_bytes())
-            errors.append(reply.err.payload.to_string() if reply.err is not None else "?")
+                answers.append(bytes(reply.ok.payload.to_bytes()))
+            else:
+                errors.append(reply.err.payload.to_string() if reply.err is not None else "?")
+        if answers:
+            return answers
         if errors:
             raise MapUnavailable("; ".join(errors))
         if time.monotonic() + RETRY_PERIOD_S > deadline:
             raise MapUnavailable(f"no answer on {selector} within {timeout_s} s")
         time.sleep(RETRY_PERIOD_S)
+
+
+def query_first(session: zenoh.Session, selector: str, timeout_s: float) -> bytes:
+    return query_all(session, selector, timeout_s)[0]
 
 
 def latest(

@@ -15,6 +15,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, Literal
 
+import numpy as np
+import numpy.typing as npt
+import zenoh
 from pydantic import Field
 
 from common.client import MapUnavailable, health, latest
@@ -22,9 +25,10 @@ from common.codec import CodecError
 from common.lattice import reframe
 from common.lifecycle import stop_on_signals
 from common.mapfiles import write_map
+from common.occupancy_map import OccupancyMap
 from common.settings import ZenohSettings, parse_settings
 from common.zenoh_session import open_session
-from services.evaluation.service import Evaluator, Recorder
+from services.evaluation.service import Evaluator, Recorder, map_summary
 from services.evaluation.service import report as evaluation_report
 from services.evaluation.service import table as evaluation_table
 
@@ -157,7 +161,7 @@ class Scoring:
     """The evaluation that runs alongside: made once the map exists, it records the stream from
     then on and scores the map against the simulator's ground truth."""
 
-    def __init__(self, session: Any) -> None:
+    def __init__(self, session: zenoh.Session) -> None:
         self.session = session
         self.evaluator: Evaluator | None = None
         self.recorder: Recorder | None = None
@@ -180,15 +184,15 @@ class Scoring:
         except (MapUnavailable, CodecError):
             return None
 
-    def report(self) -> dict[str, Any]:
+    def report(self, occupancy_map: OccupancyMap) -> dict[str, Any]:
         if self.evaluator is None:
             return {"error": self.error or "never started: no map"}
         try:
-            return evaluation_report(self.evaluator, self.recorder)
+            return evaluation_report(self.evaluator, self.recorder, occupancy_map)
         except (MapUnavailable, CodecError) as error:
             return {"error": str(error)}
 
-    def truth_on(self, occupancy_map: Any) -> Any:
+    def truth_on(self, occupancy_map: OccupancyMap) -> npt.NDArray[np.bool_] | None:
         if self.evaluator is None:
             return None
         try:
@@ -203,7 +207,10 @@ class Scoring:
 
 
 def save_outputs(
-    settings: UpSettings, session: Any, answer: dict[str, Any] | None, scoring: Scoring
+    settings: UpSettings,
+    session: zenoh.Session,
+    answer: dict[str, Any] | None,
+    scoring: Scoring,
 ) -> list[Path]:
     occupancy_map = latest(session, layers=("height", "logodds"), timeout_s=10)
     if occupancy_map.window.empty:
@@ -211,20 +218,8 @@ def save_outputs(
     written = write_map(occupancy_map, settings.out / "map.yaml") + write_map(
         occupancy_map, settings.out / "map.png", truth=scoring.truth_on(occupancy_map)
     )
-    evaluation = scoring.report()
-    report = {
-        **evaluation,
-        "map": {
-            **evaluation.get("map", {}),
-            "version": occupancy_map.version,
-            "resolution_m": occupancy_map.resolution_m,
-            "origin_m": list(occupancy_map.origin_m),
-            "cols": occupancy_map.window.cols,
-            "rows": occupancy_map.window.rows,
-            "pairs": occupancy_map.pairs,
-        },
-        "health": answer,
-    }
+    evaluation = scoring.report(occupancy_map)
+    report = {**evaluation, "map": map_summary(occupancy_map), "health": answer}
     (settings.out / "report.json").write_text(json.dumps(report, indent=2))
     if "targets" in evaluation:
         print(evaluation_table(evaluation), flush=True)

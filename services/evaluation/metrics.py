@@ -210,15 +210,14 @@ def moving_latencies(
     stamps = np.array([t.stamp_s for t in ticks])
     inside = np.stack([t.mover_cells for t in ticks])
     for k in range(1, len(ticks)):
+        before = np.nonzero(visible < stamps[k])[0]  # the map as it stood at this capture
         for row, col in zip(*np.nonzero(inside[k] != inside[k - 1]), strict=True):
             now_inside = bool(inside[k, row, col])
             camera_s = float(ticks[k].camera_s[row, col])
             if math.isnan(camera_s):
                 continue  # no pair saw the cell at this capture
-            if not now_inside:
-                before = np.nonzero(visible < stamps[k])[0]
-                if before.size == 0 or not shown[before[-1], row, col]:
-                    continue  # the map never showed it occupied: nothing to clear
+            if not now_inside and (before.size == 0 or not shown[before[-1], row, col]):
+                continue  # the map never showed it occupied: nothing to clear
             changes_back = np.nonzero(inside[k + 1 :, row, col] != now_inside)[0]
             until = stamps[k + 1 + changes_back[0]] if changes_back.size else math.inf
             hit = np.nonzero(

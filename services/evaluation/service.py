@@ -23,18 +23,21 @@ from pydantic import Field
 
 from common import keys
 from common.camera import StereoCalibration
-from common.client import MapFollower, MapUnavailable, latest, query_first
+from common.client import MapFollower, MapUnavailable, latest, query_all, query_first
 from common.codec import CodecError, decode
 from common.lattice import Window
 from common.lifecycle import stop_on_signals
 from common.messages import CALIB_KIND, TILE_KIND, TRUTH_KIND, TileHeader, TruthHeader
 from common.occupancy_map import OccupancyMap
+from common.sensor_model import SensorModelParams
 from common.settings import ZenohSettings, parse_settings
 from common.zenoh_session import open_session
 from services.camera_sim.truth import footprint_mask, top_heights
 from services.evaluation import metrics
 
-OBSTACLE_BAND_M = (0.10, 2.0)
+_MODEL = SensorModelParams()
+OBSTACLE_BAND_M = (_MODEL.obstacle_min_m, _MODEL.obstacle_max_m)
+"""Truth is judged on the band the depth service's sensor model calls an obstacle."""
 MAX_RECORD_S = 120.0
 """The recorder keeps this much history: a long ``up`` run is scored on its last two minutes."""
 
@@ -78,20 +81,14 @@ def query_truth(
 
 
 def query_calibrations(session: zenoh.Session, timeout_s: float = 5.0) -> list[StereoCalibration]:
-    """Every pair's calibration; asked again until some camera answers (a new session may not
-    have found them by scouting yet) or ``timeout_s`` passes."""
-    deadline = time.monotonic() + timeout_s
+    """Every pair's calibration (an answer that does not decode is skipped)."""
     found: dict[str, StereoCalibration] = {}
-    while not found and time.monotonic() < deadline:
-        for reply in session.get(keys.CALIB_ALL, timeout=max(deadline - time.monotonic(), 0.1)):
-            if reply.ok is not None:
-                try:
-                    header = decode(reply.ok.payload.to_bytes(), CALIB_KIND, StereoCalibration)
-                except CodecError:
-                    continue
-                found[header.header.pair] = header.header
-        if not found:
-            time.sleep(0.2)
+    for payload in query_all(session, keys.CALIB_ALL, timeout_s):
+        try:
+            calib = decode(payload, CALIB_KIND, StereoCalibration).header
+        except CodecError:
+            continue
+        found[calib.pair] = calib
     return [found[pair] for pair in sorted(found)]
 
 
@@ -230,9 +227,25 @@ def _mean(values: Sequence[float]) -> float:
     return float(np.mean(values)) if values else math.nan
 
 
-def report(evaluator: Evaluator, recorder: Recorder | None) -> dict[str, Any]:
-    """Everything ``overgrid eval --json`` prints and ``report.json`` holds."""
-    occupancy_map = latest(evaluator.session, timeout_s=evaluator.timeout_s)
+def map_summary(occupancy_map: OccupancyMap) -> dict[str, Any]:
+    return {
+        "version": occupancy_map.version,
+        "stamp_ns": occupancy_map.stamp_ns,
+        "resolution_m": occupancy_map.resolution_m,
+        "origin_m": list(occupancy_map.origin_m),
+        "cols": occupancy_map.window.cols,
+        "rows": occupancy_map.window.rows,
+        "pairs": occupancy_map.pairs,
+    }
+
+
+def report(
+    evaluator: Evaluator, recorder: Recorder | None, occupancy_map: OccupancyMap | None = None
+) -> dict[str, Any]:
+    """Everything ``overgrid eval --json`` prints and ``report.json`` holds; scores
+    ``occupancy_map`` if given, else the current map."""
+    if occupancy_map is None:
+        occupancy_map = latest(evaluator.session, timeout_s=evaluator.timeout_s)
     if occupancy_map.resolution_m != evaluator.resolution_m:
         raise MapUnavailable(
             f"map resolution {occupancy_map.resolution_m} m ≠ {evaluator.resolution_m} m"
@@ -247,14 +260,7 @@ def report(evaluator: Evaluator, recorder: Recorder | None) -> dict[str, Any]:
         for a, b in ((s.length_m, s.true_length_m), (s.width_m, s.true_width_m))
     ]
     out: dict[str, Any] = {
-        "map": {
-            "version": occupancy_map.version,
-            "stamp_ns": occupancy_map.stamp_ns,
-            "resolution_m": occupancy_map.resolution_m,
-            "cols": occupancy_map.window.cols,
-            "rows": occupancy_map.window.rows,
-            "pairs": occupancy_map.pairs,
-        },
+        "map": map_summary(occupancy_map),
         "iou": scores.iou,
         "precision": scores.precision,
         "recall": scores.recall,
