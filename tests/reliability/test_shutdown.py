@@ -1,6 +1,7 @@
 """Every service stops cleanly on SIGTERM within 2 s and leaves no process behind."""
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -81,7 +82,9 @@ def test_sigterm_stops_up_and_every_child(bus: Bus, tmp_path: Path) -> None:
     log = tmp_path / "up.log"
     process = _start(["up", "--pairs", "1", "--out", str(tmp_path / "run"), *bus.flags()], log)
     try:
-        wait_for(lambda: b"map v" in log.read_bytes(), 90, "up to show a map")
+        # "map v0 0×0" is printed before the first tile: wait for a map with cells in it.
+        non_empty = re.compile(rb"map v\d+ [1-9]\d*\xc3\x97")
+        wait_for(lambda: non_empty.search(log.read_bytes()) is not None, 90, "up to show a map")
         elapsed = _terminate_and_time(process)
         print(f"up: stopped with its children {elapsed:.2f} s after SIGTERM (map saved first)")
         assert process.returncode == 0, log.read_text()
