@@ -1,12 +1,18 @@
 """Query benchmark: 50 concurrent clients on ``map/latest`` of a 2000×2000 map while tiles stream.
 
 Real processes on loopback, isolated by namespace and port: a Zenoh router (this process), the fusion
-service, a tile streamer (real rendered tiles, placed over the map, fresh stamps, as fast as fusion
-takes them), and a client process whose threads query ``map/latest`` in closed loops. Phase 1 streams
-alone (idle ingest rate), phase 2 streams with the clients. Printed: reply time p50/p99, replies, and
-ingest held = phase-2 rate / phase-1 rate. The last line is a JSON object with the figures.
+service, a tile streamer (real rendered tiles, placed over the map, fresh stamps, paced), and a client
+process with one thread per client querying ``map/latest``. Phase 1 streams alone (idle ingest rate),
+phase 2 streams with the clients. Printed: reply time p50/p99, replies, and ingest held = phase-2 rate
+/ phase-1 rate. The last line is a JSON object with the figures.
 
-    .venv/bin/python -m bench.query [--clients 50] [--seconds 10]
+Load model: each client asks ``--rate-hz`` times a second on its own schedule (random phase), and a
+reply time runs from the scheduled send, so a late reply also delays the next query's clock: queueing
+counts, nothing is hidden by a client that waits. ``--rate-hz 0`` runs closed loops instead (each
+client asks again the moment its reply lands): that measures saturated throughput, replies per
+second, and its reply times are just clients / throughput (Little's law).
+
+    .venv/bin/python -m bench.query [--clients 50] [--rate-hz 10] [--seconds 10]
 """
 
 from __future__ import annotations
@@ -83,32 +89,44 @@ def stream(endpoint: str, namespace: str, seconds: float) -> None:
             time.sleep(0.001)  # a streamer, not a flood: leaves fusion room to serve queries
 
 
-def clients(endpoint: str, namespace: str, count: int, seconds: float) -> None:
-    """``count`` threads in closed loops on map/latest; prints the reply times (ms) as JSON."""
+def clients(endpoint: str, namespace: str, count: int, seconds: float, rate_hz: float) -> None:
+    """``count`` threads on map/latest (``rate_hz`` each, 0: closed loops); prints the reply times
+    (ms, from each query's scheduled send) as JSON."""
     times: list[float] = []
     failures = [0]
     lock = threading.Lock()
+    rng = np.random.default_rng(1)
     with open_session(_settings(endpoint, namespace)) as session:
         health(session, timeout_s=20)
         deadline = time.monotonic() + seconds
 
-        def loop() -> None:
-            while time.monotonic() < deadline:
-                started = time.perf_counter()
+        def loop(phase: float) -> None:
+            scheduled = time.monotonic() + phase
+            while scheduled < deadline:
+                if rate_hz:
+                    time.sleep(max(0.0, scheduled - time.monotonic()))
+                else:
+                    scheduled = time.monotonic()
                 ok = any(r.ok is not None for r in session.get(keys.MAP_LATEST, timeout=5.0))
-                elapsed = (time.perf_counter() - started) * 1e3
+                elapsed = (time.monotonic() - scheduled) * 1e3
                 with lock:
                     if ok:
                         times.append(elapsed)
                     else:
                         failures[0] += 1
+                if rate_hz:
+                    scheduled += 1.0 / rate_hz
 
-        threads = [threading.Thread(target=loop) for _ in range(count)]
+        period = 1.0 / rate_hz if rate_hz else 0.0
+        threads = [
+            threading.Thread(target=loop, args=(float(rng.uniform(0, period)),))
+            for _ in range(count)
+        ]
         for thread in threads:
             thread.start()
         for thread in threads:
             thread.join()
-    print(json.dumps({"times_ms": times, "failures": failures[0]}), flush=True)
+    print(json.dumps({"times_ms": times, "failures": failures[0], "seconds": seconds}), flush=True)
 
 
 def _ingest_rate(session: zenoh.Session, seconds: float) -> float:
@@ -117,7 +135,7 @@ def _ingest_rate(session: zenoh.Session, seconds: float) -> float:
     return (health(session, timeout_s=10)["tiles_accepted"] - start) / seconds
 
 
-def orchestrate(client_count: int, seconds: float) -> None:
+def orchestrate(client_count: int, seconds: float, rate_hz: float) -> None:
     from tests.conftest import free_port, open_router
 
     port, namespace = free_port(), f"bench-{uuid.uuid4().hex[:8]}"
@@ -175,6 +193,8 @@ def orchestrate(client_count: int, seconds: float) -> None:
                     namespace,
                     "--clients",
                     str(client_count),
+                    "--rate-hz",
+                    str(rate_hz),
                     "--seconds",
                     str(seconds + 4),
                 ],
@@ -194,6 +214,8 @@ def orchestrate(client_count: int, seconds: float) -> None:
     times = np.array(answer["times_ms"])
     result = {
         "clients": client_count,
+        "rate_hz": rate_hz,
+        "replies_per_s": round(times.size / answer["seconds"], 1),
         "map_cells": int((MAP_SIZE_M / RESOLUTION_M) ** 2),
         "replies": int(times.size),
         "failures": answer["failures"],
@@ -203,8 +225,10 @@ def orchestrate(client_count: int, seconds: float) -> None:
         "loaded_ingest_tiles_per_s": round(loaded, 1),
         "ingest_held": round(loaded / idle, 3) if idle else 0.0,
     }
+    load = f"{rate_hz:g} Hz each" if rate_hz else "closed loops"
     print(
-        f"{client_count} clients, {result['replies']} replies of a {result['map_cells']}-cell map: "
+        f"{client_count} clients ({load}), {result['replies']} replies of a {result['map_cells']}-cell map "
+        f"({result['replies_per_s']:.0f}/s): "
         f"p50 {result['p50_ms']} ms, p99 {result['p99_ms']} ms, failures {result['failures']}"
     )
     print(
@@ -223,14 +247,20 @@ def main() -> None:
     parser.add_argument("--endpoint", default="")
     parser.add_argument("--namespace", default="")
     parser.add_argument("--clients", type=int, default=50)
+    parser.add_argument(
+        "--rate-hz",
+        type=float,
+        default=10.0,
+        help="queries per second per client (0: closed loops)",
+    )
     parser.add_argument("--seconds", type=float, default=10.0)
     args = parser.parse_args()
     if args.role == "stream":
         stream(args.endpoint, args.namespace, args.seconds)
     elif args.role == "clients":
-        clients(args.endpoint, args.namespace, args.clients, args.seconds)
+        clients(args.endpoint, args.namespace, args.clients, args.seconds, args.rate_hz)
     else:
-        orchestrate(args.clients, args.seconds)
+        orchestrate(args.clients, args.seconds, args.rate_hz)
 
 
 if __name__ == "__main__":
