@@ -73,13 +73,22 @@ def _normal_cdf(x: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     return np.array([0.5 * (1.0 + math.erf(v / math.sqrt(2.0))) for v in x], dtype=np.float64)
 
 
-_ERF_TABLE_X = np.linspace(-6.0, 6.0, 4801)
-_ERF_TABLE_Y = _normal_cdf(_ERF_TABLE_X)
+_CDF_LIMIT = 6.0
+_CDF_STEPS = 4800
+_CDF_VALUES = _normal_cdf(np.linspace(-_CDF_LIMIT, _CDF_LIMIT, _CDF_STEPS + 1))
+_CDF_SLOPES = np.diff(_CDF_VALUES)
 
 
 def normal_cdf(x: FloatArray) -> npt.NDArray[np.float32]:
-    """Φ(x) by table interpolation (max error ≈ 1e-6): per-pixel speed matters here."""
-    return np.interp(x, _ERF_TABLE_X, _ERF_TABLE_Y).astype(np.float32)
+    """Φ(x) by linear interpolation in a uniform table (max error ≈ 1e-6): per-pixel speed matters
+    here, and a uniform table is indexed directly where ``np.interp`` searches."""
+    clipped = np.clip(np.asarray(x, dtype=np.float64), -_CDF_LIMIT, _CDF_LIMIT)
+    position = (clipped + _CDF_LIMIT) * (_CDF_STEPS / (2 * _CDF_LIMIT))
+    index = np.minimum(position.astype(np.intp), _CDF_STEPS - 1)
+    cdf: npt.NDArray[np.float32] = (
+        _CDF_VALUES[index] + (position - index) * _CDF_SLOPES[index]
+    ).astype(np.float32)
+    return cdf
 
 
 def obstacle_likelihood(

@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given
@@ -10,11 +12,19 @@ from common.sensor_model import (
     depth_sigma,
     in_model_range,
     logodds,
+    normal_cdf,
     obstacle_likelihood,
     probability,
 )
 
 PARAMS = SensorModelParams()
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_normal_cdf_table_matches_erf(dtype: type) -> None:
+    x = np.concatenate([np.linspace(-8, 8, 20001), [-1e9, 1e9, -6.0, 6.0]]).astype(dtype)
+    exact = np.array([0.5 * (1 + math.erf(float(v) / math.sqrt(2))) for v in x])
+    assert np.abs(normal_cdf(x) - exact).max() < 1e-6
 
 
 def test_depth_from_disparity_and_invalid_disparity() -> None:

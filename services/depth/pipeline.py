@@ -20,6 +20,7 @@ from services.depth.stereo import (
     disparity_px,
     invalidate_depth_edges,
     make_matcher,
+    refine_subpixel,
 )
 
 SEARCH_MARGIN_M = 0.15
@@ -80,6 +81,9 @@ class DepthPipeline:
         left_rect, right_rect = self.rectifier.rectify(to_gray(left), to_gray(right))
         times.append(time.perf_counter())
         disparity = disparity_px(self.matcher, left_rect, right_rect, self.min_disparity)
+        times.append(time.perf_counter())
+        if self.config.matcher.subpixel:
+            disparity = refine_subpixel(left_rect, right_rect, disparity)
         disparity = invalidate_depth_edges(disparity, self.config.matcher.edge_filter_px)
         times.append(time.perf_counter())
         points = project_to_world(
@@ -96,7 +100,7 @@ class DepthPipeline:
             points, self.config.resolution_m, self.config.model, self.config.min_cell_pixels
         )
         times.append(time.perf_counter())
-        names = ("rectify", "disparity", "projection", "model")
+        names = ("rectify", "disparity", "subpixel", "projection", "model")
         stage_ms = {
             name: (b - a) * 1e3 for name, a, b in zip(names, times[:-1], times[1:], strict=True)
         }

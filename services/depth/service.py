@@ -54,6 +54,9 @@ class DepthSettings(ZenohSettings):
     edge_filter_px: float = Field(
         0.75, ge=0.0, description="drop pixels whose 3×3 disparity range exceeds this (0: off)"
     )
+    subpixel: bool = Field(
+        True, description="re-measure the sub-pixel disparity (SSD parabola) instead of SGBM's"
+    )
     disparity_sigma_px: float = Field(0.25, gt=0.0, description="Δd, disparity noise")
     calibration_sigma_m: float = Field(0.01, ge=0.0, description="ε, calibration error term")
     obstacle_min_m: float = Field(0.10, ge=0.0, description="lowest height that blocks a robot")
@@ -84,6 +87,7 @@ class DepthSettings(ZenohSettings):
                 algorithm=self.matcher,
                 block_size=self.block_size,
                 edge_filter_px=self.edge_filter_px,
+                subpixel=self.subpixel,
             ),
             model=SensorModelParams(
                 disparity_sigma_px=self.disparity_sigma_px,
