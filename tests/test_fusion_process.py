@@ -29,7 +29,7 @@ def _start_fusion(bus: Bus, state_dir: Path) -> subprocess.Popen[bytes]:
         str(state_dir),
         "--save-interval-s",
         "1",
-        "--publish-period-s",
+        "--publish-interval-s",
         "0.05",
     )
 
@@ -73,7 +73,7 @@ def test_fusion_serves_map_and_health_and_survives_bad_tiles(bus: Bus, tmp_path:
     wait_for(
         lambda: _health(bus)["tiles_accepted"] == 7, 10, "a good tile to land after the bad ones"
     )
-    # map/latest serves snapshots refreshed every publish period: wait for the one with all 7 tiles.
+    # map/latest serves snapshots refreshed at most every publish interval: wait for the one with all 7 tiles.
     wait_for(
         lambda: latest(bus.session, timeout_s=10).version == 7, 10, "the snapshot of version 7"
     )

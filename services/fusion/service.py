@@ -32,6 +32,9 @@ from services.fusion.snapshot import CONTENT_TYPES, MapQuery, MapSnapshot, parse
 
 log = logging.getLogger("fusion")
 DEFAULT_QUERY = MapQuery()
+REFRESH_COST_SHARE = 0.2
+MAINTENANCE_PERIOD_S = 0.5
+"""Decay, saves and summaries are checked this often even when no tile arrives."""
 
 
 def default_state_dir() -> Path:
@@ -55,8 +58,10 @@ class FusionSettings(ZenohSettings):
         2.0, gt=0.0, description="drop tiles captured longer ago than this"
     )
     max_message_mb: float = Field(64.0, gt=0.0, description="reject larger tile messages")
-    publish_period_s: float = Field(
-        0.1, gt=0.0, description="snapshot refresh and map/updates period"
+    publish_interval_s: float = Field(
+        0.02,
+        gt=0.0,
+        description="shortest time between map snapshots (and map/updates) while tiles arrive",
     )
     state_dir: Path = Field(
         default_factory=default_state_dir, description="where the map is saved and loaded"
@@ -110,6 +115,10 @@ class FusionState:
         self.snapshot = MapSnapshot(self._build_map())
         self._layered: MapSnapshot | None = None
         self.warn = RateLimitedLog(log)
+        self.changed = threading.Event()
+        """Set by each accepted tile: the publishing loop wakes at once instead of polling."""
+        self.refresh_cost_s = 0.0
+        """Time the last refresh took (copy, encode): it bounds how often one is made."""
 
     def on_tile(self, sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()
@@ -125,6 +134,7 @@ class FusionState:
                 self.contributors.add(pair)
                 self.last_tile_s[pair] = time.time()
                 self.capture_to_fused_ms[pair] = (time.time_ns() - tile.header.stamp_ns) / 1e6
+            self.changed.set()
         except TileRejected as rejection:
             self._reject(rejection.reason, str(rejection), str(sample.key_expr))
         except TileOutsideMap as error:
@@ -178,8 +188,16 @@ class FusionState:
                 self._layered = MapSnapshot(self._build_map(with_layers=True))
             return self._layered
 
+    def next_refresh_in(self, since_last_s: float) -> float:
+        """Seconds to wait before the next snapshot: at least the configured interval, and at
+        least REFRESH_COST_SHARE⁻¹ times what the last one cost, so a huge map under a stream of
+        tiles never spends more than that share of the time encoding snapshots."""
+        interval = max(self.settings.publish_interval_s, self.refresh_cost_s / REFRESH_COST_SHARE)
+        return max(0.0, interval - since_last_s)
+
     def refresh(self) -> tuple[MapSnapshot, Window, int] | None:
         """A new snapshot if the grid changed since the last one, with the changed window."""
+        started = time.perf_counter()
         with self.lock:
             if self.grid.version == self.snapshot.version:
                 return None
@@ -190,6 +208,7 @@ class FusionState:
         # can see this snapshot: no query waits for a compression.
         snapshot.encoded(DEFAULT_QUERY)
         self.snapshot = snapshot
+        self.refresh_cost_s = time.perf_counter() - started
         return snapshot, dirty, previous
 
     def decay(self, elapsed_s: float) -> None:
@@ -250,10 +269,10 @@ def update_payload(snapshot: MapSnapshot, dirty: Window, previous_version: int) 
 
 def main(settings: FusionSettings) -> None:
     setup_logging("fusion", settings.log_level)
-    stop = stop_on_signals()
     params = settings.grid_params()
     grid = load_grid(params, settings.state_dir) or FusedGrid(params)
     state = FusionState(settings, grid)
+    stop = stop_on_signals(state.changed)
     if grid.version:
         log.info(
             "map restored",
@@ -292,11 +311,17 @@ def main(settings: FusionSettings) -> None:
             "started",
             extra={"resolution_m": settings.resolution_m, "state_dir": str(settings.state_dir)},
         )
-        last = {"decay": time.monotonic(), "save": time.monotonic(), "summary": time.monotonic()}
+        started = time.monotonic()
+        last = {"decay": started, "save": started, "summary": started, "refresh": 0.0}
         saved_version = grid.version
-        while not stop.wait(settings.publish_period_s):
-            now = time.monotonic()
+        while not stop.is_set():
+            # Publish a change as soon as it lands, but no sooner than the refresh interval.
+            state.changed.wait(MAINTENANCE_PERIOD_S)
+            if stop.wait(state.next_refresh_in(time.monotonic() - last["refresh"])):
+                break
+            state.changed.clear()
             refreshed = state.refresh()
+            now = last["refresh"] = time.monotonic()
             if refreshed is not None:
                 snapshot, dirty, previous = refreshed
                 if not dirty.empty:
