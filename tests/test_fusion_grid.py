@@ -127,3 +127,21 @@ def test_dirty_window_collects_changes_until_taken() -> None:
     _integrate(grid, Window(10, 10, 5, 5), 1.0)
     assert grid.take_dirty() == Window(0, 0, 15, 15)
     assert grid.take_dirty().empty
+
+
+def test_snapshot_pace_follows_the_interval_and_the_cost_of_a_refresh(tmp_path) -> None:
+    from services.fusion.service import REFRESH_COST_SHARE, FusionSettings, FusionState
+
+    settings = FusionSettings(publish_interval_s=0.02, state_dir=tmp_path)
+    state = FusionState(settings, FusedGrid(settings.grid_params()))
+    assert state.refresh() is None  # nothing changed: no new snapshot
+    _integrate(state.grid, Window(0, 0, 20, 10), 1.0)
+    refreshed = state.refresh()
+    assert refreshed is not None and refreshed[0].version == 1
+    assert refreshed[1] == Window(0, 0, 20, 10)  # the changed window, for map/updates
+    assert state.refresh_cost_s > 0
+    state.refresh_cost_s = 0.001  # a cheap map: the configured interval rules
+    assert state.next_refresh_in(0.0) == pytest.approx(0.02)
+    assert state.next_refresh_in(0.05) == 0.0
+    state.refresh_cost_s = 0.03  # a costly one: at most REFRESH_COST_SHARE of the time
+    assert state.next_refresh_in(0.05) == pytest.approx(0.03 / REFRESH_COST_SHARE - 0.05)
