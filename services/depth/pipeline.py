@@ -100,6 +100,7 @@ class DepthPipeline:
             points, self.config.resolution_m, self.config.model, self.config.min_cell_pixels
         )
         times.append(time.perf_counter())
+        # "subpixel" also holds the depth-edge filter, which must run after the refinement.
         names = ("rectify", "disparity", "subpixel", "projection", "model")
         stage_ms = {
             name: (b - a) * 1e3 for name, a, b in zip(names, times[:-1], times[1:], strict=True)

@@ -97,7 +97,9 @@ class FusionSettings(ZenohSettings):
 class FusionState:
     """The grid and its bookkeeping, shared by Zenoh callbacks and the maintenance loop."""
 
-    def __init__(self, settings: FusionSettings, grid: FusedGrid) -> None:
+    def __init__(
+        self, settings: FusionSettings, grid: FusedGrid, changed: threading.Event | None = None
+    ) -> None:
         self.settings = settings
         self.grid = grid
         self.lock = threading.Lock()
@@ -115,7 +117,7 @@ class FusionState:
         self.snapshot = MapSnapshot(self._build_map())
         self._layered: MapSnapshot | None = None
         self.warn = RateLimitedLog(log)
-        self.changed = threading.Event()
+        self.changed = changed or threading.Event()
         """Set by each accepted tile: the publishing loop wakes at once instead of polling."""
         self.refresh_cost_s = 0.0
         """Time the last refresh took (copy, encode): it bounds how often one is made."""
@@ -269,10 +271,11 @@ def update_payload(snapshot: MapSnapshot, dirty: Window, previous_version: int) 
 
 def main(settings: FusionSettings) -> None:
     setup_logging("fusion", settings.log_level)
+    changed = threading.Event()
+    stop = stop_on_signals(changed)  # before loading the state: a stop during a long load is clean
     params = settings.grid_params()
     grid = load_grid(params, settings.state_dir) or FusedGrid(params)
-    state = FusionState(settings, grid)
-    stop = stop_on_signals(state.changed)
+    state = FusionState(settings, grid, changed)
     if grid.version:
         log.info(
             "map restored",
@@ -321,8 +324,9 @@ def main(settings: FusionSettings) -> None:
                 break
             state.changed.clear()
             refreshed = state.refresh()
-            now = last["refresh"] = time.monotonic()
-            if refreshed is not None:
+            now = time.monotonic()
+            if refreshed is not None:  # the interval runs from the last snapshot actually made
+                last["refresh"] = now
                 snapshot, dirty, previous = refreshed
                 if not dirty.empty:
                     updates.put(update_payload(snapshot, dirty, previous))
