@@ -7,6 +7,7 @@ bytes disagree with its shape — raises :class:`CodecError`, the one error type
 
 from __future__ import annotations
 
+import math
 import zlib
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
@@ -87,7 +88,7 @@ def _unpack_array(name: str, obj: Any) -> np.ndarray:
         raise CodecError(f"array {name!r} has an invalid shape {shape!r}")
     if not isinstance(data, bytes):
         raise CodecError(f"array {name!r} data is {type(data).__name__}, expected bytes")
-    expected = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+    expected = math.prod(shape) * np.dtype(dtype).itemsize  # not np.prod: 50× slower on a list
     if compression == "zlib":
         data = _inflate(name, data, expected)
     if expected != len(data):

@@ -15,25 +15,36 @@ UNKNOWN = -1
 """nav_msgs/OccupancyGrid: unknown cell; known cells hold the occupancy probability in 0..100."""
 
 
-_LUT_STEPS_PER_UNIT = 256
-_LUT_RANGE = 16.0  # log-odds beyond ±16 are 0 % / 100 % at int8 resolution
-_LUT = np.rint(
+OCCUPANCY_LUT_RANGE = 16.0
+"""Log-odds beyond ±16 are 0 % / 100 % at int8 resolution."""
+OCCUPANCY_LUT_SCALE = 256.0
+"""Table entries per unit of log-odds."""
+OCCUPANCY_LUT_OFFSET = OCCUPANCY_LUT_RANGE * OCCUPANCY_LUT_SCALE + 0.5
+"""Index of log-odds L is ⌊L·scale + offset⌋ (in float64: exact, rounds half up), after clipping L."""
+OCCUPANCY_LUT = np.rint(
     100.0
     / (
         1.0
         + np.exp(
-            -np.linspace(-_LUT_RANGE, _LUT_RANGE, int(2 * _LUT_RANGE * _LUT_STEPS_PER_UNIT) + 1)
+            -np.linspace(
+                -OCCUPANCY_LUT_RANGE,
+                OCCUPANCY_LUT_RANGE,
+                int(2 * OCCUPANCY_LUT_RANGE * OCCUPANCY_LUT_SCALE) + 1,
+            )
         )
     )
 ).astype(np.int8)
+"""nav_msgs occupancy 0..100 of log-odds by table lookup: maps are converted often and whole. The
+fusion kernel indexes the same table the same way, so both give identical cells."""
 
 
 def occupancy_from_logodds(
     logodds: npt.NDArray[np.float32], known: npt.NDArray[np.bool_]
 ) -> npt.NDArray[np.int8]:
-    """nav_msgs occupancy 0..100 (unknown -1) by table lookup: maps are converted often and whole."""
-    index = np.rint((np.clip(logodds, -_LUT_RANGE, _LUT_RANGE) + _LUT_RANGE) * _LUT_STEPS_PER_UNIT)
-    occupancy: npt.NDArray[np.int8] = _LUT[index.astype(np.intp)]
+    """nav_msgs occupancy 0..100, unknown -1, of whole layers."""
+    clipped = np.clip(logodds, -OCCUPANCY_LUT_RANGE, OCCUPANCY_LUT_RANGE).astype(np.float64)
+    index = (clipped * OCCUPANCY_LUT_SCALE + OCCUPANCY_LUT_OFFSET).astype(np.intp)
+    occupancy: npt.NDArray[np.int8] = OCCUPANCY_LUT[index]
     occupancy[~known] = UNKNOWN
     return occupancy
 

@@ -4,6 +4,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from common.lattice import Window
+from common.occupancy_map import occupancy_from_logodds
 from services.fusion.grid import FusedGrid, GridParams, TileOutsideMap
 
 P = GridParams()
@@ -29,16 +30,30 @@ def _integrate(
 @settings(max_examples=60, deadline=None)
 @given(
     st.lists(
-        st.tuples(st.integers(-20, 20), st.integers(-20, 20), st.floats(-3, 3)),
+        st.tuples(st.integers(-20, 20), st.integers(-20, 20), st.integers(0, 2**32 - 1)),
         min_size=1,
         max_size=25,
     )
 )
-def test_logodds_never_leave_the_clamp(updates: list[tuple[int, int, float]]) -> None:
-    grid = FusedGrid(P)
-    for i0, j0, value in updates:
-        _integrate(grid, Window(i0, j0, 7, 5), value)
+def test_logodds_never_leave_the_clamp(tiles: list[tuple[int, int, int]]) -> None:
+    grid = FusedGrid(GridParams(bounds=Window(-20, -20, 47, 45)))  # fixed: every tile lies inside
+    for i0, j0, seed in tiles:
+        rng = np.random.default_rng(seed)
+        window = Window(i0, j0, 7, 5)
+        count = rng.integers(0, 3, window.shape).astype(np.uint16)
+        before = grid.logodds[window.slices_in(grid.window)].copy()
+        grid.integrate(
+            window,
+            rng.uniform(-3, 3, window.shape).astype(np.float32),
+            rng.uniform(0, 2, window.shape).astype(np.float32),
+            count,
+            1,
+        )
         assert grid.logodds.min() >= P.logodds_min and grid.logodds.max() <= P.logodds_max
+        after = grid.logodds[window.slices_in(grid.window)]
+        np.testing.assert_array_equal(after[count == 0], before[count == 0])
+    # The kernel's cell-by-cell occupancy is the whole-layer conversion's, exactly.
+    np.testing.assert_array_equal(grid.occupancy, occupancy_from_logodds(grid.logodds, grid.known))
 
 
 def test_overlapping_tiles_stitch_exactly() -> None:

@@ -4,10 +4,10 @@ import sys
 from tests.conftest import REPO
 
 
-def test_robot_client_imports_no_renderer_and_no_opencv() -> None:
+def test_robot_client_imports_no_renderer_no_opencv_no_compiler() -> None:
     code = (
         "import sys, common.client, common.mapfiles, services.client_cli, services.cli;"
-        "heavy = [m for m in ('cv2', 'mujoco') if m in sys.modules];"
+        "heavy = [m for m in ('cv2', 'mujoco', 'numba') if m in sys.modules];"
         "print(heavy); sys.exit(1 if heavy else 0)"
     )
     result = subprocess.run(

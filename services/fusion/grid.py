@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -108,20 +109,19 @@ class FusedGrid:
             raise TileOutsideMap(f"tile {tile_window} lies outside the map bounds {self.window}")
         in_tile = part.slices_in(tile_window)
         in_map = part.slices_in(self.window)
-        observed = count[in_tile] > 0
-        update = logodds_update[in_tile]
-        tile_height = tile_height_m[in_tile]
-        logodds = self.logodds[in_map]
-        height = self.height_m[in_map]
-        rules.add_logodds_clamped(
-            logodds, update, observed, self.params.logodds_min, self.params.logodds_max
+        rules.combine_tile(
+            self.logodds[in_map],
+            self.height_m[in_map],
+            self.known[in_map],
+            self.last_seen_s[in_map],
+            self.occupancy[in_map],
+            logodds_update[in_tile],
+            tile_height_m[in_tile],
+            count[in_tile],
+            stamp_ns / 1e9,
+            self.params.logodds_min,
+            self.params.logodds_max,
         )
-        occupied = update > 0
-        rules.height_with_max(height, tile_height, observed & occupied)
-        rules.height_overwrite_where_free(height, tile_height, observed & ~occupied)
-        self.known[in_map] |= observed
-        np.copyto(self.last_seen_s[in_map], stamp_ns / 1e9, where=observed)
-        self.occupancy[in_map] = occupancy_from_logodds(logodds, self.known[in_map])
         self.stamp_ns = max(self.stamp_ns, stamp_ns)
         self.version += 1
         self.dirty = self.dirty.union(part)
@@ -160,3 +160,15 @@ class FusedGrid:
     def take_dirty(self) -> Window:
         dirty, self.dirty = self.dirty, Window(0, 0, 0, 0)
         return dirty
+
+
+def compile_rules() -> None:
+    """Compile (or load from numba's cache) the combine kernel for the layouts real tiles bring —
+    read-only decoded tile arrays into views of a larger map — so the first tile does not wait."""
+    grid = FusedGrid(GridParams())
+    window = Window(0, 0, 2, 2)
+
+    def decoded(dtype: type[np.generic]) -> npt.NDArray[Any]:
+        return np.frombuffer(bytes(4 * np.dtype(dtype).itemsize), dtype).reshape(window.shape)
+
+    grid.integrate(window, decoded(np.float32), decoded(np.float32), decoded(np.uint16), 0)

@@ -63,9 +63,8 @@ class TileGate:
                 )
             layers[name] = array
         observed = layers["count"] > 0
-        if not np.all(np.isfinite(layers["logodds"])) or not np.all(
-            np.isfinite(layers["height_m"][observed])
-        ):
+        finite_where_observed = np.less_equal(observed, np.isfinite(layers["height_m"]))
+        if not np.isfinite(layers["logodds"]).all() or not finite_where_observed.all():
             raise TileRejected(
                 "nan", "tile holds NaN or infinite log-odds, or heights of observed cells"
             )

@@ -1,26 +1,88 @@
-"""Named rules that combine a tile into the map, one line each (after nav2 costmap_2d's
-``updateWithMax``/``updateWithAddition``). They work in place on views of matching shape; masks
-select the cells a rule applies to (``where=`` keeps them branch-free and fast)."""
+"""Named rules that combine a tile into the map, one cell each (after nav2 costmap_2d's
+``updateWithAddition``/``updateWithMax``/``updateWithOverwrite``), and :func:`combine_tile`, which
+applies them in one compiled pass over a tile.
+
+Why compiled: numpy needs a pass per rule and layer, and over a tile-sized window of a larger map each
+pass costs more in per-row overhead and masking than in arithmetic; one numba loop visits each cell
+once (bench/fusion.py measures it)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TypeVar, cast
+
+import numba
 import numpy as np
 import numpy.typing as npt
 
-F32 = npt.NDArray[np.float32]
-B = npt.NDArray[np.bool_]
+from common.occupancy_map import (
+    OCCUPANCY_LUT,
+    OCCUPANCY_LUT_OFFSET,
+    OCCUPANCY_LUT_RANGE,
+    OCCUPANCY_LUT_SCALE,
+)
+
+Function = TypeVar("Function", bound=Callable[..., object])
 
 
-def add_logodds_clamped(logodds: F32, update: F32, observed: B, low: float, high: float) -> None:
-    """Bayesian update L ← clamp(L + ΔL, L_min, L_max) where observed (OctoMap's clamping)."""
-    np.copyto(logodds, np.clip(logodds + update, low, high), where=observed)
+def _compiled(function: Function) -> Function:
+    """numba's ``njit``, typed for mypy. Cached on disk (beside this file, in the user's cache or in
+    ``NUMBA_CACHE_DIR``) so a restart does not compile again; where none is writable, numba refuses
+    to cache and each process compiles once instead (under a second)."""
+    try:
+        return cast(Function, numba.njit(cache=True, nogil=True)(function))
+    except RuntimeError:  # "cannot cache function …: no locator available"
+        return cast(Function, numba.njit(nogil=True)(function))
 
 
-def height_with_max(height: F32, tile_height: F32, observed: B) -> None:
-    """Highest top seen over pairs: the seed's "pixel-wise minimum depth" stitching."""
-    np.fmax(height, tile_height, out=height, where=observed)
+@_compiled
+def add_logodds_clamped(logodds: float, update: float, low: float, high: float) -> float:
+    """Bayesian update L ← clamp(L + ΔL, L_min, L_max) (OctoMap's clamping)."""
+    return min(max(logodds + update, low), high)
 
 
-def height_overwrite_where_free(height: F32, tile_height: F32, free: B) -> None:
-    """A free observation shows the floor: an old object's top there is gone."""
-    np.copyto(height, tile_height, where=free)
+@_compiled
+def height_with_max(height: float, tile_height: float) -> float:
+    """Highest top seen over pairs: the seed's "pixel-wise minimum depth" stitching (NaN: none yet)."""
+    return height if height >= tile_height else tile_height
+
+
+@_compiled
+def occupancy_of(logodds: float) -> int:
+    """nav_msgs occupancy of one cell: the table and index of ``occupancy_from_logodds``."""
+    clipped = min(max(float(logodds), -OCCUPANCY_LUT_RANGE), OCCUPANCY_LUT_RANGE)
+    return int(OCCUPANCY_LUT[int(clipped * OCCUPANCY_LUT_SCALE + OCCUPANCY_LUT_OFFSET)])
+
+
+@_compiled
+def combine_tile(
+    logodds: npt.NDArray[np.float32],
+    height_m: npt.NDArray[np.float32],
+    known: npt.NDArray[np.bool_],
+    last_seen_s: npt.NDArray[np.float64],
+    occupancy: npt.NDArray[np.int8],
+    update: npt.NDArray[np.float32],
+    tile_height_m: npt.NDArray[np.float32],
+    count: npt.NDArray[np.uint16],
+    stamp_s: float,
+    logodds_min: float,
+    logodds_max: float,
+) -> None:
+    """Every rule on every observed cell, in place on the map layers' views of the tile window."""
+    for row in range(update.shape[0]):
+        # Row views: numba then steps through each row as a plain strided vector, about a third faster.
+        logodds_row, height_row, known_row = logodds[row], height_m[row], known[row]
+        seen_row, occupancy_row = last_seen_s[row], occupancy[row]
+        update_row, tile_height_row, count_row = update[row], tile_height_m[row], count[row]
+        for col in range(update_row.shape[0]):
+            if count_row[col] == 0:
+                continue  # no pixel fell here: no evidence, the cell keeps what it had
+            value = add_logodds_clamped(logodds_row[col], update_row[col], logodds_min, logodds_max)
+            logodds_row[col] = value
+            if update_row[col] > 0:
+                height_row[col] = height_with_max(height_row[col], tile_height_row[col])
+            else:  # overwrite: a free observation shows the floor, an old object's top there is gone
+                height_row[col] = tile_height_row[col]
+            known_row[col] = True
+            seen_row[col] = stamp_s
+            occupancy_row[col] = occupancy_of(logodds_row[col])

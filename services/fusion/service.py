@@ -25,7 +25,7 @@ from common.messages import MAP_UPDATE_KIND, MapUpdateHeader
 from common.occupancy_map import OccupancyMap
 from common.settings import CommaList, ZenohSettings, parse_settings
 from common.zenoh_session import open_session
-from services.fusion.grid import FusedGrid, GridParams, TileOutsideMap
+from services.fusion.grid import FusedGrid, GridParams, TileOutsideMap, compile_rules
 from services.fusion.intake import TileGate, TileRejected
 from services.fusion.persistence import load_grid, save_grid
 from services.fusion.snapshot import CONTENT_TYPES, MapQuery, MapSnapshot, parse_map_query
@@ -274,6 +274,7 @@ def main(settings: FusionSettings) -> None:
     changed = threading.Event()
     stop = stop_on_signals(changed)  # before loading the state: a stop during a long load is clean
     params = settings.grid_params()
+    compile_rules()
     grid = load_grid(params, settings.state_dir) or FusedGrid(params)
     state = FusionState(settings, grid, changed)
     if grid.version:
