@@ -23,10 +23,17 @@ class SensorModelParams:
     calibration_sigma_m: float = 0.01
     obstacle_min_m: float = 0.10
     obstacle_max_m: float = 2.0
-    p_hit: float = 0.7
-    p_miss: float = 0.4
-    occupied_fraction: float = 0.5
-    """Share of a cell's pixels in the obstacle band that counts as fully occupied evidence."""
+    p_hit: float = 0.9
+    p_miss: float = 0.1
+    """One cell observation aggregates ~20 pixels, far stronger evidence than the single beam
+    OctoMap's 0.7/0.4 stand for: a conclusive one (``edge_fraction`` ± ``evidence_ramp`` passed)
+    turns a cell from clamped free to occupied, or back, in one frame (with the fusion clamps)."""
+    edge_fraction: float = 0.5
+    """Share of a cell's pixels in the band at which its observation is neutral (p = 0.5): an object
+    edge through the cell's centre covers half the cell, and a cell is occupied by the object when
+    its centre is (how nav2 rasterises, and how ``overgrid eval`` scores)."""
+    evidence_ramp: float = 0.25
+    """Shares beyond ``edge_fraction`` ± this give full p_hit / p_miss; p is linear in between."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.p_miss < 0.5 < self.p_hit < 1.0:
@@ -37,8 +44,10 @@ class SensorModelParams:
             )
         if self.disparity_sigma_px <= 0 or self.calibration_sigma_m < 0:
             raise ValueError("disparity sigma must be > 0 and calibration sigma ≥ 0")
-        if not 0.0 < self.occupied_fraction <= 1.0:
-            raise ValueError(f"occupied_fraction must be in (0, 1], got {self.occupied_fraction}")
+        if not 0.0 < self.edge_fraction < 1.0 or self.evidence_ramp <= 0.0:
+            raise ValueError(
+                f"need 0 < edge_fraction < 1 and evidence_ramp > 0, got {self.edge_fraction}, {self.evidence_ramp}"
+            )
 
 
 def logodds(probability: npt.ArrayLike) -> npt.NDArray[np.float64]:
@@ -116,9 +125,16 @@ def cell_occupancy_probability(
     """One observation per cell from its pixels, bounded in [p_miss, p_hit].
 
     ``obstacle_pixels`` is the expected number of the cell's pixels in the band (Σ of
-    :func:`obstacle_likelihood`); pixels are aggregated, never counted as independent evidence.
+    :func:`obstacle_likelihood`); pixels are aggregated, never counted as independent evidence. The
+    share of band pixels is neutral at ``edge_fraction``: a cell an object edge only clips says
+    "free", or the map grows a ring of false obstacles around every object.
     """
     with np.errstate(divide="ignore", invalid="ignore"):
-        fraction = np.where(observed_pixels > 0, obstacle_pixels / observed_pixels, 0.0)
-    weight = np.clip(fraction / params.occupied_fraction, 0.0, 1.0)
-    return params.p_miss + (params.p_hit - params.p_miss) * weight
+        share = np.where(observed_pixels > 0, obstacle_pixels / observed_pixels, 0.0)
+    low = params.edge_fraction - params.evidence_ramp
+    toward_hit = np.clip((share - low) / (2.0 * params.evidence_ramp), 0.0, 1.0)
+    return np.where(
+        toward_hit >= 0.5,
+        0.5 + (params.p_hit - 0.5) * (2.0 * toward_hit - 1.0),
+        params.p_miss + (0.5 - params.p_miss) * 2.0 * toward_hit,
+    )

@@ -69,6 +69,16 @@ def test_floor_is_free_and_box_top_is_occupied() -> None:
     assert cells.tolist() == pytest.approx([PARAMS.p_miss, PARAMS.p_hit])
 
 
+def test_a_cell_an_edge_only_clips_is_evidence_of_free() -> None:
+    # Share of band pixels 0 … 1 over 20 pixels: neutral where an edge runs through the centre.
+    shares = np.arange(21, dtype=np.float64)
+    p = cell_occupancy_probability(shares, np.full(21, 20.0), PARAMS)
+    assert np.all(np.diff(p) >= 0)
+    assert p[10] == pytest.approx(0.5)  # half the cell: the edge passes through its centre
+    assert np.all(p[:10] < 0.5) and np.all(p[11:] > 0.5)
+    assert p[5] == pytest.approx(PARAMS.p_miss) and p[15] == pytest.approx(PARAMS.p_hit)
+
+
 def test_aggregation_does_not_grow_with_pixel_count() -> None:
     few = cell_occupancy_probability(np.array([5.0]), np.array([5.0]), PARAMS)
     many = cell_occupancy_probability(np.array([500.0]), np.array([500.0]), PARAMS)

@@ -59,7 +59,13 @@ def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_pa
     assert (picture == PICTURE_COLORS["truth"]).all(axis=2).sum() > 1000  # truth outlines drawn
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     assert 0.2 < report["iou"] <= 1 and report["false_free_rate"] < 0.2, report
-    for key in ("precision", "recall", "unknown_fraction", "length_error_mean_pct"):
+    for key in (
+        "precision",
+        "recall",
+        "false_free_rate_static",
+        "unknown_fraction",
+        "length_error_mean_pct",
+    ):
         assert 0 <= report[key] < 100, key
     assert {"name", "true_length_m", "length_m", "width_m"} <= set(report["objects"][0])
     assert report["capture_to_map_ms"]["n"] > 5 and report["capture_to_map_ms"]["p50"] > 0

@@ -61,8 +61,8 @@ class DepthSettings(ZenohSettings):
     calibration_sigma_m: float = Field(0.01, ge=0.0, description="ε, calibration error term")
     obstacle_min_m: float = Field(0.10, ge=0.0, description="lowest height that blocks a robot")
     obstacle_max_m: float = Field(2.0, gt=0.0, description="highest height that blocks a robot")
-    p_hit: float = Field(0.7, gt=0.5, lt=1.0, description="occupied evidence bound")
-    p_miss: float = Field(0.4, gt=0.0, lt=0.5, description="free evidence bound")
+    p_hit: float = Field(0.9, gt=0.5, lt=1.0, description="occupied evidence bound")
+    p_miss: float = Field(0.1, gt=0.0, lt=0.5, description="free evidence bound")
     max_message_mb: float = Field(32.0, gt=0.0, description="reject larger frame messages")
     threads: int = Field(1, ge=0, le=64, description="OpenCV threads (0: OpenCV's default)")
     calib_timeout_s: float = Field(

@@ -31,8 +31,11 @@ LAYER_FILLS = (
 @dataclass(frozen=True)
 class GridParams:
     resolution_m: float = 0.05
-    logodds_min: float = -2.0
-    logodds_max: float = 3.5
+    logodds_min: float = -1.5
+    logodds_max: float = 2.5
+    """Narrower than OctoMap's −2 … 3.5: with the depth model's p_hit/p_miss of 0.9/0.1, one
+    conclusive observation moves a cell across the occupied (0.65) or free (0.25) threshold, so a
+    moved object appears and clears within a frame; ambiguous observations still accumulate."""
     decay_after_s: float = 5.0
     """Cells unobserved this long start drifting back toward unknown."""
     decay_time_constant_s: float = 2.0

@@ -44,8 +44,16 @@ def default_state_dir() -> Path:
 
 class FusionSettings(ZenohSettings):
     resolution_m: float = Field(0.05, gt=0.0, le=1.0, description="map cell size; tiles must match")
-    logodds_min: float = Field(-2.0, lt=0.0, description="lower log-odds clamp (OctoMap: -2)")
-    logodds_max: float = Field(3.5, gt=0.0, description="upper log-odds clamp (OctoMap: 3.5)")
+    logodds_min: float = Field(
+        -1.5,
+        lt=0.0,
+        description="lower log-odds clamp (OctoMap: -2; here one conclusive hit flips it)",
+    )
+    logodds_max: float = Field(
+        2.5,
+        gt=0.0,
+        description="upper log-odds clamp (OctoMap: 3.5; here one conclusive miss clears it)",
+    )
     decay_after_s: float = Field(
         5.0, gt=0.0, description="unobserved this long, a cell drifts to unknown"
     )
