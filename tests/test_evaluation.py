@@ -90,6 +90,46 @@ def test_seen_mask_follows_the_visible_surface() -> None:
     assert heights.max() == pytest.approx(1.0)
 
 
+@pytest.mark.parametrize("shape", ["box", "cylinder"])
+def test_sight_lines_through_an_object_are_blocked(shape: str) -> None:
+    eye = np.array([0.0, 0.0, 6.0])
+    # An object 1 m tall, 0.4 m across, centred 1.2 m from the camera's nadir (x 1.0 … 1.4).
+    obj = TruthObject(
+        name="o",
+        shape=shape,
+        moving=False,
+        center_m=(1.2, 0.0, 0.5),
+        yaw_rad=0.0,
+        size_m=(0.4, 0.4, 1.0),
+    )
+    starts = np.array(
+        [
+            [1.6, 0.0, 0.01],  # floor behind it: the line passes x = 1.4 at z ≈ 0.76 m
+            [0.5, 0.0, 0.01],  # floor between the nadir and the object
+            [1.2, 0.0, 1.01],  # its own top
+            [1.6, 0.6, 0.01],  # floor beside its shadow
+            [3.0, 0.0, 0.01],  # far behind: the line passes above it (z ≈ 3.2 m at x = 1.4)
+        ]
+    )
+    blocked = metrics.sight_line_blocked(starts, eye, obj)
+    assert blocked.tolist() == [True, False, False, False, False]
+
+
+def test_floor_in_an_objects_shadow_is_not_seen() -> None:
+    calib = layout_pairs(RigSpec(pair_count=1), (12.0, 10.0))[0]
+    window = Window(0, 0, 240, 200)
+    tower = _box("tower", 8.0, 5.0, 0.6, 0.6)  # 1 m tall, 2 m off the pair's nadir
+    surface = top_heights([tower], window, RES)
+    open_view = metrics.seen_by_cameras([calib], window, RES, surface)
+    with_shadows = metrics.seen_by_cameras([calib], window, RES, surface, blockers=[tower])
+    hidden = open_view & ~with_shadows
+    assert not (with_shadows & ~open_view).any()
+    assert 20 < hidden.sum() < 400  # its shadow, a few dozen cells
+    assert not (hidden & footprint_mask(tower, window, RES)).any()  # its own top stays seen
+    x, _ = window.cell_centers(RES)
+    assert np.all(x[hidden] > 7.7)  # behind its near face, away from the cameras at x ≈ 6 m
+
+
 def _line_world(cells_inside: list[int]) -> np.ndarray:
     mask = np.zeros((1, 10), bool)
     mask[0, cells_inside] = True

@@ -31,23 +31,30 @@ def occupancy_on(occupancy_map: OccupancyMap, window: Window) -> npt.NDArray[np.
     return reframe(occupancy_map.occupancy, occupancy_map.window, window, UNKNOWN)
 
 
+SURFACE_LIFT_M = 0.01
+"""Sight lines start this far above a surface, so the object it belongs to does not block them."""
+
+
 def seen_by_cameras(
     calibrations: Sequence[StereoCalibration],
     window: Window,
     resolution_m: float,
     surface_m: npt.NDArray[np.float64] | None = None,
+    blockers: Sequence[TruthObject] = (),
 ) -> Mask:
     """Cells whose visible surface (height ``surface_m``, else the floor) lies inside both images of
-    some pair: what stereo can measure. A tall top near the edge of a view can leave it while the
-    floor beside it stays in, so the surface height matters."""
+    some pair and in the line of sight of both its cameras: what stereo can measure. A tall top
+    near the edge of a view can leave it while the floor beside it stays in, and the floor in an
+    object's shadow is in the images but hidden by ``blockers``, so both matter."""
     x, y = window.cell_centers(resolution_m)
     z = np.zeros(x.size) if surface_m is None else surface_m.ravel()
-    floor = np.column_stack([x.ravel(), y.ravel(), z])
+    surface = np.column_stack([x.ravel(), y.ravel(), z])
+    start = surface + np.array([0.0, 0.0, SURFACE_LIFT_M])
     seen = np.zeros(x.size, np.bool_)
     for calib in calibrations:
         in_both = np.ones(x.size, np.bool_)
         for camera in (calib.left, calib.right):
-            uvz = camera.project(floor)
+            uvz = camera.project(surface)
             in_both &= (
                 (uvz[:, 2] > 0)
                 & (uvz[:, 0] >= 0)
@@ -55,8 +62,76 @@ def seen_by_cameras(
                 & (uvz[:, 1] >= 0)
                 & (uvz[:, 1] <= camera.height - 1)
             )
+            for blocker in blockers:
+                in_both &= ~sight_line_blocked(start, camera.position_world, blocker)
         seen |= in_both
     return seen.reshape(window.shape)
+
+
+def sight_line_blocked(
+    start_m: npt.NDArray[np.float64], eye_m: npt.NDArray[np.float64], obj: TruthObject
+) -> Mask:
+    """Whether each segment start → eye passes through the object (slab test on its box or on its
+    upright cylinder's height and circle)."""
+    direction = eye_m - start_m
+    cx, cy, cz = obj.center_m
+    half_height = obj.size_m[2] / 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z_enter, z_leave = _slab(start_m[:, 2] - cz, direction[:, 2], half_height)
+        if obj.shape == "cylinder":
+            enter, leave = _circle(
+                start_m[:, 0] - cx,
+                start_m[:, 1] - cy,
+                direction[:, 0],
+                direction[:, 1],
+                obj.size_m[0] / 2,
+            )
+        else:
+            c, s = math.cos(obj.yaw_rad), math.sin(obj.yaw_rad)
+            dx, dy = start_m[:, 0] - cx, start_m[:, 1] - cy
+            along_enter, along_leave = _slab(
+                c * dx + s * dy, c * direction[:, 0] + s * direction[:, 1], obj.size_m[0] / 2
+            )
+            across_enter, across_leave = _slab(
+                -s * dx + c * dy, -s * direction[:, 0] + c * direction[:, 1], obj.size_m[1] / 2
+            )
+            enter, leave = (
+                np.maximum(along_enter, across_enter),
+                np.minimum(along_leave, across_leave),
+            )
+    enter, leave = np.maximum(enter, z_enter), np.minimum(leave, z_leave)
+    return np.asarray((enter <= leave) & (leave > 0.0) & (enter < 1.0))
+
+
+def _slab(
+    offset: npt.NDArray[np.float64], step: npt.NDArray[np.float64], half: float
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Parameter interval in which offset + t·step lies in [-half, half] (empty: enter > leave)."""
+    a, b = (-half - offset) / step, (half - offset) / step
+    inside = np.abs(offset) <= half  # a segment parallel to the slab: all or nothing
+    parallel = step == 0
+    enter = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(a, b))
+    leave = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(a, b))
+    return enter, leave
+
+
+def _circle(
+    x: npt.NDArray[np.float64],
+    y: npt.NDArray[np.float64],
+    dx: npt.NDArray[np.float64],
+    dy: npt.NDArray[np.float64],
+    radius: float,
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Parameter interval in which (x, y) + t·(dx, dy) lies inside the circle of ``radius``."""
+    a = dx * dx + dy * dy
+    b = 2.0 * (x * dx + y * dy)
+    c = x * x + y * y - radius * radius
+    root = np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))
+    misses = b * b - 4.0 * a * c < 0
+    vertical = a == 0  # straight up: inside for all t or never
+    enter = np.where(vertical, np.where(c <= 0, -np.inf, np.inf), (-b - root) / (2.0 * a))
+    leave = np.where(vertical, np.where(c <= 0, np.inf, -np.inf), (-b + root) / (2.0 * a))
+    return np.where(misses, np.inf, enter), np.where(misses, -np.inf, leave)
 
 
 @dataclass(frozen=True)

@@ -173,6 +173,7 @@ class Evaluator:
             self.window,
             resolution_m,
             top_heights(static, self.window, resolution_m),
+            blockers=static,
         )
 
     def truth(self, stamp_ns: int) -> Truth:
