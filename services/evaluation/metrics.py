@@ -126,8 +126,9 @@ def _circle(
     a = dx * dx + dy * dy
     b = 2.0 * (x * dx + y * dy)
     c = x * x + y * y - radius * radius
-    root = np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))
-    misses = b * b - 4.0 * a * c < 0
+    discriminant = b * b - 4.0 * a * c
+    misses = discriminant < 0
+    root = np.sqrt(np.maximum(discriminant, 0.0))
     vertical = a == 0  # straight up: inside for all t or never
     enter = np.where(vertical, np.where(c <= 0, -np.inf, np.inf), (-b - root) / (2.0 * a))
     leave = np.where(vertical, np.where(c <= 0, np.inf, -np.inf), (-b + root) / (2.0 * a))

@@ -175,6 +175,10 @@ class Evaluator:
             top_heights(static, self.window, resolution_m),
             blockers=static,
         )
+        self.static_occupied = scene_truth.occupancy(
+            static, self.window, resolution_m, OBSTACLE_BAND_M
+        ).astype(np.bool_)
+        """Truth of the objects that never move: made once, like the seen mask."""
 
     def truth(self, stamp_ns: int) -> Truth:
         return query_truth(self.session, stamp_ns, self.resolution_m, self.timeout_s)
@@ -184,13 +188,11 @@ class Evaluator:
         occupancy = metrics.occupancy_on(occupancy_map, self.window)
         return metrics.score_cells(occupancy, truth.occupied, self.seen), truth
 
-    def static_false_free_rate(self, occupancy_map: OccupancyMap, truth: Truth) -> float:
+    def static_false_free_rate(self, occupancy_map: OccupancyMap) -> float:
         """False-free over static objects alone: a mover's leading edge is free in the map until
         the next frame of a pair that sees it, which no sensor model can help at 2 Hz."""
-        static = [o for o in truth.header.objects if not o.moving]
-        occupied = scene_truth.occupancy(static, self.window, self.resolution_m, OBSTACLE_BAND_M)
         occupancy = metrics.occupancy_on(occupancy_map, self.window)
-        return metrics.score_cells(occupancy, occupied.astype(np.bool_), self.seen).false_free_rate
+        return metrics.score_cells(occupancy, self.static_occupied, self.seen).false_free_rate
 
     def _inside_floor(self, center_m: Sequence[float]) -> bool:
         return 0 <= center_m[0] <= self.floor_size_m[0] and 0 <= center_m[1] <= self.floor_size_m[1]
@@ -275,7 +277,7 @@ def report(
         "precision": scores.precision,
         "recall": scores.recall,
         "false_free_rate": scores.false_free_rate,
-        "false_free_rate_static": evaluator.static_false_free_rate(occupancy_map, truth),
+        "false_free_rate_static": evaluator.static_false_free_rate(occupancy_map),
         "unknown_fraction": scores.unknown_fraction,
         "seen_cells": int(evaluator.seen.sum()),
         "length_error_mean_pct": _mean(errors_pct),

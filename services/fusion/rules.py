@@ -77,12 +77,13 @@ def combine_tile(
         for col in range(update_row.shape[0]):
             if count_row[col] == 0:
                 continue  # no pixel fell here: no evidence, the cell keeps what it had
-            value = add_logodds_clamped(logodds_row[col], update_row[col], logodds_min, logodds_max)
-            logodds_row[col] = value
+            logodds_row[col] = add_logodds_clamped(
+                logodds_row[col], update_row[col], logodds_min, logodds_max
+            )
             if update_row[col] > 0:
                 height_row[col] = height_with_max(height_row[col], tile_height_row[col])
             else:  # overwrite: a free observation shows the floor, an old object's top there is gone
                 height_row[col] = tile_height_row[col]
             known_row[col] = True
             seen_row[col] = stamp_s
-            occupancy_row[col] = occupancy_of(logodds_row[col])
+            occupancy_row[col] = occupancy_of(logodds_row[col])  # of the stored float32 value
