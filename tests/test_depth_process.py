@@ -63,9 +63,7 @@ def test_depth_turns_frames_into_tiles_and_survives_bad_frames(bus: Bus) -> None
     wait_for(lambda: sink.count() >= 3, 60, "three tiles from the depth process")
     first = sink.tiles[0]
     assert first.pair == "p0" and first.resolution_m == 0.05
-    assert {"rectify", "disparity", "subpixel", "projection", "model", "encode"} <= set(
-        first.stage_ms
-    )
+    assert {"rectify", "disparity", "projection", "model", "encode"} <= set(first.stage_ms)
     assert "p0" in _alive(bus.session)
 
     # Malformed input on the pair's key: random bytes, a wrong-typed header, a frame of the wrong size.

@@ -14,14 +14,7 @@ from common.lattice import check_resolution
 from common.sensor_model import SensorModelParams
 from services.depth.inverse_model import Tile, build_tile
 from services.depth.projection import WorldPoints, project_to_world
-from services.depth.stereo import (
-    MatcherConfig,
-    Rectifier,
-    disparity_px,
-    invalidate_depth_edges,
-    make_matcher,
-    refine_subpixel,
-)
+from services.depth.stereo import DisparityChain, MatcherConfig, Rectifier
 
 SEARCH_MARGIN_M = 0.15
 """Search a little below the floor and above the band's top so their disparities are not clipped."""
@@ -64,7 +57,9 @@ class DepthPipeline:
         self.min_disparity, self.num_disparities = self.rectifier.disparity_band(
             -SEARCH_MARGIN_M, config.model.obstacle_max_m + SEARCH_MARGIN_M
         )
-        self.matcher = make_matcher(config.matcher, self.min_disparity, self.num_disparities)
+        self.disparity_chain = DisparityChain(
+            config.matcher, self.min_disparity, self.num_disparities
+        )
 
     def check_frame(self, left: np.ndarray, right: np.ndarray) -> None:
         width, height = self.calib.image_size
@@ -80,11 +75,7 @@ class DepthPipeline:
         times = [time.perf_counter()]
         left_rect, right_rect = self.rectifier.rectify(to_gray(left), to_gray(right))
         times.append(time.perf_counter())
-        disparity = disparity_px(self.matcher, left_rect, right_rect, self.min_disparity)
-        times.append(time.perf_counter())
-        if self.config.matcher.subpixel:
-            disparity = refine_subpixel(left_rect, right_rect, disparity)
-        disparity = invalidate_depth_edges(disparity, self.config.matcher.edge_filter_px)
+        disparity = self.disparity_chain(left_rect, right_rect)
         times.append(time.perf_counter())
         points = project_to_world(
             disparity,
@@ -100,8 +91,8 @@ class DepthPipeline:
             points, self.config.resolution_m, self.config.model, self.config.min_cell_pixels
         )
         times.append(time.perf_counter())
-        # "subpixel" also holds the depth-edge filter, which must run after the refinement.
-        names = ("rectify", "disparity", "subpixel", "projection", "model")
+        # "disparity" is the whole chain: matcher and its optional stages (stereo.DisparityChain).
+        names = ("rectify", "disparity", "projection", "model")
         stage_ms = {
             name: (b - a) * 1e3 for name, a, b in zip(names, times[:-1], times[1:], strict=True)
         }

@@ -262,3 +262,29 @@ def invalidate_depth_edges(disparity: F32, max_range_px: float) -> F32:
     with np.errstate(over="ignore", invalid="ignore"):  # all-invalid neighbourhoods: -inf - inf
         filtered[highest - lowest > max_range_px] = np.nan
     return filtered
+
+
+class DisparityChain:
+    """The configured depth chain on rectified images: matcher, then each optional stage.
+
+    One object per search band, so the matcher is made once; :func:`compute_disparity` is the same
+    chain for callers that run it once (bench/stereo_real.py)."""
+
+    def __init__(self, config: MatcherConfig, min_disparity: int, num_disparities: int) -> None:
+        self.config = config
+        self.min_disparity = min_disparity
+        self.matcher = make_matcher(config, min_disparity, num_disparities)
+
+    def __call__(self, left_gray: U8, right_gray: U8) -> F32:
+        disparity = disparity_px(self.matcher, left_gray, right_gray, self.min_disparity)
+        if self.config.subpixel:
+            disparity = refine_subpixel(left_gray, right_gray, disparity)
+        return invalidate_depth_edges(disparity, self.config.edge_filter_px)
+
+
+def compute_disparity(
+    left_gray: U8, right_gray: U8, min_disparity: int, num_disparities: int, config: MatcherConfig
+) -> F32:
+    """Disparity in pixels of a rectified pair (float32, NaN where invalid), exactly as the depth
+    service computes it."""
+    return DisparityChain(config, min_disparity, num_disparities)(left_gray, right_gray)
