@@ -13,7 +13,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any, Literal
+from typing import IO, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -28,6 +28,7 @@ from common.mapfiles import write_map
 from common.occupancy_map import OccupancyMap
 from common.settings import ZenohSettings, parse_settings
 from common.zenoh_session import open_session
+from services.camera_sim.scene import FloorKind
 from services.evaluation.service import Evaluator, Recorder, map_summary
 from services.evaluation.service import report as evaluation_report
 from services.evaluation.service import table as evaluation_table
@@ -42,7 +43,14 @@ class UpSettings(ZenohSettings):
     )
     seed: int = Field(0, description="scene seed")
     scene: Path | None = Field(None, description="scene file instead of a generated one")
-    floor: Literal["textured", "plain"] = Field("textured", description="floor texture")
+    floor: FloorKind = Field("concrete", description="floor: concrete, speckle (ideal) or plain")
+    plain_objects: bool = Field(False, description="every static object one uniform colour")
+    ideal_cameras: bool = Field(False, description="noise-free renders, exact calibration")
+    vary_lighting: bool = Field(False, description="slow drift of the light")
+    light_step_period_s: float = Field(
+        0.0, ge=0.0, description="half the lights off in the second half of every period (0: never)"
+    )
+    jpeg_quality: int = Field(0, ge=0, le=100, description="cameras stream JPEG (0: raw)")
     rate_hz: float = Field(2.0, gt=0.0, le=30.0, description="frames per second per pair")
     duration_s: float = Field(0.0, ge=0.0, description="stop after this long (0: run until Ctrl-C)")
     out: Path = Field(Path("out"), description="where the map, report and logs go")
@@ -89,6 +97,14 @@ def _commands(settings: UpSettings) -> list[tuple[str, list[str]]]:
     ]
     if settings.scene:
         sim += ["--scene", str(settings.scene)]
+    for flag, on in (
+        ("--plain-objects", settings.plain_objects),
+        ("--ideal-cameras", settings.ideal_cameras),
+        ("--vary-lighting", settings.vary_lighting),
+    ):
+        sim += [flag] if on else []
+    sim += ["--light-step-period-s", str(settings.light_step_period_s)]
+    sim += ["--jpeg-quality", str(settings.jpeg_quality)]
     commands = [
         ("fusion", ["fusion", "--state-dir", str(settings.out / "state")]),
         ("camera_sim", sim),

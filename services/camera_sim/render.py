@@ -12,25 +12,91 @@ import numpy as np
 import numpy.typing as npt
 
 from common.camera import StereoCalibration
+from services.camera_sim.lighting import Lighting
 from services.camera_sim.rig import mujoco_camera_axes
-from services.camera_sim.scene import SceneSpec
+from services.camera_sim.scene import ObjectSpec, SceneSpec
 
 TEXTURE_PX = 512
 TEXTURE_SPAN_M = 4.0
-OBJECT_TEXTURE_SPAN_M = 4.0
+"""The speckle texture repeats every 4 m (7.8 mm texels)."""
+CONCRETE_PX = 1024
+CONCRETE_SPAN_M = 8.0
+"""Concrete: 7.8 mm texels too, repeating every 8 m (two control-joint bays)."""
+SURFACE_PX = 256
+SURFACE_SPAN_M = 1.0
+"""Cardboard, wood, fabric: 4 mm texels, repeating every metre."""
 
 
 def procedural_texture(seed: int, size: int = TEXTURE_PX) -> npt.NDArray[np.uint8]:
     """Multi-octave value noise: texture at every scale stereo matching needs, no repetition
-    within the disparity search range (a checkerboard would be ambiguous)."""
+    within the disparity search range (a checkerboard would be ambiguous). The ideal world's
+    ``speckle`` floor; no real floor looks like it."""
     rng = np.random.default_rng(seed)
     image = np.zeros((size, size), dtype=np.float64)
     for cell_px, weight in ((1, 0.35), (2, 0.3), (4, 0.2), (16, 0.1), (64, 0.05)):
         coarse = rng.random((size // cell_px, size // cell_px))
         image += weight * np.kron(coarse, np.ones((cell_px, cell_px)))
     image = (image - image.min()) / (image.max() - image.min())
-    gray = (40 + 200 * image).astype(np.uint8)
+    return _gray_rgb(40 + 200 * image)
+
+
+def _gray_rgb(values: npt.NDArray[np.float64]) -> npt.NDArray[np.uint8]:
+    gray = np.clip(values, 0, 255).astype(np.uint8)
     return np.repeat(gray[:, :, None], 3, axis=2)
+
+
+def smooth_noise(rng: np.random.Generator, size: int, cell_px: int) -> npt.NDArray[np.float64]:
+    """Zero-mean, unit-variance value noise with features of ``cell_px``, bilinearly interpolated
+    (no blocky edges a real surface lacks) and periodic, so the texture tiles seamlessly."""
+    cells = max(1, size // cell_px)
+    coarse = rng.standard_normal((cells, cells))
+    position = np.arange(size) * cells / size
+    low = np.floor(position).astype(int)
+    frac = position - low
+    high = (low + 1) % cells
+    rows = coarse[low] * (1 - frac)[:, None] + coarse[high] * frac[:, None]
+    image: npt.NDArray[np.float64] = (
+        rows[:, low] * (1 - frac)[None, :] + rows[:, high] * frac[None, :]
+    )
+    normalised: npt.NDArray[np.float64] = (image - image.mean()) / max(float(image.std()), 1e-9)
+    return normalised
+
+
+def concrete_texture(seed: int, size: int = CONCRETE_PX) -> npt.NDArray[np.uint8]:
+    """Troweled concrete: low-contrast grain and mottling at several scales, a few soft stains,
+    and saw-cut control joints every 4 m. At the cameras' 1–2 cm pixels only a few percent of
+    contrast is left: the weak texture a real floor gives stereo."""
+    rng = np.random.default_rng(seed + 1_000_003)
+    image = np.full((size, size), 0.85)
+    for cell_px, contrast in ((1, 0.02), (3, 0.02), (12, 0.025), (48, 0.03), (192, 0.04)):
+        image += contrast * smooth_noise(rng, size, cell_px)
+    y, x = np.mgrid[0:size, 0:size] * (CONCRETE_SPAN_M / size)
+    for _ in range(6):
+        cx, cy = rng.uniform(0, CONCRETE_SPAN_M, 2)
+        rx, ry = rng.uniform(0.2, 0.8, 2)
+        dx = (x - cx + CONCRETE_SPAN_M / 2) % CONCRETE_SPAN_M - CONCRETE_SPAN_M / 2
+        dy = (y - cy + CONCRETE_SPAN_M / 2) % CONCRETE_SPAN_M - CONCRETE_SPAN_M / 2
+        image *= 1.0 - rng.uniform(0.06, 0.14) * np.exp(-((dx / rx) ** 2 + (dy / ry) ** 2))
+    joint_px = max(1, round(0.005 / (CONCRETE_SPAN_M / size)))
+    for start in (0, size // 2):
+        image[start : start + joint_px, :] *= 0.75
+        image[:, start : start + joint_px] *= 0.75
+    return _gray_rgb(255 * image)
+
+
+def surface_texture(seed: int, kind: str, size: int = SURFACE_PX) -> npt.NDArray[np.uint8]:
+    """Near-white luminance textures that the material colour tints: ``cardboard`` (fibre
+    mottling), ``wood`` (grain along one axis), ``fabric`` (fine weave)."""
+    rng = np.random.default_rng([seed, sum(map(ord, kind))])
+    image = np.full((size, size), 0.9)
+    if kind == "cardboard":
+        image += 0.025 * smooth_noise(rng, size, 2) + 0.03 * smooth_noise(rng, size, 16)
+    elif kind == "wood":
+        grain = smooth_noise(rng, size, 8)[:, :1] + 0.5 * smooth_noise(rng, size, 32)
+        image += 0.06 * grain + 0.03 * smooth_noise(rng, size, 2)
+    else:
+        image += 0.05 * smooth_noise(rng, size, 1) + 0.05 * smooth_noise(rng, size, 6)
+    return _gray_rgb(255 * image)
 
 
 def _rgba(values: tuple[float, float, float, float]) -> str:
@@ -53,31 +119,131 @@ def _box_geom(
     )
 
 
-def _shelf_geoms(
-    name: str, cx: float, cy: float, yaw: float, size: tuple[float, float, float], rgba: str
+def _local_boxes(
+    name: str,
+    obj: ObjectSpec,
+    parts: list[tuple[tuple[float, float, float], tuple[float, float, float], str, str]],
 ) -> list[str]:
+    """Boxes given in the object's own frame (centre offset, half sizes, rgba, material)."""
+    c, s = math.cos(obj.yaw_rad), math.sin(obj.yaw_rad)
+    cx, cy = obj.center_xy_m
+    return [
+        _box_geom(
+            f"{name}_{k}",
+            (cx + c * ox - s * oy, cy + s * ox + c * oy, oz),
+            half,
+            obj.yaw_rad,
+            rgba,
+            mat,
+        )
+        for k, ((ox, oy, oz), half, rgba, mat) in enumerate(parts)
+    ]
+
+
+LEG_M, BOARD_M = 0.04, 0.03
+DECK_BOARD_M = 0.022
+TAPE_M, LABEL_M = (0.05, 0.002), (0.15, 0.1)
+
+
+def _shelf_geoms(obj: ObjectSpec, rgba: str, material: str) -> list[str]:
     """Legs, two shelves and a top board, all within the shelf's bounding box."""
-    sx, sy, sz = size
-    c, s = math.cos(yaw), math.sin(yaw)
-    leg, board = 0.04, 0.03
-    geoms = []
-    for k, (lx, ly) in enumerate(((1, 1), (1, -1), (-1, 1), (-1, -1))):
-        ox, oy = lx * (sx / 2 - leg), ly * (sy / 2 - leg)
-        geoms.append(
-            _box_geom(
-                f"{name}_leg{k}",
-                (cx + c * ox - s * oy, cy + s * ox + c * oy, sz / 2),
-                (leg, leg, sz / 2),
-                yaw,
+    sx, sy, sz = obj.size_m
+    parts = [
+        (
+            (lx * (sx / 2 - LEG_M), ly * (sy / 2 - LEG_M), sz / 2),
+            (LEG_M, LEG_M, sz / 2),
+            rgba,
+            material,
+        )
+        for lx, ly in ((1, 1), (1, -1), (-1, 1), (-1, -1))
+    ]
+    board_rgba, board_material = (rgba, material) if obj.plain else ("0.75 0.62 0.45 1", "wood")
+    parts += [
+        ((0.0, 0.0, z), (sx / 2, sy / 2, BOARD_M), board_rgba, board_material)
+        for z in (0.35 * sz, 0.7 * sz, sz - BOARD_M)
+    ]
+    return _local_boxes(obj.name, obj, parts)
+
+
+def _pallet_geoms(obj: ObjectSpec, rgba: str, material: str) -> list[str]:
+    """Five top deck boards along the length with gaps, on three stringers."""
+    sx, sy, sz = obj.size_m
+    stringer_h = sz - DECK_BOARD_M
+    parts = [
+        ((0.0, y, stringer_h / 2), (sx / 2, 0.05, stringer_h / 2), rgba, material)
+        for y in (-(sy / 2 - 0.05), 0.0, sy / 2 - 0.05)
+    ]
+    widths = (0.145, 0.1, 0.145, 0.1, 0.145)
+    gap = (sy - sum(widths)) / (len(widths) - 1)
+    y = -sy / 2
+    for width in widths:
+        parts.append(
+            (
+                (0.0, y + width / 2, sz - DECK_BOARD_M / 2),
+                (sx / 2, width / 2, DECK_BOARD_M / 2),
                 rgba,
-                "object",
+                material,
             )
         )
-    for k, z in enumerate((0.35 * sz, 0.7 * sz, sz - board)):
-        geoms.append(
-            _box_geom(f"{name}_board{k}", (cx, cy, z), (sx / 2, sy / 2, board), yaw, rgba, "object")
+        y += width + gap
+    return _local_boxes(obj.name, obj, parts)
+
+
+def _carton_geoms(obj: ObjectSpec, rgba: str, material: str, rng: np.random.Generator) -> list[str]:
+    """A cardboard box: the carton, packing tape across its top, a shipping label with a barcode."""
+    sx, sy, sz = obj.size_m
+    parts = [((0.0, 0.0, sz / 2), (sx / 2, sy / 2, sz / 2), rgba, material)]
+    if not obj.plain:
+        tape_w, thin = TAPE_M
+        parts.append(
+            ((0.0, 0.0, sz + thin / 2), (sx / 2, tape_w / 2, thin / 2), "0.82 0.7 0.5 1", "tape")
         )
-    return geoms
+        lx, ly = LABEL_M
+        ox = float(rng.uniform(-1, 1)) * max(0.0, sx / 2 - lx / 2 - 0.03)
+        oy = (sy / 4 + tape_w / 4) * float(rng.choice([-1.0, 1.0]))
+        parts.append(((ox, oy, sz + thin), (lx / 2, ly / 2, thin / 2), "0.95 0.95 0.93 1", "paint"))
+        for k, width in enumerate((0.006, 0.003, 0.008, 0.004, 0.006)):
+            parts.append(
+                (
+                    (ox - 0.05 + 0.018 * k, oy, sz + 1.5 * thin),
+                    (width / 2, ly / 3, thin / 2),
+                    "0.1 0.1 0.1 1",
+                    "paint",
+                )
+            )
+    return _local_boxes(obj.name, obj, parts)
+
+
+def _object_geoms(obj: ObjectSpec, rng: np.random.Generator) -> list[str]:
+    rgba = _rgba(obj.rgba)
+    if obj.plain:
+        material = "paint"
+    else:
+        material = {"box": "cardboard", "pallet": "wood", "shelf": "paint", "cylinder": "fabric"}[
+            obj.shape
+        ]
+    if obj.shape == "shelf":
+        return _shelf_geoms(obj, rgba, material)
+    if obj.shape == "pallet":
+        return _pallet_geoms(obj, rgba, material)
+    if obj.shape == "box":
+        return _carton_geoms(obj, rgba, material, rng)
+    sx, _sy, sz = obj.size_m
+    x, y = obj.center_xy_m
+    return [
+        f'<geom name="{obj.name}" type="cylinder" pos="{x:.4f} {y:.4f} {sz / 2:.4f}" '
+        f'size="{sx / 2:.4f} {sz / 2:.4f}" rgba="{rgba}" material="{material}"/>'
+    ]
+
+
+FLOOR_MATERIALS = {"concrete": "concrete", "speckle": "speckle", "plain": "floor_plain"}
+TEXTURES = {
+    "speckle": (TEXTURE_PX, TEXTURE_PX),
+    "concrete": (CONCRETE_PX, CONCRETE_PX),
+    "cardboard": (SURFACE_PX, SURFACE_PX),
+    "wood": (SURFACE_PX, SURFACE_PX),
+    "fabric": (SURFACE_PX, SURFACE_PX),
+}
 
 
 def scene_mjcf(
@@ -86,25 +252,22 @@ def scene_mjcf(
     fx, fy = scene.floor_size_m
     width = max(c.left.width for c in calibrations) if calibrations else 640
     height = max(c.left.height for c in calibrations) if calibrations else 480
-    floor_material = "floor" if scene.floor == "textured" else "floor_plain"
+    rng = np.random.default_rng(scene.texture_seed)
     bodies: list[str] = []
     for obj in scene.objects:
-        rgba = _rgba(obj.rgba)
-        sx, sy, sz = obj.size_m
-        x, y = obj.center_xy_m
-        if obj.shape == "shelf":
-            bodies += _shelf_geoms(obj.name, x, y, obj.yaw_rad, obj.size_m, rgba)
-        elif obj.shape == "box":
-            bodies.append(
-                _box_geom(
-                    obj.name, (x, y, sz / 2), (sx / 2, sy / 2, sz / 2), obj.yaw_rad, rgba, "object"
-                )
+        bodies += _object_geoms(obj, rng)
+    for k, mark in enumerate(scene.markings):
+        (x, y), (sx, sy) = mark.center_xy_m, mark.size_m
+        bodies.append(
+            _box_geom(
+                f"marking_{k}",
+                (x, y, 0.0005),
+                (sx / 2, sy / 2, 0.0005),
+                mark.yaw_rad,
+                _rgba(mark.rgba),
+                "paint",
             )
-        else:
-            bodies.append(
-                f'<geom name="{obj.name}" type="cylinder" pos="{x:.4f} {y:.4f} {sz / 2:.4f}" '
-                f'size="{sx / 2:.4f} {sz / 2:.4f}" rgba="{rgba}" material="object"/>'
-            )
+        )
     for wall in scene.walls():
         half = tuple(v / 2 for v in wall.size_m)
         bodies.append(
@@ -113,8 +276,8 @@ def scene_mjcf(
                 wall.center_m,
                 (half[0], half[1], half[2]),
                 0.0,
-                "0.7 0.7 0.65 1",
-                "object",
+                "0.8 0.8 0.78 1",
+                "concrete",
             )
         )
     for m in scene.movers:
@@ -124,9 +287,10 @@ def scene_mjcf(
             if m.shape == "box"
             else f'<geom type="cylinder" size="{sx / 2:.4f} {sz / 2:.4f}"'
         )
+        material = "paint" if m.shape == "box" else "fabric"
         bodies.append(
             f'<body name="{m.name}" mocap="true" pos="{m.path_xy_m[0][0]} {m.path_xy_m[0][1]} {sz / 2:.4f}">'
-            f'{geom} rgba="{_rgba(m.rgba)}" material="object"/></body>'
+            f'{geom} rgba="{_rgba(m.rgba)}" material="{material}"/></body>'
         )
     cameras = []
     for calib in calibrations:
@@ -138,6 +302,10 @@ def scene_mjcf(
                 f'xyaxes="{" ".join(f"{v:.6f}" for v in xyaxes)}" fovy="{fovy:.6f}"/>'
             )
     cast = "true" if shadows else "false"
+    textures = "\n    ".join(
+        f'<texture name="{name}" type="2d" builtin="flat" width="{w}" height="{h}" rgb1="0.5 0.5 0.5"/>'
+        for name, (w, h) in TEXTURES.items()
+    )
     return f"""<mujoco model="overgrid_warehouse">
   <visual>
     <global offwidth="{width}" offheight="{height}"/>
@@ -146,19 +314,32 @@ def scene_mjcf(
     <map znear="0.05" zfar="60"/>
   </visual>
   <asset>
-    <texture name="noise" type="2d" builtin="flat" width="{TEXTURE_PX}" height="{TEXTURE_PX}" rgb1="0.5 0.5 0.5"/>
-    <material name="floor" texture="noise" texuniform="true" texrepeat="{1 / TEXTURE_SPAN_M} {1 / TEXTURE_SPAN_M}" reflectance="0" specular="0"/>
-    <material name="floor_plain" rgba="0.55 0.55 0.55 1" reflectance="0" specular="0"/>
-    <material name="object" texture="noise" texuniform="true" texrepeat="{1 / OBJECT_TEXTURE_SPAN_M} {1 / OBJECT_TEXTURE_SPAN_M}" reflectance="0" specular="0"/>
+    {textures}
+    <material name="speckle" texture="speckle" texuniform="true" texrepeat="{1 / TEXTURE_SPAN_M} {1 / TEXTURE_SPAN_M}" reflectance="0" specular="0"/>
+    <material name="concrete" texture="concrete" texuniform="true" texrepeat="{1 / CONCRETE_SPAN_M} {1 / CONCRETE_SPAN_M}" rgba="0.72 0.72 0.7 1" reflectance="0" specular="0.15" shininess="0.3"/>
+    <material name="floor_plain" rgba="0.55 0.55 0.55 1" reflectance="0" specular="0.1" shininess="0.3"/>
+    <material name="cardboard" texture="cardboard" texuniform="true" texrepeat="{1 / SURFACE_SPAN_M} {1 / SURFACE_SPAN_M}" reflectance="0" specular="0"/>
+    <material name="wood" texture="wood" texuniform="true" texrepeat="{1 / SURFACE_SPAN_M} {1 / SURFACE_SPAN_M}" reflectance="0" specular="0"/>
+    <material name="fabric" texture="fabric" texuniform="true" texrepeat="{1 / SURFACE_SPAN_M} {1 / SURFACE_SPAN_M}" reflectance="0" specular="0"/>
+    <material name="paint" reflectance="0" specular="0.1" shininess="0.3"/>
+    <material name="tape" reflectance="0" specular="0.4" shininess="0.6"/>
   </asset>
   <worldbody>
     <light name="sun0" directional="true" pos="{fx / 3} {fy / 2} 8" dir="0.2 0.1 -1" diffuse="0.45 0.45 0.45" castshadow="{cast}"/>
     <light name="sun1" directional="true" pos="{2 * fx / 3} {fy / 2} 8" dir="-0.2 -0.1 -1" diffuse="0.25 0.25 0.25" castshadow="false"/>
-    <geom name="floor" type="plane" pos="{fx / 2} {fy / 2} 0" size="{fx / 2 + 1} {fy / 2 + 1} 0.1" material="{floor_material}"/>
+    <geom name="floor" type="plane" pos="{fx / 2} {fy / 2} 0" size="{fx / 2 + 1} {fy / 2 + 1} 0.1" material="{FLOOR_MATERIALS[scene.floor]}"/>
     {chr(10).join("    " + b for b in bodies)}
     {chr(10).join("    " + c for c in cameras)}
   </worldbody>
 </mujoco>"""
+
+
+def texture_images(seed: int) -> dict[str, npt.NDArray[np.uint8]]:
+    return {
+        "speckle": procedural_texture(seed),
+        "concrete": concrete_texture(seed),
+        **{kind: surface_texture(seed, kind) for kind in ("cardboard", "wood", "fabric")},
+    }
 
 
 class SceneRenderer:
@@ -169,16 +350,21 @@ class SceneRenderer:
         scene: SceneSpec,
         calibrations: list[StereoCalibration],
         shadows: bool = False,
-        vary_lighting: bool = False,
+        lighting: Lighting | None = None,
     ) -> None:
         self.scene = scene
-        self.vary_lighting = vary_lighting
+        self.lighting = lighting or Lighting()
         self.model = mujoco.MjModel.from_xml_string(scene_mjcf(scene, calibrations, shadows))
-        texture = procedural_texture(scene.texture_seed)
-        start = int(self.model.tex_adr[0])
-        self.model.tex_data[start : start + texture.size] = texture.reshape(-1)
+        for name, texture in texture_images(scene.texture_seed).items():
+            index = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_TEXTURE, name)
+            start = int(self.model.tex_adr[index])
+            self.model.tex_data[start : start + texture.size] = texture.reshape(-1)
         self.data = mujoco.MjData(self.model)
         self._base_diffuse = self.model.light_diffuse.copy()
+        self._base_headlight = (
+            self.model.vis.headlight.ambient.copy(),
+            self.model.vis.headlight.diffuse.copy(),
+        )
         width = max((c.left.width for c in calibrations), default=640)
         height = max((c.left.height for c in calibrations), default=480)
         self._renderers: dict[tuple[int, int], mujoco.Renderer] = {}
@@ -194,10 +380,10 @@ class SceneRenderer:
         for index, mover in enumerate(self.scene.movers):
             (x, y), _ = mover.state_at(t_s)
             self.data.mocap_pos[index] = (x, y, mover.size_m[2] / 2)
-        if self.vary_lighting:
-            # Slow 40 s cycle between 60 % and 100 % of the base light, as daylight through windows.
-            gain = 0.8 + 0.2 * math.sin(2 * math.pi * t_s / 40.0)
-            self.model.light_diffuse[:] = self._base_diffuse * gain
+        level = self.lighting.level(t_s)
+        self.model.light_diffuse[:] = self._base_diffuse * level
+        self.model.vis.headlight.ambient[:] = self._base_headlight[0] * level
+        self.model.vis.headlight.diffuse[:] = self._base_headlight[1] * level
         mujoco.mj_forward(self.model, self.data)
 
     def render_gray(self, camera: str, width: int, height: int) -> npt.NDArray[np.uint8]:
@@ -206,7 +392,17 @@ class SceneRenderer:
         rgb = renderer.render()
         # ITU-R BT.601 luma in integers: no OpenCV needed in the sim-only install.
         weights = np.array([77, 150, 29], dtype=np.uint16)
-        return ((rgb.astype(np.uint16) @ weights) >> 8).astype(np.uint8)
+        gray: npt.NDArray[np.uint8] = ((rgb.astype(np.uint16) @ weights) >> 8).astype(np.uint8)
+        return gray
+
+    def render_radiance(self, camera: str, width: int, height: int) -> npt.NDArray[np.float32]:
+        """Relative scene radiance (luma, 1.0 = white under nominal light): what a camera's
+        :class:`~services.camera_sim.sensor.CameraSensor` turns into a frame."""
+        rgb = self.render_rgb(camera, width, height).astype(np.float32)
+        radiance: npt.NDArray[np.float32] = rgb @ np.array(
+            [0.299 / 255, 0.587 / 255, 0.114 / 255], dtype=np.float32
+        )
+        return radiance
 
     def render_rgb(self, camera: str, width: int, height: int) -> npt.NDArray[np.uint8]:
         renderer = self._renderer(width, height)

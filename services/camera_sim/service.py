@@ -6,8 +6,9 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Literal
+from typing import Any
 
+import numpy as np
 import zenoh
 from pydantic import Field, model_validator
 
@@ -20,10 +21,16 @@ from common.messages import CALIB_KIND, STEREO_KIND, TRUTH_KIND, StereoFrameHead
 from common.settings import CommaList, ZenohSettings, parse_settings
 from common.zenoh_session import open_session
 from services.camera_sim import truth
+from services.camera_sim.calibration_error import CalibrationError
+from services.camera_sim.capture import CameraModel, StereoCapture
+from services.camera_sim.lighting import Lighting
 from services.camera_sim.rig import RigSpec, layout_pairs, pair_name
-from services.camera_sim.scene import SceneSpec, generate_scene, load_scene
+from services.camera_sim.scene import FloorKind, SceneSpec, generate_scene, load_scene
+from services.camera_sim.sensor import SensorParams
 
 log = logging.getLogger("camera_sim")
+_SENSOR = SensorParams()
+_CALIB_ERROR = CalibrationError()
 
 
 class CameraSimSettings(ZenohSettings):
@@ -31,9 +38,11 @@ class CameraSimSettings(ZenohSettings):
     scene: Path | None = Field(
         None, description="scene file (JSON/YAML SceneSpec) instead of a generated one"
     )
-    floor: Literal["textured", "plain"] = Field(
-        "textured", description="floor texture; plain is the hard case"
+    floor: FloorKind = Field(
+        "concrete",
+        description="floor: concrete (weak texture, stains, markings), speckle (ideal), plain",
     )
+    plain_objects: bool = Field(False, description="every static object one uniform colour")
     floor_x_m: float = Field(12.0, gt=1.0, le=500.0, description="floor length along x")
     floor_y_m: float = Field(10.0, gt=1.0, le=500.0, description="floor length along y")
     pair_count: int = Field(4, ge=1, le=256, description="stereo pairs on the ceiling grid")
@@ -49,6 +58,33 @@ class CameraSimSettings(ZenohSettings):
     hfov_deg: float = Field(60.0, gt=5.0, lt=170.0, description="horizontal field of view")
     rate_hz: float = Field(2.0, gt=0.0, le=60.0, description="frames per second per pair")
     vary_lighting: bool = Field(False, description="slowly vary the lighting over time")
+    light_step_period_s: float = Field(
+        0.0, ge=0.0, description="half the lights off in the second half of every period (0: never)"
+    )
+    ideal_cameras: bool = Field(
+        False, description="noise-free renders and the exact calibration (the ideal world)"
+    )
+    read_noise_e: float = Field(_SENSOR.read_noise_e, ge=0.0, description="sensor read noise, e-")
+    full_well_e: float = Field(_SENSOR.full_well_e, gt=0.0, description="sensor full well, e-")
+    blur_sigma_px: float = Field(_SENSOR.blur_sigma_px, ge=0.0, le=10.0, description="lens blur σ")
+    vignetting: float = Field(
+        _SENSOR.vignetting, ge=0.0, le=1.0, description="share of the cos⁴ fall-off left"
+    )
+    jpeg_quality: int = Field(
+        0, ge=0, le=100, description="stream JPEG at this quality, as IP cameras do (0: raw)"
+    )
+    calib_rotation_sigma_deg: float = Field(
+        _CALIB_ERROR.rotation_sigma_deg, ge=0.0, le=5.0, description="published calib error"
+    )
+    calib_position_sigma_mm: float = Field(
+        _CALIB_ERROR.position_sigma_mm, ge=0.0, le=100.0, description="published calib error"
+    )
+    calib_focal_sigma_pct: float = Field(
+        _CALIB_ERROR.focal_sigma_pct, ge=0.0, le=10.0, description="published calib error"
+    )
+    calib_principal_point_sigma_px: float = Field(
+        _CALIB_ERROR.principal_point_sigma_px, ge=0.0, le=50.0, description="published calib error"
+    )
     shadows: bool = Field(False, description="render shadows (slower)")
     serve_truth: bool = Field(True, description="answer sim/truth queries")
     frames: int = Field(
@@ -81,7 +117,68 @@ class CameraSimSettings(ZenohSettings):
                 return load_scene(self.scene)
             except (OSError, ValueError) as error:  # pydantic's ValidationError is a ValueError
                 raise SystemExit(f"--scene {self.scene}: {error}") from None
-        return generate_scene(self.seed, (self.floor_x_m, self.floor_y_m), self.floor)
+        return generate_scene(
+            self.seed,
+            (self.floor_x_m, self.floor_y_m),
+            self.floor,
+            plain_objects=self.plain_objects,
+        )
+
+    def camera_model(self) -> CameraModel:
+        if self.ideal_cameras:
+            return CameraModel.ideal()
+        return CameraModel(
+            sensor=SensorParams(
+                full_well_e=self.full_well_e,
+                read_noise_e=self.read_noise_e,
+                blur_sigma_px=self.blur_sigma_px,
+                vignetting=self.vignetting,
+            ),
+            calibration_error=CalibrationError(
+                rotation_sigma_deg=self.calib_rotation_sigma_deg,
+                position_sigma_mm=self.calib_position_sigma_mm,
+                focal_sigma_pct=self.calib_focal_sigma_pct,
+                principal_point_sigma_px=self.calib_principal_point_sigma_px,
+            ),
+        )
+
+    def lighting(self) -> Lighting:
+        return Lighting(drift=self.vary_lighting, step_period_s=self.light_step_period_s)
+
+
+def jpeg_encoder(quality: int) -> Callable[[np.ndarray], bytes] | None:
+    """JPEG through OpenCV (the depth extra has it); None for raw frames. Checked at start-up."""
+    if quality == 0:
+        return None
+    try:
+        import cv2
+    except ImportError:
+        raise SystemExit(
+            "--jpeg-quality needs OpenCV: pip install 'overgrid[depth]' (or [all])"
+        ) from None
+
+    def encode_jpeg(image: np.ndarray) -> bytes:
+        ok, buffer = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+        if not ok:
+            raise ValueError("JPEG encoding failed")
+        return bytes(buffer.tobytes())
+
+    return encode_jpeg
+
+
+def frame_payload(
+    header_fields: dict[str, Any],
+    left: np.ndarray,
+    right: np.ndarray,
+    encode_jpeg: Callable[[np.ndarray], bytes] | None,
+) -> bytes:
+    if encode_jpeg is None:
+        header = StereoFrameHeader(**header_fields, encoding="raw")
+        return encode(STEREO_KIND, header, {"left": left, "right": right})
+    header = StereoFrameHeader(**header_fields, encoding="jpeg")
+    return encode(
+        STEREO_KIND, header, blobs={"left": encode_jpeg(left), "right": encode_jpeg(right)}
+    )
 
 
 def _answer(key: str, payload: bytes) -> Callable[[zenoh.Query], None]:
@@ -140,10 +237,14 @@ def main(settings: CameraSimSettings) -> None:
     setup_logging("camera_sim", settings.log_level)
     stop = stop_on_signals()
     scene = settings.scene_spec()
-    calibrations = layout_pairs(settings.rig(), scene.floor_size_m)
+    encode_jpeg = jpeg_encoder(0 if settings.ideal_cameras else settings.jpeg_quality)
+    true_calibrations = layout_pairs(settings.rig(), scene.floor_size_m)
     if settings.pairs:
-        calibrations = [c for c in calibrations if c.pair in settings.pairs]
-    renderer = SceneRenderer(scene, calibrations, settings.shadows, settings.vary_lighting)
+        true_calibrations = [c for c in true_calibrations if c.pair in settings.pairs]
+    renderer = SceneRenderer(scene, true_calibrations, settings.shadows, settings.lighting())
+    model = settings.camera_model()
+    captures = [StereoCapture(renderer, c, model, settings.seed) for c in true_calibrations]
+    calibrations = [capture.calibration for capture in captures]
     period_s = 1.0 / settings.rate_hz
     stats = {"published": 0, "skipped": 0, "render_ms": 0.0}
 
@@ -181,6 +282,8 @@ def main(settings: CameraSimSettings) -> None:
                 "rate_hz": settings.rate_hz,
                 "objects": len(scene.objects),
                 "movers": len(scene.movers),
+                "floor": scene.floor,
+                "cameras": "ideal" if model.sensor is None else "realistic",
             },
         )
         seq = 0
@@ -190,19 +293,11 @@ def main(settings: CameraSimSettings) -> None:
             stamp_ns = time.time_ns()
             started = time.perf_counter()
             renderer.set_time(stamp_ns / 1e9)
-            for calib in calibrations:
-                left = renderer.render_gray(
-                    f"{calib.pair}_left", calib.left.width, calib.left.height
-                )
-                right = renderer.render_gray(
-                    f"{calib.pair}_right", calib.right.width, calib.right.height
-                )
-                header = StereoFrameHeader(
-                    pair=calib.pair, seq=seq, stamp_ns=stamp_ns, encoding="raw"
-                )
-                publishers[calib.pair].put(
-                    encode(STEREO_KIND, header, {"left": left, "right": right})
-                )
+            for capture in captures:
+                pair = capture.calibration.pair
+                left, right = capture.capture(stamp_ns)
+                fields = {"pair": pair, "seq": seq, "stamp_ns": stamp_ns}
+                publishers[pair].put(frame_payload(fields, left, right, encode_jpeg))
                 stats["published"] += 1
             stats["render_ms"] += (time.perf_counter() - started) * 1e3
             seq += 1

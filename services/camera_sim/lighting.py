@@ -1,0 +1,64 @@
+"""The site's light level over time, and how far behind it auto-exposure runs.
+
+A pure function of the frame time (seconds since the epoch), so every sim process and ``sim/truth``
+agree on when the lights changed without talking to each other.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+DRIFT_PERIOD_S = 40.0
+"""Slow cycle between 60 % and 100 % of the light, as daylight through windows."""
+STEP_LEVEL = 0.5
+"""Half the luminaires off."""
+
+
+@dataclass(frozen=True)
+class Lighting:
+    drift: bool = False
+    step_period_s: float = 0.0
+    """Lights switch: half of them are off in the second half of every period (0: never)."""
+
+    def __post_init__(self) -> None:
+        if self.step_period_s < 0 or not math.isfinite(self.step_period_s):
+            raise ValueError(f"step period must be ≥ 0 s, got {self.step_period_s}")
+
+    def _drift(self, t_s: float) -> float:
+        return 0.8 + 0.2 * math.sin(2 * math.pi * t_s / DRIFT_PERIOD_S) if self.drift else 1.0
+
+    def _switched(self, t_s: float) -> float:
+        if not self.step_period_s:
+            return 1.0
+        return STEP_LEVEL if math.fmod(t_s, self.step_period_s) >= self.step_period_s / 2 else 1.0
+
+    def level(self, t_s: float) -> float:
+        """Light at ``t_s`` relative to nominal."""
+        return self._drift(t_s) * self._switched(t_s)
+
+    def steps_s(self, start_s: float, end_s: float) -> list[float]:
+        """Times of the switching steps in [start_s, end_s)."""
+        if not self.step_period_s:
+            return []
+        half = self.step_period_s / 2
+        first = math.ceil(start_s / half)
+        return [k * half for k in range(first, math.ceil(end_s / half)) if k * half < end_s]
+
+    def lag_ratio(self, t_s: float, time_constant_s: float) -> float:
+        """Light now over the light auto-exposure has converged to.
+
+        Auto-exposure follows the slow drift; after a step it converges exponentially, so its level
+        is the new one plus the step's size decaying with ``time_constant_s``. The last two steps
+        suffice: older ones have decayed by e^(-period/2τ)."""
+        now = self._switched(t_s)
+        if not self.step_period_s or time_constant_s <= 0:
+            return 1.0
+        half = self.step_period_s / 2
+        converged = now
+        for step_s in self.steps_s(t_s - 2 * half, t_s + 1e-9):
+            before = self._switched(step_s - 1e-6 * half)
+            converged += (before - self._switched(step_s)) * math.exp(
+                -(t_s - step_s) / time_constant_s
+            )
+        return now / converged
