@@ -31,7 +31,17 @@ def test_sim_publishes_frames_and_answers_calib_and_truth(bus: Bus) -> None:
 
     subscriber = bus.session.declare_subscriber(keys.stereo("p1"), on_frame)
     process = bus.start(
-        "camera-sim", "--pair-count", "2", "--pairs", "p1", "--rate-hz", "2", "--frames", "40"
+        "camera-sim",
+        "--pair-count",
+        "2",
+        "--pairs",
+        "p1",
+        "--rate-hz",
+        "2",
+        "--frames",
+        "40",
+        "--light-step-period-s",
+        "4",
     )
     assert got.wait(60), "no stereo frame from camera_sim"
     frame = decode(frames[0], STEREO_KIND, StereoFrameHeader)
@@ -43,7 +53,7 @@ def test_sim_publishes_frames_and_answers_calib_and_truth(bus: Bus) -> None:
     assert reply is not None and reply.ok is not None
     calib = decode(reply.ok.payload.to_bytes(), CALIB_KIND, StereoCalibration).header
     assert calib.pair == "p1" and calib.baseline_m == pytest.approx(0.5, abs=5e-3)
-    assert calib.left.position_world[2] == pytest.approx(6.0)
+    assert calib.left.position_world[2] == pytest.approx(6.0, abs=5e-3)  # published: off by mm
 
     assert _get_one(bus.session, keys.calib("p0"), timeout_s=1.0) is None  # not rendered here
 
@@ -56,6 +66,9 @@ def test_sim_publishes_frames_and_answers_calib_and_truth(bus: Bus) -> None:
     assert truth.header.stamp_ns == stamp_ns and truth.header.resolution_m == 0.1
     assert 0.02 < occupied.mean() < 0.5
     assert any(o.moving for o in truth.header.objects)
+    steps = truth.header.light_steps_ns  # lights switch every 2 s: the truth says when
+    assert len(steps) >= 50 and all(stamp_ns - 121e9 < t <= stamp_ns + 1e9 for t in steps)
+    assert truth.header.light_level in (0.5, 1.0)
 
     bad = _get_one(bus.session, f"{keys.SIM_TRUTH}?resolution=-1")
     assert bad is not None and bad.err is not None

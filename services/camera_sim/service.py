@@ -191,7 +191,10 @@ def _answer(key: str, payload: bytes) -> Callable[[zenoh.Query], None]:
     return reply
 
 
-def _truth_reply(scene: SceneSpec, query: zenoh.Query) -> bytes:
+TRUTH_LIGHT_HISTORY_S = 120.0
+
+
+def _truth_reply(scene: SceneSpec, lighting: Lighting, query: zenoh.Query) -> bytes:
     """Parameters: ``t`` (s since epoch) or ``stamp_ns``; ``resolution`` (m); ``band`` (h_min,h_max)."""
     params = dict(query.parameters)
     stamp_ns = (
@@ -227,6 +230,13 @@ def _truth_reply(scene: SceneSpec, query: zenoh.Query) -> bytes:
         rows=window.rows,
         floor_size_m=scene.floor_size_m,
         objects=objects,
+        light_level=lighting.level(stamp_ns / 1e9),
+        light_steps_ns=[
+            int(t_s * 1e9)
+            for t_s in lighting.steps_s(
+                stamp_ns / 1e9 - TRUTH_LIGHT_HISTORY_S, stamp_ns / 1e9 + 1.0
+            )
+        ],
     )
     return encode(TRUTH_KIND, header, {"occupied": occupied})
 
@@ -267,7 +277,11 @@ def main(settings: CameraSimSettings) -> None:
 
         def on_truth(query: zenoh.Query) -> None:
             try:
-                query.reply(query.key_expr, _truth_reply(scene, query), encoding=WIRE_ENCODING)
+                query.reply(
+                    query.key_expr,
+                    _truth_reply(scene, renderer.lighting, query),
+                    encoding=WIRE_ENCODING,
+                )
             except (ValueError, KeyError) as error:
                 query.reply_err(
                     f"sim/truth: {error}; parameters: t or stamp_ns, resolution, band=h_min,h_max"

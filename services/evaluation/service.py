@@ -35,12 +35,15 @@ from common.zenoh_session import open_session
 from services.camera_sim import truth as scene_truth
 from services.camera_sim.truth import footprint_mask, top_heights
 from services.evaluation import metrics
+from services.evaluation.lighting import TimelineScore, step_phases
 
 _MODEL = SensorModelParams()
 OBSTACLE_BAND_M = (_MODEL.obstacle_min_m, _MODEL.obstacle_max_m)
 """Truth is judged on the band the depth service's sensor model calls an obstacle."""
 MAX_RECORD_S = 120.0
 """The recorder keeps this much history: a long ``up`` run is scored on its last two minutes."""
+TIMELINE_PERIOD_S = 0.5
+"""The recorder keeps the whole map this often, to score it over time (lighting steps)."""
 
 TARGETS = {
     "iou": (">=", 0.90),
@@ -52,6 +55,9 @@ TARGETS = {
     "moving_clear_s": ("<=", 1.0),
     "capture_to_map_p50_ms": ("<=", 50.0),
 }
+
+
+LIGHTING_IOU_DROP_MAX = 0.02
 
 
 class EvalSettings(ZenohSettings):
@@ -104,7 +110,10 @@ class Recorder:
     samples: deque[tuple[metrics.MapSample, int]] = field(default_factory=deque)
     tiles: deque[tuple[float, TileHeader]] = field(default_factory=deque)
     camera_s: dict[int, npt.NDArray[np.float32]] = field(default_factory=dict)
+    timeline: deque[tuple[int, npt.NDArray[np.int8]]] = field(default_factory=deque)
+    """(capture stamp, occupancy on the window) every ``TIMELINE_PERIOD_S`` of arrivals."""
     _lock: threading.Lock = field(default_factory=threading.Lock)
+    _timeline_last_s: float = -math.inf
 
     def __post_init__(self) -> None:
         self.started_s = time.time()
@@ -112,11 +121,17 @@ class Recorder:
         self._follower = MapFollower(self.session, on_change=self._on_map)
 
     def _on_map(self, occupancy_map: OccupancyMap, arrival_s: float) -> None:
-        occupied = metrics.occupancy_on(occupancy_map, self.window) >= metrics.OCCUPIED_MIN
+        occupancy = metrics.occupancy_on(occupancy_map, self.window)
+        occupied = occupancy >= metrics.OCCUPIED_MIN
         with self._lock:
             self.samples.append((metrics.MapSample(arrival_s, occupied), occupancy_map.stamp_ns))
             while self.samples and self.samples[0][0].visible_s < arrival_s - MAX_RECORD_S:
                 self.samples.popleft()
+            if arrival_s - self._timeline_last_s >= TIMELINE_PERIOD_S:
+                self._timeline_last_s = arrival_s
+                self.timeline.append((occupancy_map.stamp_ns, occupancy))
+                while self.timeline and self.timeline[0][0] < (arrival_s - MAX_RECORD_S) * 1e9:
+                    self.timeline.popleft()
 
     def _on_tile(self, sample: zenoh.Sample) -> None:
         arrival_s = time.time()
@@ -151,6 +166,10 @@ class Recorder:
     ) -> tuple[list[tuple[metrics.MapSample, int]], list[tuple[float, TileHeader]], dict[int, Any]]:
         with self._lock:
             return list(self.samples), list(self.tiles), dict(self.camera_s)
+
+    def timeline_snapshot(self) -> list[tuple[int, npt.NDArray[np.int8]]]:
+        with self._lock:
+            return list(self.timeline)
 
 
 class Evaluator:
@@ -193,6 +212,22 @@ class Evaluator:
         the next frame of a pair that sees it, which no sensor model can help at 2 Hz."""
         occupancy = metrics.occupancy_on(occupancy_map, self.window)
         return metrics.score_cells(occupancy, self.static_occupied, self.seen).false_free_rate
+
+    def timeline_scores(
+        self, timeline: list[tuple[int, npt.NDArray[np.int8]]]
+    ) -> list[TimelineScore]:
+        """Each recorded map scored against the truth at its own capture time."""
+        out = []
+        for stamp_ns, occupancy in timeline:
+            truth = self.truth(stamp_ns)
+            scores = metrics.score_cells(occupancy, truth.occupied, self.seen)
+            static = metrics.score_cells(occupancy, self.static_occupied, self.seen)
+            out.append(
+                TimelineScore(
+                    stamp_ns / 1e9, scores.iou, static.false_free_rate, scores.unknown_fraction
+                )
+            )
+        return out
 
     def _inside_floor(self, center_m: Sequence[float]) -> bool:
         return 0 <= center_m[0] <= self.floor_size_m[0] and 0 <= center_m[1] <= self.floor_size_m[1]
@@ -326,6 +361,10 @@ def report(
             },
         }
         out["capture_to_map_p50_ms"] = out["capture_to_map_excl_camera_ms"]["p50"]
+        if truth.header.light_steps_ns:
+            steps_s = [t / 1e9 for t in truth.header.light_steps_ns]
+            timeline = evaluator.timeline_scores(recorder.timeline_snapshot())
+            out["lighting_steps"] = step_phases(steps_s, timeline)
     out["targets"] = {
         name: {"value": out[name], "target": f"{op} {bound:g}", "met": _meets(out[name], op, bound)}
         for name, (op, bound) in TARGETS.items()
@@ -374,6 +413,21 @@ def table(result: dict[str, Any]) -> str:
             lines.append(f"{name:<16}{row['p50']:>8.1f}{row['p99']:>8.1f}")
         c = result["capture_to_map_ms"]
         lines.append(f"{'capture→map':<16}{c['p50']:>8.1f}{c['p99']:>8.1f}  (camera time included)")
+    for step in result.get("lighting_steps", []):
+        lines += [
+            "",
+            f"lighting step at {step['step_s']:.1f} s: {'phase':<8}{'IoU':>8}{'ff static':>11}{'unknown':>9}",
+        ]
+        for phase in ("before", "during", "after"):
+            row = step[phase]
+            lines.append(
+                f"{'':<33}{phase:<8}{row['iou']:>8.3f}{row['false_free_rate_static']:>11.4f}"
+                f"{row['unknown_fraction']:>9.3f}"
+            )
+        lines.append(
+            f"{'':<33}IoU drop {step['iou_drop']:.3f} (target ≤ {LIGHTING_IOU_DROP_MAX:g}); "
+            f"floor unknown for {step['unknown_excess_s']:.1f} s"
+        )
     return "\n".join(lines)
 
 

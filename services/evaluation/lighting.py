@@ -1,0 +1,80 @@
+"""The map's quality around a lighting step: before it, while cameras and models adapt, after.
+
+Pure: takes the step instants and a timeline of (capture time, cell scores) already computed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+BEFORE_S = 10.0
+"""Samples up to this long before a step describe the map before it."""
+DURING_S = 3.0
+"""Auto-exposure settles within about 5 time constants (0.6 s): samples this long after a step
+are "during" it; the next ones, until the next step, "after"."""
+UNKNOWN_EXCESS = 0.02
+"""Unknown share of the seen floor above its pre-step level that counts as "turned unknown"."""
+
+
+@dataclass(frozen=True)
+class TimelineScore:
+    stamp_s: float
+    iou: float
+    false_free_rate_static: float
+    unknown_fraction: float
+
+
+def _mean(values: Sequence[float]) -> float:
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.mean(finite)) if finite else math.nan
+
+
+def _phase(scores: Sequence[TimelineScore]) -> dict[str, float]:
+    return {
+        "samples": len(scores),
+        "iou": _mean([s.iou for s in scores]),
+        "false_free_rate_static": _mean([s.false_free_rate_static for s in scores]),
+        "false_free_rate_static_max": max(
+            (s.false_free_rate_static for s in scores), default=math.nan
+        ),
+        "unknown_fraction": _mean([s.unknown_fraction for s in scores]),
+    }
+
+
+def step_phases(
+    steps_s: Sequence[float], timeline: Sequence[TimelineScore]
+) -> list[dict[str, Any]]:
+    """Per step with samples on both sides: the phases' mean scores, the IoU drop (before minus the
+    worse of during and after) and how long the unknown share stayed above its level before."""
+    out = []
+    ordered = sorted(steps_s)
+    for index, step_s in enumerate(ordered):
+        end_s = ordered[index + 1] if index + 1 < len(ordered) else math.inf
+        start_s = max(step_s - BEFORE_S, ordered[index - 1] if index else -math.inf)
+        before = [s for s in timeline if start_s <= s.stamp_s < step_s]
+        during = [s for s in timeline if step_s <= s.stamp_s < min(step_s + DURING_S, end_s)]
+        after = [s for s in timeline if step_s + DURING_S <= s.stamp_s < end_s]
+        if not before or not (during or after):
+            continue
+        phases = {"before": _phase(before), "during": _phase(during), "after": _phase(after)}
+        baseline = phases["before"]["unknown_fraction"]
+        excess = [
+            s.stamp_s for s in during + after if s.unknown_fraction > baseline + UNKNOWN_EXCESS
+        ]
+        worst_iou = min(
+            v for v in (phases["during"]["iou"], phases["after"]["iou"]) if not math.isnan(v)
+        )
+        out.append(
+            {
+                "step_s": step_s,
+                **phases,
+                "iou_drop": phases["before"]["iou"] - worst_iou,
+                "unknown_excess_s": (max(excess) - step_s) if excess else 0.0,
+            }
+        )
+    return out
