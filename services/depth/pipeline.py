@@ -1,4 +1,8 @@
-"""Frame → tile for one pair, with per-stage times. Everything per calibration is done once here."""
+"""Frame → tile for one pair, with per-stage times. Everything per calibration is done once here.
+
+Stages (their names are the tile's ``stage_ms`` keys): ``rectify``, ``disparity`` (the matcher and
+its optional stages), ``floor`` (the fixed-camera floor model: fattening removed, floor observations
+where stereo has none, see :mod:`services.depth.floor_model`), ``projection``, ``model``."""
 
 from __future__ import annotations
 
@@ -12,6 +16,7 @@ import numpy.typing as npt
 from common.camera import StereoCalibration
 from common.lattice import check_resolution
 from common.sensor_model import SensorModelParams
+from services.depth.floor_model import FloorFrame, FloorModel, FloorModelConfig, floor_disparity_px
 from services.depth.inverse_model import Tile, build_tile
 from services.depth.projection import WorldPoints, project_to_world
 from services.depth.stereo import DisparityChain, MatcherConfig, Rectifier
@@ -27,6 +32,7 @@ class PipelineConfig:
     matcher: MatcherConfig = field(default_factory=MatcherConfig)
     model: SensorModelParams = field(default_factory=SensorModelParams)
     min_cell_pixels: int = 3
+    floor: FloorModelConfig = field(default_factory=FloorModelConfig)
 
 
 @dataclass(frozen=True)
@@ -34,7 +40,10 @@ class FrameResult:
     tile: Tile
     points: WorldPoints
     disparity_px: npt.NDArray[np.float32]
+    """The disparity chain's own output (what stereo measured)."""
     stage_ms: dict[str, float]
+    floor: FloorFrame | None = None
+    """The floor model's verdict; its ``disparity_px`` is what the tile was built from."""
 
 
 def to_gray(image: np.ndarray) -> npt.NDArray[np.uint8]:
@@ -60,6 +69,19 @@ class DepthPipeline:
         self.disparity_chain = DisparityChain(
             config.matcher, self.min_disparity, self.num_disparities
         )
+        self.floor_model = (
+            FloorModel(
+                floor_disparity_px(
+                    self.rays_world,
+                    float(self.rectifier.C_world[2]),
+                    self.rectifier.focal_px,
+                    self.rectifier.baseline_m,
+                ),
+                config.floor,
+            )
+            if config.floor.enabled
+            else None
+        )
 
     def check_frame(self, left: np.ndarray, right: np.ndarray) -> None:
         width, height = self.calib.image_size
@@ -77,8 +99,14 @@ class DepthPipeline:
         times.append(time.perf_counter())
         disparity = self.disparity_chain(left_rect, right_rect)
         times.append(time.perf_counter())
+        floor = None
+        observed = disparity
+        if self.floor_model is not None:
+            floor = self.floor_model.update(left_rect, right_rect, disparity)
+            observed = floor.disparity_px
+        times.append(time.perf_counter())
         points = project_to_world(
-            disparity,
+            observed,
             self.rays_world,
             self.rectifier.C_world,
             self.rectifier.focal_px,
@@ -92,8 +120,25 @@ class DepthPipeline:
         )
         times.append(time.perf_counter())
         # "disparity" is the whole chain: matcher and its optional stages (stereo.DisparityChain).
-        names = ("rectify", "disparity", "projection", "model")
+        names = ("rectify", "disparity", "floor", "projection", "model")
         stage_ms = {
-            name: (b - a) * 1e3 for name, a, b in zip(names, times[:-1], times[1:], strict=True)
+            name: (b - a) * 1e3
+            for name, a, b in zip(names, times[:-1], times[1:], strict=True)
+            if name != "floor" or floor is not None
         }
-        return FrameResult(tile=tile, points=points, disparity_px=disparity, stage_ms=stage_ms)
+        return FrameResult(
+            tile=tile, points=points, disparity_px=disparity, stage_ms=stage_ms, floor=floor
+        )
+
+    def floor_health(self) -> dict[str, object]:
+        """The floor model's state for ``depth/{pair}/health``."""
+        model = self.floor_model
+        if model is None:
+            return {"state": "off"}
+        return {
+            "state": model.state(),
+            "modelled_share": round(model.modelled_share(), 4),
+            "frames": model.frames,
+            "relearned": model.relearned,
+            "offset_px": round(float(model.offset_coef[0]), 3),
+        }

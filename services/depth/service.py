@@ -26,6 +26,7 @@ from common.messages import CALIB_KIND, STEREO_KIND, TILE_KIND, StereoFrameHeade
 from common.sensor_model import SensorModelParams
 from common.settings import ZenohSettings, parse_settings
 from common.zenoh_session import open_session
+from services.depth.floor_model import FloorModelConfig
 from services.depth.pipeline import DepthPipeline, PipelineConfig
 from services.depth.sources import LatestSlot, load_calibration, recorded_frames
 from services.depth.stereo import MatcherConfig
@@ -69,6 +70,9 @@ class DepthSettings(ZenohSettings):
         0.0, ge=0.0, description="give up waiting for calibration (0: never)"
     )
     summary_s: float = Field(10.0, gt=0.0, description="period of the summary log line")
+    floor_model: bool = Field(
+        True, description="fixed-camera floor model: floor test + learned background (DESIGN.md)"
+    )
 
     @model_validator(mode="after")
     def _checks(self) -> DepthSettings:
@@ -97,6 +101,7 @@ class DepthSettings(ZenohSettings):
                 p_hit=self.p_hit,
                 p_miss=self.p_miss,
             ),
+            floor=FloorModelConfig(enabled=self.floor_model),
         )
 
 
@@ -272,6 +277,7 @@ def main(settings: DepthSettings) -> None:
                 "skipped": intake.slot.replaced,
                 "rejected": dict(intake.rejected),
                 "stage_ms_mean": {k: v / n for k, v in publisher.stage_ms_sum.items()},
+                "floor_model": pipeline.floor_health(),
             }
 
         token = session.liveliness().declare_token(keys.depth_alive(settings.pair))
