@@ -4,7 +4,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-system_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libglx-mesa0 python3-venv python3-pip openssl)
+system_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri libglx-mesa0 python3-venv python3-pip openssl chromium)
 missing=()
 if command -v dpkg >/dev/null 2>&1; then
   for pkg in "${system_packages[@]}"; do
@@ -26,8 +26,8 @@ if [ ! -x .venv/bin/python ]; then
 fi
 stamp=.venv/.overgrid-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
-  echo "setup: installing overgrid[all,dev] into .venv"
+  echo "setup: installing overgrid[all,ros2,dev] into .venv"
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e ".[all,dev]"
+  .venv/bin/python -m pip install -q -e ".[all,ros2,dev]"
   touch "$stamp"
 fi

@@ -24,6 +24,11 @@ COMMANDS = {
     ),
     "health": ("services.client_cli", "show the fusion service's health"),
     "router": ("services.router", "a Zenoh router for boxes that multicast scouting cannot reach"),
+    "ros2": ("services.ros2.node", "a ROS 2 node (rclpy) publishing /map, /map_updates, height"),
+    "rmw-zenoh": (
+        "services.ros2.native",
+        "/map and /map_updates on rmw_zenoh's Zenoh keys: ROS 2 robots need no node",
+    ),
     "save-frame": ("services.camera_sim.save_frame", "save one stereo frame of a pair as PNG"),
 }
 

@@ -1,0 +1,125 @@
+"""CDR bytes and RIHS01 type hashes of the map messages, from rosbags (pure Python, no ROS):
+the same bytes rclpy's ``serialize_message`` gives, with the 4-byte encapsulation header.
+
+map_msgs has no wheel and is not in rosbags' stores: its OccupancyGridUpdate is registered from
+its message definition (ros-planning/navigation_msgs, map_msgs/msg/OccupancyGridUpdate.msg), so
+rosbags derives its CDR layout and type hash the way it does for the shipped types.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+from typing import Any, Literal
+
+import numpy as np
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys.store import Typestore
+
+from services.ros2.grid_message import (
+    GridInfo,
+    GridMessage,
+    GridUpdate,
+    HeightImage,
+    stamp_parts,
+)
+from services.ros2.rmw_zenoh import NO_TYPE_HASH
+
+Distro = Literal["humble", "jazzy", "kilted"]
+STORES: dict[str, Stores] = {
+    "humble": Stores.ROS2_HUMBLE,
+    "jazzy": Stores.ROS2_JAZZY,
+    "kilted": Stores.ROS2_KILTED,
+}
+OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
+OCCUPANCY_GRID_UPDATE = "map_msgs/msg/OccupancyGridUpdate"
+IMAGE = "sensor_msgs/msg/Image"
+OCCUPANCY_GRID_UPDATE_MSG = """\
+std_msgs/Header header
+int32 x
+int32 y
+uint32 width
+uint32 height
+int8[] data
+"""
+
+
+@cache
+def typestore(distro: Distro) -> Typestore:
+    store = get_typestore(STORES[distro])
+    store.register(get_types_from_msg(OCCUPANCY_GRID_UPDATE_MSG, OCCUPANCY_GRID_UPDATE))
+    return store
+
+
+def type_hash(distro: Distro, ros_type: str) -> str:
+    """The RIHS01 hash rmw_zenoh puts in keys; Humble has none."""
+    if distro == "humble":
+        return NO_TYPE_HASH
+    return str(typestore(distro).hash_rihs01(ros_type))
+
+
+def _header(store: Typestore, stamp_ns: int, frame_id: str) -> Any:
+    types = store.types
+    sec, nanosec = stamp_parts(stamp_ns)
+    return types["std_msgs/msg/Header"](
+        stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
+    )
+
+
+def _info(store: Typestore, info: GridInfo) -> Any:
+    types = store.types
+    x, y, z = info.origin_xyz_m
+    qx, qy, qz, qw = info.origin_xyzw
+    sec, nanosec = stamp_parts(info.stamp_ns)
+    pose = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+    )
+    return types["nav_msgs/msg/MapMetaData"](
+        map_load_time=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
+        resolution=info.resolution_m,
+        width=info.width,
+        height=info.height,
+        origin=pose,
+    )
+
+
+def occupancy_grid_cdr(distro: Distro, message: GridMessage) -> bytes:
+    store = typestore(distro)
+    grid = store.types[OCCUPANCY_GRID](
+        header=_header(store, message.info.stamp_ns, message.info.frame_id),
+        info=_info(store, message.info),
+        data=np.asarray(message.data, dtype=np.int8),
+    )
+    return bytes(store.serialize_cdr(grid, OCCUPANCY_GRID))
+
+
+def occupancy_grid_update_cdr(distro: Distro, update: GridUpdate) -> bytes:
+    store = typestore(distro)
+    message = store.types[OCCUPANCY_GRID_UPDATE](
+        header=_header(store, update.stamp_ns, update.frame_id),
+        x=update.x,
+        y=update.y,
+        width=update.width,
+        height=update.height,
+        data=np.asarray(update.data, dtype=np.int8),
+    )
+    return bytes(store.serialize_cdr(message, OCCUPANCY_GRID_UPDATE))
+
+
+def height_image_cdr(distro: Distro, image: HeightImage) -> bytes:
+    store = typestore(distro)
+    message = store.types[IMAGE](
+        header=_header(store, image.stamp_ns, image.frame_id),
+        height=image.height,
+        width=image.width,
+        encoding=image.ENCODING,
+        is_bigendian=0,
+        step=image.step_bytes,
+        data=np.frombuffer(image.data.astype("<f4").tobytes(), np.uint8),
+    )
+    return bytes(store.serialize_cdr(message, IMAGE))
+
+
+def decode(distro: Distro, raw: bytes, ros_type: str) -> Any:
+    """A message object of ``raw`` CDR bytes (for readers and tests)."""
+    return typestore(distro).deserialize_cdr(raw, ros_type)

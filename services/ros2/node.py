@@ -1,0 +1,184 @@
+"""``overgrid ros2``: a real ROS 2 node (rclpy) that follows the fusion service over Zenoh and
+publishes /map (nav_msgs/OccupancyGrid, reliable + transient_local, depth 1 by default: a robot
+that starts later still gets it, as from nav2's map_server), /map_updates
+(map_msgs/OccupancyGridUpdate, when map_msgs is importable: no wheel ships it, every system ROS 2
+has it) and the height layer.
+
+The height layer is a sensor_msgs/Image 32FC1 on /map's cells, not a second OccupancyGrid: it
+carries metres as float32 with NaN for "never seen", which an int8 0..100 grid could only carry
+quantised and with an invented scale; width, height, row order and frame are /map's, so a cell
+(row, col) of one is the same lattice cell in the other.
+
+Settings are overgrid's flags and ``OVERGRID_*`` variables, and also this node's ROS parameters
+(``--ros-args -p frame_id:=odom``); remapping (``-r /map:=/site/map``) and ``ROS_DOMAIN_ID`` work as
+for any node. ``map/objects`` does not exist yet, so no objects are published.
+"""
+
+from __future__ import annotations
+
+import array
+import logging
+import sys
+import threading
+from collections.abc import Sequence
+from typing import Any
+
+from common.lifecycle import stop_on_signals
+from common.logs import setup_logging
+from common.settings import parse_settings
+from common.zenoh_session import open_session
+from services.ros2.environment import ensure_ros_environment
+from services.ros2.grid_message import GridMessage, GridUpdate, HeightImage, stamp_parts
+from services.ros2.relay import MapRelay
+from services.ros2.settings import Ros2Settings
+
+log = logging.getLogger("ros2")
+ROS_ARGS = "--ros-args"
+ROS_PARAMETERS = (
+    "frame_id",
+    "map_topic",
+    "updates_topic",
+    "height_topic",
+    "map_depth",
+    "updates_depth",
+    "map_durability",
+    "map_reliability",
+    "world_in_map",
+    "map_interval_s",
+    "height_interval_s",
+)
+"""Settings a ROS user may also give as node parameters; the flag or env value is the default."""
+
+
+def _set_header(header: Any, stamp_ns: int, frame_id: str) -> None:
+    header.stamp.sec, header.stamp.nanosec = stamp_parts(stamp_ns)
+    header.frame_id = frame_id
+
+
+class RclpySink:
+    """The relay's messages as rclpy messages on three publishers of ``node``."""
+
+    def __init__(self, node: Any, settings: Ros2Settings) -> None:
+        from nav_msgs.msg import OccupancyGrid
+        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import Image
+
+        self._grid_type, self._image_type = OccupancyGrid, Image
+        map_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=settings.map_depth,
+            reliability=ReliabilityPolicy[settings.map_reliability.upper()],
+            durability=DurabilityPolicy[settings.map_durability.upper()],
+        )
+        self._map = node.create_publisher(OccupancyGrid, settings.map_topic, map_qos)
+        self._height = node.create_publisher(Image, settings.height_topic, 1)
+        try:
+            from map_msgs.msg import OccupancyGridUpdate
+        except ImportError:
+            self._update_type: Any = None
+            self._updates = None
+            log.warning(
+                "map_msgs is not importable (no wheel ships it; a system ROS 2 has it): "
+                f"{settings.updates_topic} is not published by this node; "
+                "`overgrid rmw-zenoh` always carries it"
+            )
+        else:
+            self._update_type = OccupancyGridUpdate
+            self._updates = node.create_publisher(
+                OccupancyGridUpdate, settings.updates_topic, settings.updates_depth
+            )
+
+    def publish_map(self, message: GridMessage) -> None:
+        grid = self._grid_type()
+        _set_header(grid.header, message.info.stamp_ns, message.info.frame_id)
+        info = message.info
+        grid.info.map_load_time.sec, grid.info.map_load_time.nanosec = stamp_parts(info.stamp_ns)
+        grid.info.resolution = info.resolution_m
+        grid.info.width, grid.info.height = info.width, info.height
+        position, orientation = grid.info.origin.position, grid.info.origin.orientation
+        position.x, position.y, position.z = info.origin_xyz_m
+        orientation.x, orientation.y, orientation.z, orientation.w = info.origin_xyzw
+        grid.data = array.array("b", message.data.tobytes())
+        self._map.publish(grid)
+
+    def publish_update(self, update: GridUpdate) -> None:
+        if self._updates is None:
+            return
+        message = self._update_type()
+        _set_header(message.header, update.stamp_ns, update.frame_id)
+        message.x, message.y, message.width, message.height = (
+            update.x,
+            update.y,
+            update.width,
+            update.height,
+        )
+        message.data = array.array("b", update.data.tobytes())
+        self._updates.publish(message)
+
+    def publish_height(self, image: HeightImage) -> None:
+        message = self._image_type()
+        _set_header(message.header, image.stamp_ns, image.frame_id)
+        message.height, message.width = image.height, image.width
+        message.encoding, message.is_bigendian = image.ENCODING, sys.byteorder == "big"
+        message.step = image.step_bytes
+        message.data = array.array("B", image.data.tobytes())
+        self._height.publish(message)
+
+
+def with_ros_parameters(node: Any, settings: Ros2Settings) -> Ros2Settings:
+    """Declare ``ROS_PARAMETERS`` with the settings as defaults; a value given as a parameter
+    (``-p name:=value``, a parameter file) wins, and is validated like a flag."""
+    values: dict[str, Any] = {}
+    for name in ROS_PARAMETERS:
+        default = getattr(settings, name)
+        if isinstance(default, list):
+            default = ",".join(default)
+        values[name] = node.declare_parameter(name, default).value
+    return Ros2Settings.model_validate({**settings.model_dump(), **values})
+
+
+def main(settings: Ros2Settings, ros_args: Sequence[str] = ()) -> None:
+    setup_logging("ros2", settings.log_level)
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(
+        args=["overgrid-ros2", ROS_ARGS, *ros_args] if ros_args else None,
+        signal_handler_options=SignalHandlerOptions.NO,
+    )
+    node = rclpy.create_node(settings.node_name)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        settings = with_ros_parameters(node, settings)
+        sink = RclpySink(node, settings)
+        # Spinning serves the node's parameter and graph services; publishing needs no spin.
+        spinner = threading.Thread(target=executor.spin, name="rclpy-spin", daemon=True)
+        spinner.start()
+        with open_session(settings) as session:
+            relay = MapRelay(session, settings, sink)
+            stop = stop_on_signals(relay.wake)
+            log.info(
+                "started",
+                extra={"node": settings.node_name, "map_topic": settings.map_topic},
+            )
+            relay.run(stop)
+        log.info("stopped", extra=relay.counts)
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def cli(argv: Sequence[str] | None = None) -> None:
+    args = list(sys.argv[1:] if argv is None else argv)
+    own, ros_args = args, []
+    if ROS_ARGS in args:
+        at = args.index(ROS_ARGS)
+        own, ros_args = args[:at], args[at + 1 :]
+    settings = parse_settings(
+        Ros2Settings, own, "overgrid ros2", "A ROS 2 node publishing the map (rclpy)."
+    )
+    ensure_ros_environment()
+    main(settings, ros_args)

@@ -1,0 +1,126 @@
+"""Follows the fusion service (``common.client.MapFollower``) and hands a sink what a ROS 2 robot
+needs, at the pace it needs it: a whole /map now and then, every change as an update, the height
+layer at its own period. Both outputs (the rclpy node, the native rmw_zenoh publisher) are sinks.
+
+Why a whole /map at most every ``map_interval_s`` and not at every version: /map is the latched
+(transient_local) sample a late joiner starts from, so it must not lag far behind, but it costs
+the whole grid each time; the updates carry only the changed rectangle (nav2's costmap does the
+same with /costmap and /costmap_updates).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Protocol
+
+import zenoh
+
+from common.client import MapFollower, MapUnavailable, latest
+from common.logs import RateLimitedLog
+from common.occupancy_map import OccupancyMap
+from services.ros2.grid_message import (
+    GridMessage,
+    GridUpdate,
+    HeightImage,
+    changed_window,
+    grid_message,
+    grid_update,
+    height_image,
+)
+from services.ros2.settings import Ros2Settings
+
+log = logging.getLogger("ros2")
+FOLLOW_RETRY_S = 1.0
+
+
+class MapSink(Protocol):
+    def publish_map(self, message: GridMessage) -> None: ...
+
+    def publish_update(self, update: GridUpdate) -> None: ...
+
+    def publish_height(self, image: HeightImage) -> None: ...
+
+
+class MapRelay:
+    def __init__(self, session: zenoh.Session, settings: Ros2Settings, sink: MapSink) -> None:
+        self._session = session
+        self._settings = settings
+        self._sink = sink
+        self.wake = threading.Event()
+        """Set by each new map version, and by a stop."""
+        self.counts = {"map": 0, "update": 0, "height": 0}
+        self._warn = RateLimitedLog(log)
+
+    def run(self, stop: threading.Event) -> None:
+        s = self._settings
+        follower = self._follow(stop)
+        if follower is None:
+            return
+        try:
+            sent = follower.map
+            self._publish_map(sent)
+            log.info("first map published", extra={"version": sent.version})
+            self._publish_height()
+            map_due = False
+            last_map_s = last_height_s = time.monotonic()
+            height_version = sent.version
+            while not stop.is_set():
+                self.wake.wait(min(s.map_interval_s, s.height_interval_s))
+                self.wake.clear()
+                current = follower.map
+                if current.version > sent.version:
+                    changed = changed_window(sent, current)
+                    if changed is None:  # moved or grew: only a whole map says that
+                        self._publish_map(current)
+                        last_map_s, map_due = time.monotonic(), False
+                    else:
+                        if not changed.empty:
+                            self._sink.publish_update(grid_update(current, changed, s.frame_id))
+                            self.counts["update"] += 1
+                        map_due = True
+                    sent = current
+                now = time.monotonic()
+                if map_due and now - last_map_s >= s.map_interval_s:
+                    self._publish_map(sent)
+                    last_map_s, map_due = now, False
+                if now - last_height_s >= s.height_interval_s and height_version != sent.version:
+                    self._publish_height()
+                    last_height_s, height_version = now, sent.version
+        finally:
+            follower.close()
+
+    def _follow(self, stop: threading.Event) -> MapFollower | None:
+        """A follower of the fusion service, waiting for it as long as it takes (this process may
+        start first); ``None`` when stopped meanwhile."""
+        while not stop.is_set():
+            try:
+                return MapFollower(
+                    self._session,
+                    timeout_s=self._settings.timeout_s,
+                    on_change=lambda _map, _arrival_s: self.wake.set(),
+                )
+            except MapUnavailable as error:
+                self._warn.warning(
+                    "fusion", "waiting for the fusion service", error=str(error)[:200]
+                )
+                stop.wait(FOLLOW_RETRY_S)
+        return None
+
+    def _publish_map(self, occupancy_map: OccupancyMap) -> None:
+        s = self._settings
+        self._sink.publish_map(grid_message(occupancy_map, s.frame_id, s.pose))
+        self.counts["map"] += 1
+        log.debug("map published", extra={"version": occupancy_map.version})
+
+    def _publish_height(self) -> None:
+        """The follower's copy has no height layer (map/updates carries occupancy only), so the
+        layer is asked of map/latest at its own, slower, period."""
+        try:
+            layered = latest(self._session, layers=("height",), timeout_s=self._settings.timeout_s)
+        except MapUnavailable as error:
+            self._warn.warning("height", "height layer unavailable", error=str(error)[:200])
+            return
+        self._sink.publish_height(height_image(layered, self._settings.frame_id))
+        self.counts["height"] += 1

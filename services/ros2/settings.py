@@ -1,0 +1,87 @@
+"""Settings of both ROS 2 outputs: topic names, frame, QoS and the world → map pose."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator
+
+from common.settings import CommaList, ZenohSettings
+from services.ros2.cdr import Distro
+from services.ros2.grid_message import PlanarPose
+from services.ros2.rmw_zenoh import Durability, History, Reliability, TopicQos
+
+DurabilityName = Literal["transient_local", "volatile"]
+ReliabilityName = Literal["reliable", "best_effort"]
+
+
+class Ros2Settings(ZenohSettings):
+    node_name: str = Field("overgrid_map", description="ROS 2 node name")
+    frame_id: str = Field("map", description="frame_id of /map, its updates and the height layer")
+    map_topic: str = Field("/map", description="nav_msgs/OccupancyGrid topic")
+    updates_topic: str = Field(
+        "/map_updates", description="map_msgs/OccupancyGridUpdate topic (changed rectangles)"
+    )
+    height_topic: str = Field(
+        "/map_height", description="sensor_msgs/Image 32FC1 topic: top height in m per /map cell"
+    )
+    map_durability: DurabilityName = Field(
+        "transient_local", description="/map durability (transient_local: late joiners get it)"
+    )
+    map_reliability: ReliabilityName = Field("reliable", description="/map reliability")
+    map_depth: int = Field(1, ge=1, description="/map history depth")
+    updates_depth: int = Field(10, ge=1, description="/map_updates history depth")
+    world_in_map: CommaList = Field(
+        default_factory=lambda: ["0", "0", "0"],
+        description="pose x,y,yaw (m, m, rad) of overgrid's world frame in the robots' map frame",
+    )
+    map_interval_s: float = Field(
+        1.0,
+        gt=0.0,
+        description="shortest time between whole /map messages while updates stream",
+    )
+    height_interval_s: float = Field(
+        1.0, gt=0.0, description="period of the height layer (fetched from map/latest)"
+    )
+    timeout_s: float = Field(
+        2.0, gt=0.0, description="how long one map/latest query waits for the fusion service"
+    )
+
+    @field_validator("world_in_map")
+    @classmethod
+    def _three_numbers(cls, values: list[str]) -> list[str]:
+        if len(values) != 3:
+            raise ValueError("world_in_map must be x,y,yaw")
+        [float(v) for v in values]
+        return values
+
+    @property
+    def pose(self) -> PlanarPose:
+        x_m, y_m, yaw_rad = (float(v) for v in self.world_in_map)
+        return PlanarPose(x_m, y_m, yaw_rad)
+
+    @property
+    def map_qos(self) -> TopicQos:
+        return TopicQos(
+            Reliability[self.map_reliability.upper()],
+            Durability[self.map_durability.upper()],
+            History.KEEP_LAST,
+            self.map_depth,
+        )
+
+    @property
+    def updates_qos(self) -> TopicQos:
+        return TopicQos(
+            Reliability.RELIABLE, Durability.VOLATILE, History.KEEP_LAST, self.updates_depth
+        )
+
+
+class RmwZenohSettings(Ros2Settings):
+    """The native output also needs what a ROS 2 context would know: domain and distro."""
+
+    domain_id: int | None = Field(
+        None, ge=0, le=232, description="ROS domain id (default: $ROS_DOMAIN_ID, else 0)"
+    )
+    distro: Distro = Field(
+        "jazzy", description="ROS 2 distro of the robots (type hashes differ; humble has none)"
+    )

@@ -1,0 +1,109 @@
+"""The map as ROS 2 message fields (services/ros2/grid_message.py) and their CDR (rosbags)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from common.lattice import Window
+from common.occupancy_map import UNKNOWN, OccupancyMap
+from services.ros2 import cdr
+from services.ros2.grid_message import (
+    PlanarPose,
+    changed_window,
+    grid_message,
+    grid_update,
+    height_image,
+    stamp_parts,
+)
+
+STAMP_NS = 1_700_000_000_123_456_789
+
+
+def a_map(i0: int = -3, j0: int = 4, cols: int = 5, rows: int = 3) -> OccupancyMap:
+    occupancy = np.full((rows, cols), UNKNOWN, np.int8)
+    occupancy[0, 1] = 100  # cell (i0 + 1, j0): lowest row, second column
+    occupancy[2, 4] = 0
+    height = np.full((rows, cols), np.nan, np.float32)
+    height[0, 1] = 0.7
+    return OccupancyMap(occupancy, 0.05, i0, j0, 3, STAMP_NS, ["p0"], height_m=height)
+
+
+def test_grid_is_the_lattice_row_major_from_the_origin_cell() -> None:
+    message = grid_message(a_map(), "map", PlanarPose())
+    info = message.info
+    assert (info.width, info.height, info.resolution_m) == (5, 3, 0.05)
+    assert info.origin_xyz_m == pytest.approx((-0.15, 0.2, 0.0))
+    assert info.origin_xyzw == (0.0, 0.0, 0.0, 1.0)
+    assert message.data[1] == 100 and message.data[2 * 5 + 4] == 0
+    assert (message.data == UNKNOWN).sum() == 13
+
+
+def test_world_in_map_pose_moves_and_turns_the_origin() -> None:
+    pose = PlanarPose(10.0, -1.0, math.pi / 2)
+    info = grid_message(a_map(), "site", pose).info
+    # origin (-0.15, 0.2) turned by 90°: (-0.2, -0.15), then shifted.
+    assert info.origin_xyz_m == pytest.approx((9.8, -1.15, 0.0))
+    assert info.origin_xyzw == pytest.approx((0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)))
+    assert info.frame_id == "site"
+
+
+def test_changed_window_is_the_bounding_box_of_changed_cells() -> None:
+    before = a_map()
+    assert changed_window(before, before) == Window(-3, 4, 0, 0)
+    occupancy = before.occupancy.copy()
+    occupancy[1, 0] = 50
+    occupancy[2, 2] = 20
+    after = OccupancyMap(occupancy, 0.05, -3, 4, 4, STAMP_NS)
+    changed = changed_window(before, after)
+    assert changed == Window(-3, 5, 3, 2)
+    assert changed is not None
+    update = grid_update(after, changed, "map")
+    assert (update.x, update.y, update.width, update.height) == (0, 1, 3, 2)
+    assert update.data.reshape(2, 3).tolist() == [[50, -1, -1], [-1, -1, 20]]
+    grown = a_map(cols=6)
+    assert changed_window(before, grown) is None
+
+
+def test_height_image_keeps_metres_and_unseen_nan() -> None:
+    image = height_image(a_map(), "map")
+    assert (image.width, image.height, image.step_bytes) == (5, 3, 20)
+    assert image.data[1] == pytest.approx(0.7)
+    assert np.isnan(image.data).sum() == 14
+    without = OccupancyMap(a_map().occupancy, 0.05, 0, 0, 1, STAMP_NS)
+    with pytest.raises(ValueError, match="layers=height"):
+        height_image(without, "map")
+
+
+def test_stamp_parts() -> None:
+    assert stamp_parts(STAMP_NS) == (1_700_000_000, 123_456_789)
+
+
+@pytest.mark.parametrize("distro", ["humble", "jazzy", "kilted"])
+def test_cdr_round_trips_through_rosbags(distro: cdr.Distro) -> None:
+    occupancy_map = a_map()
+    raw = cdr.occupancy_grid_cdr(distro, grid_message(occupancy_map, "map", PlanarPose(1, 2, 0)))
+    assert raw[:4] == b"\x00\x01\x00\x00"  # little-endian CDR encapsulation header
+    grid = cdr.decode(distro, raw, cdr.OCCUPANCY_GRID)
+    assert (grid.info.width, grid.info.height) == (5, 3)
+    assert (grid.header.stamp.sec, grid.header.stamp.nanosec) == stamp_parts(STAMP_NS)
+    assert (grid.info.origin.position.x, grid.info.origin.position.y) == pytest.approx((0.85, 2.2))
+    assert np.array_equal(np.asarray(grid.data).reshape(3, 5), occupancy_map.occupancy)
+
+    changed = Window(-2, 4, 2, 1)
+    update = cdr.decode(
+        distro,
+        cdr.occupancy_grid_update_cdr(distro, grid_update(occupancy_map, changed, "map")),
+        cdr.OCCUPANCY_GRID_UPDATE,
+    )
+    assert (update.x, update.y, update.width, update.height) == (1, 0, 2, 1)
+    assert list(update.data) == [100, -1]
+
+    image = cdr.decode(
+        distro, cdr.height_image_cdr(distro, height_image(occupancy_map, "map")), cdr.IMAGE
+    )
+    assert (image.encoding, image.step, image.is_bigendian) == ("32FC1", 20, 0)
+    metres = np.frombuffer(bytes(image.data), "<f4").reshape(3, 5)
+    assert metres[0, 1] == pytest.approx(0.7) and np.isnan(metres[0, 0])

@@ -1,0 +1,169 @@
+"""``overgrid rmw-zenoh`` beside a real fusion process, checked against rmw_zenoh's conventions
+(no rmw_zenoh_cpp exists here): keys, liveliness graph tokens, attachment, CDR that rosbags and
+rclpy read back, the cached /map for a late joiner, and /map_updates keeping its copy equal."""
+
+from __future__ import annotations
+
+import json
+import queue
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+import zenoh.ext
+
+from common import keys
+from common.client import latest
+from common.codec import WIRE_ENCODING
+from common.lattice import Window
+from services.ros2 import cdr
+from services.ros2.rmw_zenoh import gid_of, parse_attachment
+from tests.conftest import REPO, Bus, wait_for
+from tests.tiles import tile_payload
+
+pytestmark = pytest.mark.process
+
+DOMAIN = 7
+FIRST, SECOND = Window(0, 0, 40, 30), Window(10, 5, 6, 4)
+MAP_KEY = f"{DOMAIN}/map/nav_msgs::msg::dds_::OccupancyGrid_/"
+UPDATES_KEY = f"{DOMAIN}/map_updates/map_msgs::msg::dds_::OccupancyGridUpdate_/"
+
+
+def shipped_type_hash(package: str, name: str) -> str:
+    """The RIHS01 hash in the message package's own type description (ros-nav-msgs wheel)."""
+    path = Path(sys.prefix) / "share" / package / "msg" / f"{name}.json"
+    description = json.loads(path.read_text())
+    return str(description["type_hashes"][0]["hash_string"])
+
+
+def graph_tokens(session: zenoh.Session) -> list[str]:
+    return [
+        str(reply.ok.key_expr)
+        for reply in session.liveliness().get(f"@ros2_lv/{DOMAIN}/**", timeout=2)
+        if reply.ok is not None
+    ]
+
+
+def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
+    map_hash = shipped_type_hash("nav_msgs", "OccupancyGrid")
+    assert cdr.type_hash("jazzy", cdr.OCCUPANCY_GRID) == map_hash
+    bus.start(
+        "fusion",
+        "--state-dir",
+        str(tmp_path / "state"),
+        "--publish-interval-s",
+        "0.05",
+        "--decay-after-s",
+        "600",  # nothing but the tiles below changes the map
+    )
+    tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
+    wait_for(lambda: _try_put_and_version(bus, tiles) >= 1, 30, "fusion to fuse a first tile")
+    log = tmp_path / "rmw-zenoh.log"
+    bus.start(
+        "rmw-zenoh",
+        "--domain-id",
+        str(DOMAIN),
+        "--world-in-map",
+        "1.5,-2,0",
+        "--map-interval-s",
+        "600",  # one /map only, at start: the late joiner below can get it from the cache alone
+        "--height-interval-s",
+        "0.2",
+        log_path=log,
+    )
+    wait_for(lambda: b"first map published" in log.read_bytes(), 30, "the first /map")
+    tokens = graph_tokens(bus.session)
+    zid_chunks = {token.split("/")[2] for token in tokens}
+    assert len(zid_chunks) == 1
+    zid = zid_chunks.pop()
+    assert f"@ros2_lv/{DOMAIN}/{zid}/0/0/NN/%/%/overgrid_map" in tokens
+    map_token = (
+        f"@ros2_lv/{DOMAIN}/{zid}/0/1/MP/%/%/overgrid_map/%map/"
+        f"nav_msgs::msg::dds_::OccupancyGrid_/{map_hash}/:1:,1:,:,:,,"
+    )
+    assert map_token in tokens
+    updates_hash = cdr.type_hash("jazzy", cdr.OCCUPANCY_GRID_UPDATE)
+    assert (
+        f"@ros2_lv/{DOMAIN}/{zid}/0/2/MP/%/%/overgrid_map/%map_updates/"
+        f"map_msgs::msg::dds_::OccupancyGridUpdate_/{updates_hash}/::,10:,:,:,,"
+    ) in tokens
+
+    # A late joiner, subscribed as rmw_zenoh subscribes a transient_local reader: an advanced
+    # subscriber that detects late publishers and queries their cache.
+    maps: queue.Queue[zenoh.Sample] = queue.Queue()
+    late = zenoh.ext.declare_advanced_subscriber(
+        bus.session,
+        MAP_KEY + map_hash,
+        maps.put,
+        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+    )
+    updates: queue.Queue[zenoh.Sample] = queue.Queue()
+    updates_subscriber = bus.session.declare_subscriber(UPDATES_KEY + updates_hash, updates.put)
+    sample = maps.get(timeout=10)
+    assert str(sample.key_expr) == MAP_KEY + map_hash
+    assert sample.attachment is not None
+    sequence_number, stamp_ns, gid = parse_attachment(bytes(sample.attachment.to_bytes()))
+    assert sequence_number >= 1
+    assert abs(stamp_ns - time.time_ns()) < 30 * 10**9
+    assert gid == gid_of(map_token)
+    raw = bytes(sample.payload.to_bytes())
+    assert raw[:4] == b"\x00\x01\x00\x00"  # CDR little-endian encapsulation
+    grid = cdr.decode("jazzy", raw, cdr.OCCUPANCY_GRID)
+    fused = latest(bus.session, timeout_s=10)
+    assert grid.header.frame_id == "map"
+    assert (grid.info.width, grid.info.height) == (
+        fused.occupancy.shape[1],
+        fused.occupancy.shape[0],
+    )
+    assert grid.info.resolution == pytest.approx(0.05)
+    assert (grid.info.origin.position.x, grid.info.origin.position.y) == pytest.approx((1.5, -2.0))
+    assert _rclpy_reserializes(tmp_path, raw)
+
+    # Copy = the late joiner's /map; every native update applied to it keeps it equal.
+    copy = np.asarray(grid.data, np.int8).reshape(grid.info.height, grid.info.width).copy()
+    for seq in range(3):
+        tiles.put(tile_payload("p0", SECOND, 2.0 * (-1) ** seq, seq=100 + seq))
+        time.sleep(0.3)
+    target = latest(bus.session, timeout_s=10).occupancy
+
+    def copy_is_current() -> bool:
+        while not updates.empty():
+            update = cdr.decode(
+                "jazzy", bytes(updates.get().payload.to_bytes()), cdr.OCCUPANCY_GRID_UPDATE
+            )
+            window = np.asarray(update.data, np.int8).reshape(update.height, update.width)
+            copy[update.y : update.y + update.height, update.x : update.x + update.width] = window
+        return bool(np.array_equal(copy, target))
+
+    wait_for(copy_is_current, 10, "the copy kept by /map_updates to equal map/latest")
+    late.undeclare()
+    updates_subscriber.undeclare()
+
+
+def _try_put_and_version(bus: Bus, tiles: zenoh.Publisher) -> int:
+    tiles.put(tile_payload("p0", FIRST, 1.0, seq=int(time.monotonic() * 10), height_m=0.7))
+    try:
+        return latest(bus.session, timeout_s=1).version
+    except Exception:
+        return 0
+
+
+def _rclpy_reserializes(tmp_path: Path, raw: bytes) -> bool:
+    """rclpy (its own C typesupport) reads the bytes and writes back exactly the same ones."""
+    path = tmp_path / "map.cdr"
+    path.write_bytes(raw)
+    code = (
+        "import sys; from pathlib import Path;"
+        "from rclpy.serialization import deserialize_message, serialize_message;"
+        "from nav_msgs.msg import OccupancyGrid;"
+        "raw = Path(sys.argv[1]).read_bytes();"
+        "sys.exit(0 if serialize_message(deserialize_message(raw, OccupancyGrid)) == raw else 1)"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code, str(path)], cwd=REPO, capture_output=True, timeout=60
+    )
+    return result.returncode == 0

@@ -1,0 +1,154 @@
+"""``overgrid ros2`` as a real rclpy node beside a real fusion process: a real rclpy subscriber
+started after the map exists gets /map (transient_local) equal to map/latest cell for cell, then a
+newer /map after tiles change it, and the height layer.
+
+DDS isolation: rmw_fastrtps_cpp on a domain id of this run only, discovery kept to this host, so
+concurrent runs never cross."""
+
+from __future__ import annotations
+
+import json
+import random
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common import keys
+from common.client import latest
+from common.codec import WIRE_ENCODING
+from common.lattice import Window
+from tests.conftest import REPO, Bus, wait_for
+from tests.tiles import tile_payload
+
+pytestmark = pytest.mark.process
+
+FIRST, SECOND = Window(-4, 2, 30, 20), Window(0, 5, 6, 4)
+SUBSCRIBER_LIFETIME_S = 60
+SUBSCRIBER = """
+import json, sys, time
+import rclpy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from nav_msgs.msg import OccupancyGrid
+from sensor_msgs.msg import Image
+
+deadline = time.monotonic() + float(sys.argv[1])
+rclpy.init()
+node = rclpy.create_node("overgrid_test_subscriber")
+maps, heights = [], []
+qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+def on_map(msg):
+    o = msg.info.origin
+    maps.append({"frame_id": msg.header.frame_id, "width": msg.info.width,
+                 "height": msg.info.height, "resolution": msg.info.resolution,
+                 "origin": [o.position.x, o.position.y, o.orientation.z, o.orientation.w],
+                 "data": list(msg.data)})
+    print(json.dumps({"map": maps[-1]}), flush=True)
+
+def on_height(msg):
+    heights.append(msg)
+    print(json.dumps({"height": {"encoding": msg.encoding, "width": msg.width,
+                                 "height": msg.height, "step": msg.step}}), flush=True)
+
+node.create_subscription(OccupancyGrid, "/map", on_map, qos)
+node.create_subscription(Image, "/map_height", on_height, 1)
+def done():  # a /map that differs from the first one, and a height image
+    return bool(heights) and any(m["data"] != maps[0]["data"] for m in maps[1:])
+
+while time.monotonic() < deadline and not done():
+    rclpy.spin_once(node, timeout_sec=0.1)
+node.destroy_node()
+rclpy.shutdown()
+sys.exit(0 if done() else 1)
+"""
+
+
+@pytest.fixture
+def ros_env(monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
+    env = {
+        "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+        "ROS_DOMAIN_ID": str(random.randint(1, 100)),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+    }
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    return env
+
+
+def _put_until_fused(bus: Bus, tiles: object, window: Window, logodds: float) -> int:
+    tiles.put(tile_payload("p0", window, logodds, seq=time.monotonic_ns() // 1000, height_m=0.7))  # type: ignore[attr-defined]
+    try:
+        return latest(bus.session, timeout_s=1).version
+    except Exception:
+        return 0
+
+
+def test_rclpy_subscriber_gets_map_then_newer_map(
+    bus: Bus, tmp_path: Path, ros_env: dict[str, str]
+) -> None:
+    bus.start(
+        "fusion",
+        "--state-dir",
+        str(tmp_path / "state"),
+        "--publish-interval-s",
+        "0.05",
+        "--decay-after-s",
+        "600",  # nothing but the tiles below changes the map
+    )
+    tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
+    wait_for(lambda: _put_until_fused(bus, tiles, FIRST, 1.0) >= 1, 30, "a first fused tile")
+    node_log = tmp_path / "ros2.log"
+    bus.start(
+        "ros2",
+        "--frame-id",
+        "site",
+        "--world-in-map",
+        "1,2,0",
+        "--map-interval-s",
+        "0.2",
+        "--height-interval-s",
+        "0.2",
+        log_path=node_log,
+    )
+    wait_for(lambda: b"first map published" in node_log.read_bytes(), 60, "the node's first /map")
+    subscriber = subprocess.Popen(
+        [
+            *("timeout", "-s", "INT", "-k", "5", str(SUBSCRIBER_LIFETIME_S)),
+            *(sys.executable, "-c", SUBSCRIBER, str(SUBSCRIBER_LIFETIME_S - 10)),
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        first = json.loads(subscriber.stdout.readline())["map"]  # type: ignore[union-attr]
+        fused = latest(bus.session, timeout_s=10)
+        rows, cols = fused.occupancy.shape
+        assert (first["width"], first["height"]) == (cols, rows)
+        assert first["frame_id"] == "site"
+        assert first["resolution"] == pytest.approx(0.05)
+        x0, y0 = fused.origin_m
+        assert first["origin"] == pytest.approx([x0 + 1, y0 + 2, 0.0, 1.0])
+        assert np.array_equal(np.array(first["data"], np.int8).reshape(rows, cols), fused.occupancy)
+
+        # A tile changes the map: a newer /map follows, equal to the newer map/latest.
+        tiles.put(tile_payload("p0", SECOND, -2.0, seq=10**12))
+        output, errors = subscriber.communicate(timeout=SUBSCRIBER_LIFETIME_S)
+    finally:
+        if subscriber.poll() is None:
+            subscriber.kill()
+    assert subscriber.returncode == 0, errors[-2000:]
+    lines = [json.loads(line) for line in output.splitlines() if line.strip()]
+    newer = [line["map"] for line in lines if "map" in line][-1]
+    now = latest(bus.session, timeout_s=10)
+    assert np.array_equal(
+        np.array(newer["data"], np.int8).reshape(now.occupancy.shape), now.occupancy
+    )
+    height = next(line["height"] for line in lines if "height" in line)
+    assert height == {"encoding": "32FC1", "width": cols, "height": rows, "step": cols * 4}
