@@ -92,14 +92,17 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
         f"map_msgs::msg::dds_::OccupancyGridUpdate_/{updates_hash}/::,10:,:,:,,"
     ) in tokens
 
-    # A late joiner, subscribed as rmw_zenoh subscribes a transient_local reader: an advanced
-    # subscriber that detects late publishers and queries their cache.
+    # A late joiner, subscribed as rmw_zenoh subscribes a reliable transient_local reader
+    # (rmw_subscription_data.cpp, SubscriptionData::init): an advanced subscriber on the exact key
+    # that detects late publishers, queries their cache and recovers by heartbeat.
     maps: queue.Queue[zenoh.Sample] = queue.Queue()
     late = zenoh.ext.declare_advanced_subscriber(
         bus.session,
         MAP_KEY + map_hash,
         maps.put,
         history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+        recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+        subscriber_detection=True,
     )
     updates: queue.Queue[zenoh.Sample] = queue.Queue()
     updates_subscriber = bus.session.declare_subscriber(UPDATES_KEY + updates_hash, updates.put)
