@@ -13,8 +13,9 @@ import numpy as np
 import zenoh
 
 from common import keys
+from common.camera import StereoCalibration
 from common.codec import CodecError, decode
-from common.messages import MAP_UPDATE_KIND, MapUpdateHeader
+from common.messages import CALIB_KIND, MAP_UPDATE_KIND, MapUpdateHeader
 from common.occupancy_map import OccupancyMap
 
 Region = tuple[float, float, float, float]
@@ -81,6 +82,19 @@ def latest_encoded(
 def health(session: zenoh.Session, timeout_s: float = 5.0) -> dict[str, Any]:
     answer: dict[str, Any] = json.loads(query_first(session, keys.MAP_HEALTH, timeout_s))
     return answer
+
+
+def calibrations(session: zenoh.Session, timeout_s: float = 5.0) -> list[StereoCalibration]:
+    """Every pair's published calibration (``cam/*/calib``), sorted by pair; an answer that does
+    not decode is skipped. Raises MapUnavailable when no camera source answers."""
+    found: dict[str, StereoCalibration] = {}
+    for payload in query_all(session, keys.CALIB_ALL, timeout_s):
+        try:
+            calib = decode(payload, CALIB_KIND, StereoCalibration).header
+        except CodecError:
+            continue
+        found[calib.pair] = calib
+    return [found[pair] for pair in sorted(found)]
 
 
 class MapFollower:

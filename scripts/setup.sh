@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Set up a fresh machine: system packages for headless rendering (Mesa EGL on CPU), then a virtual
-# environment in .venv with overgrid and every extra. Safe to run again: it only adds what is missing.
+# Set up a fresh machine: system packages for headless rendering (Mesa EGL on CPU) and Chromium (the
+# viewer's browser tests), then a virtual environment in .venv with overgrid and every extra. Safe to
+# run again: it only adds what is missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 

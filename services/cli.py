@@ -23,6 +23,7 @@ COMMANDS = {
         "score the running map against the simulator's ground truth",
     ),
     "health": ("services.client_cli", "show the fusion service's health"),
+    "view": ("services.viewer.server", "the live map in a browser (http://127.0.0.1:8470/)"),
     "router": ("services.router", "a Zenoh router for boxes that multicast scouting cannot reach"),
     "ros2": ("services.ros2.node", "a ROS 2 node (rclpy) publishing /map, /map_updates, height"),
     "rmw-zenoh": (

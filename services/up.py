@@ -32,6 +32,7 @@ from services.camera_sim.scene import FloorKind
 from services.evaluation.service import Evaluator, Recorder, map_summary
 from services.evaluation.service import report as evaluation_report
 from services.evaluation.service import table as evaluation_table
+from services.viewer.address import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, available_port, page_url
 
 STOP_TIMEOUT_S = 10.0
 LOG_TAIL_LINES = 15
@@ -55,6 +56,10 @@ class UpSettings(ZenohSettings):
     duration_s: float = Field(0.0, ge=0.0, description="stop after this long (0: run until Ctrl-C)")
     out: Path = Field(Path("out"), description="where the map, report and logs go")
     progress_s: float = Field(2.0, gt=0.0, description="period of the progress line")
+    view: bool = Field(True, description="serve the live map page (overgrid view) on loopback")
+    view_port: int = Field(
+        DEFAULT_HTTP_PORT, ge=1, le=65535, description="its port (if taken: any free one)"
+    )
 
 
 @dataclass
@@ -110,6 +115,8 @@ def _commands(settings: UpSettings) -> list[tuple[str, list[str]]]:
         ("camera_sim", sim),
     ]
     commands += [(f"depth_p{k}", ["depth", "--pair", f"p{k}"]) for k in range(settings.pairs)]
+    if settings.view:
+        commands.append(("viewer", ["view", "--http-port", str(settings.view_port)]))
     return commands
 
 
@@ -245,6 +252,9 @@ def save_outputs(
 def main(settings: UpSettings) -> None:
     stop = stop_on_signals()
     settings.out.mkdir(parents=True, exist_ok=True)
+    if settings.view:  # another `up` may hold the port: the URL printed must be this one's
+        port = available_port(DEFAULT_HTTP_HOST, settings.view_port)
+        settings = settings.model_copy(update={"view_port": port})
     children = start_children(settings)
     try:
         failed, written = _supervise(settings, children, stop)
@@ -267,7 +277,12 @@ def _supervise(
 ) -> tuple[Child | None, list[Path]]:
     """Show progress until the duration, Ctrl-C or a child's death; then save the map."""
     print(
-        f"overgrid up: {len(children)} processes, logs in {settings.out / 'logs'}; Ctrl-C to stop",
+        f"overgrid up: {len(children)} processes, logs in {settings.out / 'logs'}; Ctrl-C to stop"
+        + (
+            f"\nthe live map: {page_url(DEFAULT_HTTP_HOST, settings.view_port)}"
+            if settings.view
+            else ""
+        ),
         flush=True,
     )
     started = time.monotonic()

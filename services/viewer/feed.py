@@ -1,0 +1,244 @@
+"""The viewer's Zenoh side: follows fusion (``map/latest`` once, then ``map/updates`` through the
+client's MapFollower), asks ``map/health``, the pairs' calibrations and depth health, the height
+layer and ``map/objects`` on their own periods, and keeps the newest of each for the page side.
+
+Each poll runs on its own thread, so a silent key (fusion stopped, no camera source) delays no
+other; every change calls ``notify`` (from any thread), which the server turns into a push.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import zenoh
+
+from common.client import MapFollower, MapUnavailable, calibrations, health, latest, query_all
+from common.codec import CodecError
+from common.occupancy_map import OccupancyMap
+from services.viewer.footprints import Polygon, pair_footprint
+from services.viewer.status import TileRates, objects_of, pair_states
+from services.viewer.wire import MapLayers, height_mm
+
+log = logging.getLogger("view")
+DEPTH_HEALTH_ALL = "depth/*/health"
+MAP_OBJECTS = "map/objects"
+"""DESIGN.md's tracked obstacles; not served yet: the page shows objects once it answers."""
+
+
+@dataclass(frozen=True)
+class FeedPeriods:
+    health_s: float = 1.0
+    height_s: float = 1.0
+    calibration_s: float = 10.0
+    depth_health_s: float = 2.0
+    objects_s: float = 1.0
+    query_timeout_s: float = 1.0
+
+
+@dataclass(frozen=True)
+class FeedState:
+    """What the page side reads: one consistent set, replaced whole on every change."""
+
+    layers: MapLayers | None = None
+    map: OccupancyMap | None = None
+    """The followed map itself (occupancy only): what the download buttons save."""
+    fusion_answered_s: float | None = None
+    """When map/health last answered (epoch seconds); None: never yet."""
+    fusion_ok: bool = False
+    map_health: dict[str, Any] | None = None
+    pairs: list[dict[str, Any]] = field(default_factory=list)
+    objects: list[dict[str, Any]] | None = None
+    """None while map/objects does not answer."""
+    map_revision: int = 0
+    status_revision: int = 0
+
+
+class MapFeed:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        notify: Callable[[], None],
+        periods: FeedPeriods = FeedPeriods(),
+    ) -> None:
+        self._session = session
+        self.notify = notify
+        """Called after every change, from any thread; the server sets it to wake its pushes."""
+        self.periods = periods
+        self._lock = threading.Lock()
+        self._state = FeedState()
+        self._follower: MapFollower | None = None
+        self._rates = TileRates()
+        self._footprints: dict[str, Polygon] = {}
+        self._depth_health: dict[str, dict[str, Any]] = {}
+        self._height_version = -1
+        self._threads: list[threading.Thread] = []
+
+    def state(self) -> FeedState:
+        with self._lock:
+            return self._state
+
+    def start(self, stop: threading.Event) -> None:
+        p = self.periods
+        polls: list[tuple[str, float, Callable[[], None]]] = [
+            ("health", p.health_s, self._poll_health),
+            ("calibrations", p.calibration_s, self._poll_calibrations),
+            ("depth-health", p.depth_health_s, self._poll_depth_health),
+            ("objects", p.objects_s, self._poll_objects),
+        ]
+        if p.height_s > 0:
+            polls.append(("height", p.height_s, self._poll_height))
+        for name, period_s, poll in polls:
+            thread = threading.Thread(
+                target=self._loop, args=(stop, period_s, poll), name=f"view-{name}", daemon=True
+            )
+            thread.start()
+            self._threads.append(thread)
+
+    def join(self, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        for thread in self._threads:
+            thread.join(max(0.0, deadline - time.monotonic()))
+        if self._follower is not None:
+            self._follower.close()
+
+    @staticmethod
+    def _loop(stop: threading.Event, period_s: float, poll: Callable[[], None]) -> None:
+        while not stop.is_set():
+            started = time.monotonic()
+            try:
+                poll()
+            except (MapUnavailable, CodecError, zenoh.ZError) as error:
+                log.debug("poll failed", extra={"error": str(error)[:200]})
+            stop.wait(max(0.05, period_s - (time.monotonic() - started)))
+
+    def _update(self, **changes: Any) -> None:
+        self._change(lambda state: changes)
+
+    def _change(self, make: Callable[[FeedState], dict[str, Any]]) -> None:
+        """Replace the state with ``make``'s changes to it, made under the lock: the map arrives on
+        Zenoh's threads and the height layer on another, and neither may undo the other."""
+        with self._lock:
+            state = self._state
+            changes = make(state)
+            if not changes:
+                return
+            changes["map_revision"] = state.map_revision + ("layers" in changes)
+            changes["status_revision"] = state.status_revision + (set(changes) != {"layers", "map"})
+            self._state = replace(state, **changes)
+        self.notify()
+
+    # The map: MapFollower calls this from a Zenoh thread with each new version.
+    def _on_map(self, occupancy_map: OccupancyMap, arrival_s: float) -> None:
+        def changes(state: FeedState) -> dict[str, Any]:
+            layers = state.layers
+            if layers is not None and layers.version >= occupancy_map.version:
+                return {}
+            return {
+                "layers": MapLayers.of(occupancy_map)
+                if layers is None
+                else layers.with_occupancy(occupancy_map),
+                "map": occupancy_map,
+            }
+
+        self._change(changes)
+
+    def _follow(self) -> None:
+        follower = MapFollower(
+            self._session, timeout_s=self.periods.query_timeout_s, on_change=self._on_map
+        )
+        self._follower = follower
+        self._on_map(follower.map, time.time())
+        log.info("following the map", extra={"version": follower.map.version})
+
+    def _poll_health(self) -> None:
+        try:
+            answer = health(self._session, timeout_s=self.periods.query_timeout_s)
+        except (MapUnavailable, json.JSONDecodeError):
+            if self._state.fusion_ok:
+                log.warning("fusion not answering")
+            self._update(fusion_ok=False)  # the pairs as last known: fusion alone knows liveness
+            return
+        layers = self._state.layers
+        if (
+            self._follower is not None
+            and layers is not None
+            and answer["map"]["version"] < layers.version
+        ):
+            # A fusion that came back without its saved map counts from zero: follow it anew.
+            log.warning(
+                "map version went back: following again",
+                extra={"version": answer["map"]["version"]},
+            )
+            self._follower.close()
+            self._follower = None
+            self._update(layers=None, map=None)
+        if self._follower is None:
+            self._follow()
+        self._update(
+            fusion_ok=True,
+            fusion_answered_s=time.time(),
+            map_health=answer,
+            pairs=self._pairs(answer),
+        )
+
+    def _pairs(self, answer: dict[str, Any] | None) -> list[dict[str, Any]]:
+        with self._lock:
+            footprints, depth_health = dict(self._footprints), dict(self._depth_health)
+        return pair_states(answer, self._rates, time.time(), depth_health, footprints)
+
+    def _poll_height(self) -> None:
+        layers = self._state.layers
+        if layers is None or layers.version == self._height_version:
+            return
+        layered = latest(self._session, layers=("height",), timeout_s=self.periods.query_timeout_s)
+        self._height_version = layered.version
+        heights = height_mm(layered.height_m, layered.occupancy.shape)
+
+        def changes(state: FeedState) -> dict[str, Any]:
+            if state.layers is None:
+                return {}
+            updated = state.layers.with_height(heights, layered.window, layered.resolution_m)
+            return {"layers": updated, "map": state.map}
+
+        self._change(changes)
+
+    def _poll_calibrations(self) -> None:
+        found = {
+            c.pair: pair_footprint(c)
+            for c in calibrations(self._session, self.periods.query_timeout_s)
+        }
+        footprints = {pair: polygon for pair, polygon in found.items() if polygon is not None}
+        with self._lock:
+            changed = footprints != self._footprints
+            self._footprints = footprints
+        if changed:
+            self._update(pairs=self._pairs(self._state.map_health))
+
+    def _poll_depth_health(self) -> None:
+        rows: dict[str, dict[str, Any]] = {}
+        for payload in query_all(self._session, DEPTH_HEALTH_ALL, self.periods.query_timeout_s):
+            try:
+                row = json.loads(payload)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(row, dict) and isinstance(row.get("pair"), str):
+                rows[row["pair"]] = row
+        with self._lock:
+            self._depth_health = rows
+
+    def _poll_objects(self) -> None:
+        objects: list[dict[str, Any]] | None = None
+        try:
+            replies = query_all(self._session, MAP_OBJECTS, self.periods.query_timeout_s)
+        except MapUnavailable:
+            replies = []
+        for payload in replies:
+            objects = (objects or []) + objects_of(payload)
+        if objects != self._state.objects:
+            self._update(objects=objects)

@@ -1,0 +1,578 @@
+// overgrid view: the live map on a canvas, fed by the viewer's WebSocket.
+// Messages: text JSON ("hello", "status") and binary frames ("map": the whole map, "rect": a
+// changed rectangle): u32 LE header length, JSON header, int8 occupancy, u16 LE height in mm.
+"use strict";
+
+(() => {
+  const canvas = document.getElementById("map");
+  const ctx = canvas.getContext("2d");
+  const banner = document.getElementById("banner");
+  const summary = document.getElementById("summary");
+  const readout = document.getElementById("readout");
+  const pairsList = document.getElementById("pairs");
+  const objectsBox = document.getElementById("objects");
+  const legend = document.getElementById("legend");
+  const heightMode = document.getElementById("height-mode");
+
+  const COLORS = { alive: "#1f9d45", dead: "#d32f2f", unknown: "#e0a100", object: "#1565c0", axisX: "#d32f2f", axisY: "#1f9d45" };
+  const SERVER_SILENT_S = 3.5; // the server sends status every second: silence means a lost link
+  const HEIGHT_RAMP = [[48, 18, 59], [70, 134, 251], [27, 229, 181], [164, 252, 60], [251, 185, 56], [228, 70, 10], [122, 4, 3]];
+
+  const state = {
+    hello: null,
+    map: null, // {i0, j0, cols, rows, resolution_m, version, stamp_ns, occupancy, height, image}
+    status: null,
+    view: { cx: 0, cy: 0, pxPerM: 40 },
+    fitted: false,
+    socket: null,
+    connected: false,
+    lastMessageMs: 0,
+    retryMs: 500,
+    pointer: null,
+    drawQueued: false,
+  };
+
+  // ---- frames -------------------------------------------------------------------------------
+  function readFrame(buffer) {
+    const length = new DataView(buffer).getUint32(0, true);
+    const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, length)));
+    const cells = header.rows * header.cols;
+    const start = 4 + length;
+    const occupancy = new Int8Array(buffer, start, cells);
+    const height = new Uint16Array(buffer.slice(start + cells, start + 3 * cells)); // copied: aligned
+    return { header, occupancy, height };
+  }
+
+  function onMapFrame({ header, occupancy, height }) {
+    const image = document.createElement("canvas");
+    image.width = Math.max(header.cols, 1);
+    image.height = Math.max(header.rows, 1);
+    state.map = { ...header, occupancy: new Int8Array(occupancy), height, image };
+    paint(0, 0, header.cols, header.rows);
+    if (!state.fitted && header.cols > 0) fit();
+    queueDraw();
+  }
+
+  function onRectFrame({ header, occupancy, height }) {
+    const map = state.map;
+    if (!map) return;
+    const col0 = header.i0 - map.i0;
+    const row0 = header.j0 - map.j0;
+    if (col0 < 0 || row0 < 0 || col0 + header.cols > map.cols || row0 + header.rows > map.rows) return;
+    for (let r = 0; r < header.rows; r++) {
+      const at = (row0 + r) * map.cols + col0;
+      map.occupancy.set(occupancy.subarray(r * header.cols, (r + 1) * header.cols), at);
+      map.height.set(height.subarray(r * header.cols, (r + 1) * header.cols), at);
+    }
+    map.version = header.version;
+    map.stamp_ns = header.stamp_ns;
+    paint(col0, row0, header.cols, header.rows);
+    queueDraw();
+  }
+
+  // ---- colours ------------------------------------------------------------------------------
+  function mix(a, b, t) {
+    return [0, 1, 2].map((k) => Math.round(a[k] + (b[k] - a[k]) * t));
+  }
+
+  function ramp(t) {
+    const x = Math.min(Math.max(t, 0), 1) * (HEIGHT_RAMP.length - 1);
+    const k = Math.min(Math.floor(x), HEIGHT_RAMP.length - 2);
+    return mix(HEIGHT_RAMP[k], HEIGHT_RAMP[k + 1], x - k);
+  }
+
+  function cellColor(p, heightMm) {
+    const h = state.hello;
+    if (p < 0) return h.colors.unknown;
+    if (heightMode.checked && p >= h.occupied_min && heightMm !== h.no_height_mm) {
+      return ramp(heightMm / 1000 / h.height_band_m[1]);
+    }
+    if (p <= h.free_max) return h.colors.free;
+    if (p >= h.occupied_min) return h.colors.occupied;
+    // Undecided cells: shades between free and occupied, by their probability.
+    return mix(h.colors.free, h.colors.occupied, 0.25 + (0.5 * (p - h.free_max)) / (h.occupied_min - h.free_max));
+  }
+
+  // Paint map rows [row0, row0+rows) × cols [col0, col0+cols) into the map's image (y up).
+  function paint(col0, row0, cols, rows) {
+    const map = state.map;
+    if (!map || !state.hello || cols <= 0 || rows <= 0) return;
+    const pixels = new ImageData(cols, rows);
+    const data = pixels.data;
+    for (let y = 0; y < rows; y++) {
+      const row = row0 + (rows - 1 - y);
+      for (let x = 0; x < cols; x++) {
+        const cell = row * map.cols + col0 + x;
+        const rgb = cellColor(map.occupancy[cell], map.height[cell]);
+        const o = 4 * (y * cols + x);
+        data[o] = rgb[0];
+        data[o + 1] = rgb[1];
+        data[o + 2] = rgb[2];
+        data[o + 3] = 255;
+      }
+    }
+    map.image.getContext("2d").putImageData(pixels, col0, map.rows - row0 - rows);
+  }
+
+  // ---- view ---------------------------------------------------------------------------------
+  function worldToScreen(x, y) {
+    const v = state.view;
+    return [canvas.width / 2 + (x - v.cx) * v.pxPerM, canvas.height / 2 - (y - v.cy) * v.pxPerM];
+  }
+
+  function screenToWorld(sx, sy) {
+    const v = state.view;
+    return [v.cx + (sx - canvas.width / 2) / v.pxPerM, v.cy - (sy - canvas.height / 2) / v.pxPerM];
+  }
+
+  function fit() {
+    const map = state.map;
+    if (!map || map.cols === 0) return;
+    const r = map.resolution_m;
+    const width = map.cols * r;
+    const height = map.rows * r;
+    state.view.cx = map.i0 * r + width / 2;
+    state.view.cy = map.j0 * r + height / 2;
+    state.view.pxPerM = 0.95 * Math.min(canvas.width / width, canvas.height / height);
+    state.fitted = true;
+    queueDraw();
+  }
+
+  function resize() {
+    const w = Math.max(canvas.clientWidth, 1);
+    const h = Math.max(canvas.clientHeight, 1);
+    if (canvas.width !== w || canvas.height !== h) {
+      canvas.width = w;
+      canvas.height = h;
+      if (state.map && !state.userMoved) fit();
+    }
+  }
+
+  function queueDraw() {
+    if (state.drawQueued) return;
+    state.drawQueued = true;
+    requestAnimationFrame(() => {
+      state.drawQueued = false;
+      draw();
+    });
+  }
+
+  function draw() {
+    resize();
+    ctx.setTransform(1, 0, 0, 1, 0, 0);
+    ctx.fillStyle = "#d9dce2";
+    ctx.fillRect(0, 0, canvas.width, canvas.height);
+    const map = state.map;
+    if (map && map.cols > 0) {
+      const r = map.resolution_m;
+      const [sx, sy] = worldToScreen(map.i0 * r, (map.j0 + map.rows) * r);
+      const k = state.view.pxPerM * r;
+      ctx.imageSmoothingEnabled = false;
+      ctx.drawImage(map.image, sx, sy, map.cols * k, map.rows * k);
+      ctx.strokeStyle = "#7a808a";
+      ctx.lineWidth = 1;
+      ctx.strokeRect(sx - 0.5, sy - 0.5, map.cols * k + 1, map.rows * k + 1);
+    }
+    drawFootprints();
+    drawObjects();
+    drawOriginAxes();
+    drawScaleBar();
+    drawAxesGlyph();
+  }
+
+  function polygonPath(points) {
+    ctx.beginPath();
+    points.forEach(([x, y], k) => {
+      const [sx, sy] = worldToScreen(x, y);
+      if (k === 0) ctx.moveTo(sx, sy);
+      else ctx.lineTo(sx, sy);
+    });
+    ctx.closePath();
+  }
+
+  function pairState(pair) {
+    if (!state.status || state.status.stale) return "unknown";
+    if (pair.alive) return "alive";
+    return pair.known_to_fusion ? "dead" : "no-depth";
+  }
+
+  function pairLine(pair) {
+    const s = pairState(pair);
+    if (s === "alive") {
+      const parts = [pair.pair];
+      if (pair.frame_rate_hz !== null) parts.push(`${pair.frame_rate_hz.toFixed(1)} Hz`);
+      if (pair.capture_to_map_ms !== null && pair.capture_to_map_ms !== undefined) parts.push(`${Math.round(pair.capture_to_map_ms)} ms`);
+      return parts.join(" · ");
+    }
+    return `${pair.pair} · ${s === "unknown" ? "state unknown" : s === "dead" ? "DEAD" : "no depth process"}`;
+  }
+
+  function drawFootprints() {
+    const pairs = state.status ? state.status.pairs : [];
+    for (const pair of pairs) {
+      if (!pair.footprint_m) continue;
+      const s = pairState(pair);
+      const color = s === "alive" ? COLORS.alive : s === "dead" ? COLORS.dead : COLORS.unknown;
+      polygonPath(pair.footprint_m);
+      ctx.setLineDash(s === "alive" ? [] : [8, 5]);
+      ctx.lineWidth = 2;
+      ctx.strokeStyle = color;
+      ctx.stroke();
+      ctx.setLineDash([]);
+      const xs = pair.footprint_m.map((p) => p[0]);
+      const ys = pair.footprint_m.map((p) => p[1]);
+      const [lx, ly] = worldToScreen(Math.min(...xs), Math.max(...ys));
+      label(pairLine(pair), lx + 6, ly + 6, color);
+    }
+  }
+
+  function label(text, x, y, color) {
+    ctx.font = "12px system-ui, sans-serif";
+    const w = ctx.measureText(text).width;
+    ctx.fillStyle = "rgba(255, 255, 255, 0.85)";
+    ctx.fillRect(x, y, w + 8, 17);
+    ctx.fillStyle = color;
+    ctx.fillText(text, x + 4, y + 13);
+  }
+
+  function objectOutline(o) {
+    if (o.footprint_m) return o.footprint_m;
+    if (!o.center_m || !o.size_m) return null;
+    const [cx, cy] = o.center_m;
+    const [l, w] = o.size_m;
+    const c = Math.cos(o.yaw_rad || 0);
+    const s = Math.sin(o.yaw_rad || 0);
+    return [[-1, -1], [1, -1], [1, 1], [-1, 1]].map(([a, b]) => [cx + (a * l * c - b * w * s) / 2, cy + (a * l * s + b * w * c) / 2]);
+  }
+
+  function drawObjects() {
+    const objects = (state.status && state.status.objects) || [];
+    for (const o of objects) {
+      const outline = objectOutline(o);
+      if (!outline) continue;
+      polygonPath(outline);
+      ctx.lineWidth = 2;
+      ctx.strokeStyle = COLORS.object;
+      ctx.stroke();
+      const cx = outline.reduce((a, p) => a + p[0], 0) / outline.length;
+      const cy = outline.reduce((a, p) => a + p[1], 0) / outline.length;
+      if (o.velocity_mps) {
+        const [ax, ay] = worldToScreen(cx, cy);
+        const [bx, by] = worldToScreen(cx + o.velocity_mps[0], cy + o.velocity_mps[1]); // 1 s ahead
+        arrow(ax, ay, bx, by, COLORS.object);
+      }
+      const size = o.size_m ? ` ${o.size_m[0].toFixed(2)}×${o.size_m[1].toFixed(2)} m` : "";
+      const [sx, sy] = worldToScreen(cx, cy);
+      label(`${o.id}${o.class ? " " + o.class : ""}${size}`, sx + 6, sy - 20, COLORS.object);
+    }
+  }
+
+  function arrow(ax, ay, bx, by, color) {
+    const angle = Math.atan2(by - ay, bx - ax);
+    ctx.strokeStyle = color;
+    ctx.fillStyle = color;
+    ctx.lineWidth = 2;
+    ctx.beginPath();
+    ctx.moveTo(ax, ay);
+    ctx.lineTo(bx, by);
+    ctx.stroke();
+    ctx.beginPath();
+    ctx.moveTo(bx, by);
+    ctx.lineTo(bx - 9 * Math.cos(angle - 0.4), by - 9 * Math.sin(angle - 0.4));
+    ctx.lineTo(bx - 9 * Math.cos(angle + 0.4), by - 9 * Math.sin(angle + 0.4));
+    ctx.closePath();
+    ctx.fill();
+  }
+
+  function drawOriginAxes() {
+    // The world frame's origin with 1 m axes: where (0, 0) is, which way x and y point.
+    const [ox, oy] = worldToScreen(0, 0);
+    const [xx, xy] = worldToScreen(1, 0);
+    const [yx, yy] = worldToScreen(0, 1);
+    arrow(ox, oy, xx, xy, COLORS.axisX);
+    arrow(ox, oy, yx, yy, COLORS.axisY);
+    ctx.font = "bold 12px system-ui, sans-serif";
+    ctx.fillStyle = COLORS.axisX;
+    ctx.fillText("x", xx + 4, xy + 4);
+    ctx.fillStyle = COLORS.axisY;
+    ctx.fillText("y", yx - 4, yy - 6);
+  }
+
+  function drawAxesGlyph() {
+    const x0 = canvas.width - 60;
+    const y0 = canvas.height - 20;
+    arrow(x0, y0, x0 + 36, y0, COLORS.axisX);
+    arrow(x0, y0, x0, y0 - 36, COLORS.axisY);
+    ctx.font = "bold 12px system-ui, sans-serif";
+    ctx.fillStyle = COLORS.axisX;
+    ctx.fillText("x", x0 + 40, y0 + 4);
+    ctx.fillStyle = COLORS.axisY;
+    ctx.fillText("y", x0 - 4, y0 - 42);
+  }
+
+  function drawScaleBar() {
+    const k = state.view.pxPerM;
+    const steps = [0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 20, 50, 100];
+    const lengthM = steps.find((m) => m * k >= 80) || steps[steps.length - 1];
+    const px = lengthM * k;
+    const x0 = 16;
+    const y0 = canvas.height - 18;
+    ctx.fillStyle = "rgba(255, 255, 255, 0.85)";
+    ctx.fillRect(x0 - 6, y0 - 22, px + 12, 30);
+    ctx.fillStyle = "#1d1f24";
+    ctx.fillRect(x0, y0 - 3, px, 4);
+    ctx.fillRect(x0, y0 - 9, 2, 10);
+    ctx.fillRect(x0 + px - 2, y0 - 9, 2, 10);
+    ctx.font = "12px system-ui, sans-serif";
+    ctx.fillText(lengthM >= 1 ? `${lengthM} m` : `${Math.round(lengthM * 100)} cm`, x0 + 4, y0 - 10);
+  }
+
+  // ---- side panel, summary, banner ----------------------------------------------------------
+  function fmt(value, digits, unit) {
+    return value === null || value === undefined ? "—" : `${Number(value).toFixed(digits)} ${unit}`;
+  }
+
+  function renderPanel() {
+    const status = state.status;
+    pairsList.replaceChildren();
+    if (!status || status.pairs.length === 0) {
+      const li = document.createElement("li");
+      li.className = "muted";
+      li.textContent = "none yet";
+      pairsList.append(li);
+    }
+    for (const pair of status ? status.pairs : []) {
+      const s = pairState(pair);
+      const li = document.createElement("li");
+      li.dataset.pair = pair.pair;
+      li.dataset.state = s;
+      const name = document.createElement("span");
+      name.className = "name";
+      name.textContent = pair.pair;
+      const word = document.createElement("span");
+      word.className = "state";
+      word.textContent = { alive: "alive", dead: "DEAD", "no-depth": "no depth", unknown: "unknown" }[s];
+      const detail = document.createElement("div");
+      detail.className = "detail";
+      detail.textContent =
+        `frame rate ${fmt(pair.frame_rate_hz, 1, "Hz")} · latency ${fmt(pair.capture_to_map_ms, 0, "ms")}\n` +
+        `last tile ${fmt(pair.last_tile_age_s, 1, "s")} ago` +
+        (pair.floor_model ? ` · floor model ${pair.floor_model}` : "") +
+        (pair.footprint_m ? "" : " · no calibration");
+      detail.style.whiteSpace = "pre-line";
+      li.append(name, word, detail);
+      pairsList.append(li);
+    }
+    if (!status || status.objects === null || status.objects === undefined) {
+      objectsBox.className = "muted";
+      objectsBox.textContent = "map/objects not served";
+    } else {
+      objectsBox.className = "";
+      objectsBox.textContent = status.objects.length
+        ? status.objects.map((o) => `${o.id}${o.class ? " " + o.class : ""}`).join(", ")
+        : "none tracked";
+    }
+  }
+
+  function renderLegend() {
+    const h = state.hello;
+    if (!h) return;
+    legend.replaceChildren();
+    const swatch = (rgb, text) => {
+      const row = document.createElement("div");
+      const box = document.createElement("i");
+      box.style.background = `rgb(${rgb.join(",")})`;
+      row.append(box, document.createTextNode(text));
+      legend.append(row);
+    };
+    swatch(h.colors.free, `free (p ≤ ${h.free_max}%)`);
+    swatch(h.colors.occupied, `occupied (p ≥ ${h.occupied_min}%)`);
+    swatch(mix(h.colors.free, h.colors.occupied, 0.5), "undecided");
+    swatch(h.colors.unknown, "unknown");
+    if (heightMode.checked) {
+      const row = document.createElement("div");
+      const bar = document.createElement("i");
+      bar.className = "ramp";
+      bar.style.background = `linear-gradient(to right, ${HEIGHT_RAMP.map((c) => `rgb(${c.join(",")})`).join(", ")})`;
+      row.append(document.createTextNode("0"), bar, document.createTextNode(`${h.height_band_m[1]} m`));
+      legend.append(row);
+    }
+  }
+
+  function renderSummary() {
+    const status = state.status;
+    const map = state.map;
+    const parts = [];
+    if (map) parts.push(`map v${map.version} · ${map.cols}×${map.rows} cells @ ${Math.round(map.resolution_m * 100)} cm`);
+    if (status && status.map && status.map.capture_age_s !== null) parts.push(`newest capture ${status.map.capture_age_s.toFixed(1)} s ago`);
+    if (status) {
+      const alive = status.pairs.filter((p) => p.alive).length;
+      parts.push(`${alive}/${status.pairs.length} pairs alive`);
+    }
+    summary.textContent = parts.join(" · ") || (state.connected ? "waiting for the map…" : "connecting…");
+  }
+
+  function renderBanner() {
+    let kind = null;
+    let text = "";
+    const silentS = (performance.now() - state.lastMessageMs) / 1000;
+    if (!state.connected) {
+      kind = "disconnected";
+      text = "Connection to the viewer lost — reconnecting…";
+    } else if (silentS > SERVER_SILENT_S) {
+      kind = "disconnected";
+      text = `No word from the viewer for ${silentS.toFixed(0)} s — reconnecting…`;
+    } else if (state.status && state.status.stale) {
+      kind = "stale";
+      const since = state.status.fusion_silent_s;
+      text =
+        since === null
+          ? "Map unavailable: the fusion service has not answered yet"
+          : `Map is stale: the fusion service has not answered for ${since.toFixed(0)} s — showing the last map`;
+    }
+    banner.hidden = kind === null;
+    banner.dataset.kind = kind || "";
+    banner.textContent = text;
+  }
+
+  function renderReadout() {
+    const p = state.pointer;
+    const map = state.map;
+    if (!p || !map) return;
+    const [x, y] = screenToWorld(p[0], p[1]);
+    const r = map.resolution_m;
+    const i = Math.floor(x / r);
+    const j = Math.floor(y / r);
+    const col = i - map.i0;
+    const row = j - map.j0;
+    let cell = "outside the map";
+    if (col >= 0 && row >= 0 && col < map.cols && row < map.rows) {
+      const value = map.occupancy[row * map.cols + col];
+      const mm = map.height[row * map.cols + col];
+      const prob = value < 0 ? "unknown" : `p(occ) ${value}%`;
+      const height = mm === state.hello.no_height_mm ? "height —" : `height ${(mm / 1000).toFixed(2)} m`;
+      cell = `${prob}  ${height}  last observed — (not served by fusion)`;
+    }
+    readout.textContent = `x ${x.toFixed(2)} m  y ${y.toFixed(2)} m  cell (${i}, ${j})  ${cell}`;
+  }
+
+  // ---- socket -------------------------------------------------------------------------------
+  function connect() {
+    const url = new URL("ws", location.href);
+    url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
+    url.search = "";
+    const socket = new WebSocket(url);
+    socket.binaryType = "arraybuffer";
+    state.socket = socket;
+    socket.onopen = () => {
+      state.connected = true;
+      state.retryMs = 500;
+      state.lastMessageMs = performance.now();
+      renderBanner();
+    };
+    socket.onmessage = (event) => {
+      state.lastMessageMs = performance.now();
+      if (typeof event.data === "string") {
+        const message = JSON.parse(event.data);
+        if (message.type === "hello") {
+          state.hello = message;
+          renderLegend();
+        } else if (message.type === "status") {
+          state.status = message;
+          renderPanel();
+          queueDraw();
+        }
+      } else {
+        const frame = readFrame(event.data);
+        if (frame.header.type === "map") onMapFrame(frame);
+        else if (frame.header.type === "rect") onRectFrame(frame);
+      }
+      renderSummary();
+      renderBanner();
+    };
+    socket.onclose = () => {
+      if (state.socket !== socket) return;
+      state.connected = false;
+      state.socket = null;
+      renderBanner();
+      setTimeout(connect, state.retryMs);
+      state.retryMs = Math.min(state.retryMs * 2, 5000);
+    };
+    socket.onerror = () => socket.close();
+  }
+
+  setInterval(() => {
+    renderBanner();
+    const silentS = (performance.now() - state.lastMessageMs) / 1000;
+    if (state.connected && silentS > SERVER_SILENT_S && state.socket) state.socket.close();
+  }, 1000);
+
+  // ---- pointer: pan, zoom, readout ----------------------------------------------------------
+  let drag = null;
+  canvas.addEventListener("pointerdown", (event) => {
+    drag = { x: event.clientX, y: event.clientY };
+    canvas.setPointerCapture(event.pointerId);
+    canvas.classList.add("dragging");
+  });
+  canvas.addEventListener("pointermove", (event) => {
+    const rect = canvas.getBoundingClientRect();
+    state.pointer = [event.clientX - rect.left, event.clientY - rect.top];
+    if (drag) {
+      state.view.cx -= (event.clientX - drag.x) / state.view.pxPerM;
+      state.view.cy += (event.clientY - drag.y) / state.view.pxPerM;
+      drag = { x: event.clientX, y: event.clientY };
+      state.userMoved = true;
+      queueDraw();
+    }
+    renderReadout();
+  });
+  const endDrag = () => {
+    drag = null;
+    canvas.classList.remove("dragging");
+  };
+  canvas.addEventListener("pointerup", endDrag);
+  canvas.addEventListener("pointercancel", endDrag);
+  canvas.addEventListener(
+    "wheel",
+    (event) => {
+      event.preventDefault();
+      const rect = canvas.getBoundingClientRect();
+      const sx = event.clientX - rect.left;
+      const sy = event.clientY - rect.top;
+      const [wx, wy] = screenToWorld(sx, sy);
+      const factor = Math.exp(-event.deltaY * 0.0015);
+      state.view.pxPerM = Math.min(Math.max(state.view.pxPerM * factor, 1), 5000);
+      const [nx, ny] = screenToWorld(sx, sy);
+      state.view.cx += wx - nx; // the point under the pointer stays put
+      state.view.cy += wy - ny;
+      state.userMoved = true;
+      queueDraw();
+      renderReadout();
+    },
+    { passive: false },
+  );
+  document.getElementById("fit").addEventListener("click", () => {
+    state.userMoved = false;
+    fit();
+  });
+  heightMode.addEventListener("change", () => {
+    if (state.map) paint(0, 0, state.map.cols, state.map.rows);
+    renderLegend();
+    queueDraw();
+  });
+  window.addEventListener("resize", queueDraw);
+
+  // For tests and for the curious: read what is drawn where.
+  window.overgridView = {
+    state,
+    worldToScreen,
+    pixelAt(x, y) {
+      draw();
+      const [sx, sy] = worldToScreen(x, y);
+      return Array.from(ctx.getImageData(Math.round(sx), Math.round(sy), 1, 1).data);
+    },
+  };
+
+  connect();
+  queueDraw();
+})();

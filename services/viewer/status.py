@@ -1,0 +1,128 @@
+"""What the page shows beside the map: each pair's state and the tracked objects, from the answers
+of ``map/health``, ``depth/*/health``, the calibrations and ``map/objects``. Pure."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import deque
+from typing import Any
+
+import msgpack
+
+from services.viewer.footprints import Polygon
+
+RATE_WINDOW_S = 3.0
+"""Frame rates are averaged over this long: steady to read, still quick to show a stall."""
+OBJECT_FIELDS = (
+    "id",
+    "class",
+    "footprint_m",
+    "center_m",
+    "size_m",
+    "yaw_rad",
+    "top_m",
+    "velocity_mps",
+)
+"""What the page draws of an object (DESIGN.md's map/objects: id, class, oriented footprint, top
+height, velocity); anything else a reply carries is left out."""
+
+
+class TileRates:
+    """Tiles per second per pair from map/health's running counts (a depth process sends one tile
+    per frame it processes, so this is the pair's frame rate as fusion receives it)."""
+
+    def __init__(self, window_s: float = RATE_WINDOW_S) -> None:
+        self.window_s = window_s
+        self._history: dict[str, deque[tuple[float, int]]] = {}
+
+    def update(self, pair: str, tiles: int, now_s: float) -> float | None:
+        history = self._history.setdefault(pair, deque())
+        if history and tiles < history[-1][1]:  # fusion restarted: counts begin again
+            history.clear()
+        history.append((now_s, tiles))
+        while len(history) > 2 and history[1][0] <= now_s - self.window_s:
+            history.popleft()
+        (t0, n0), (t1, n1) = history[0], history[-1]
+        return (n1 - n0) / (t1 - t0) if t1 - t0 >= 0.5 else None
+
+
+def _floor_model(*rows: dict[str, Any]) -> str | None:
+    """The floor model's state, from whichever health answer carries one (a string, or an object
+    with a ``state``)."""
+    for row in rows:
+        value = row.get("floor_model")
+        if isinstance(value, dict):
+            value = value.get("state", json.dumps(value, sort_keys=True))
+        if value is not None:
+            return str(value)
+    return None
+
+
+def pair_states(
+    health: dict[str, Any] | None,
+    rates: TileRates,
+    now_s: float,
+    depth_health: dict[str, dict[str, Any]],
+    footprints: dict[str, Polygon],
+) -> list[dict[str, Any]]:
+    """One row per pair that fusion knows or that has a calibration (a camera with no depth
+    process shows up too, as not alive)."""
+    fused: dict[str, dict[str, Any]] = (health or {}).get("pairs", {})
+    rows = []
+    for pair in sorted(set(fused) | set(footprints)):
+        row = fused.get(pair, {})
+        tiles = row.get("tiles")
+        rate = rates.update(pair, int(tiles), now_s) if isinstance(tiles, int) else None
+        rows.append(
+            {
+                "pair": pair,
+                "alive": bool(row.get("alive", False)),
+                "known_to_fusion": pair in fused,
+                "frame_rate_hz": None if rate is None else round(rate, 2),
+                "capture_to_map_ms": row.get("capture_to_fused_ms"),
+                "last_tile_age_s": row.get("last_tile_age_s"),
+                "tiles": tiles,
+                "floor_model": _floor_model(depth_health.get(pair, {}), row),
+                "footprint_m": footprints.get(pair),
+            }
+        )
+    return rows
+
+
+def _finite_numbers(value: Any) -> bool:
+    if isinstance(value, bool):
+        return False
+    if isinstance(value, int | float):
+        return math.isfinite(value)
+    if isinstance(value, list | tuple):
+        return all(_finite_numbers(v) for v in value)
+    return False
+
+
+def objects_of(payload: bytes) -> list[dict[str, Any]]:
+    """The objects of a ``map/objects`` reply, JSON or msgpack, a list or ``{"objects": [...]}``:
+    the key is not served yet, so this reads the fields DESIGN.md names and drops the rest."""
+    try:
+        answer = json.loads(payload)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        try:
+            answer = msgpack.unpackb(payload, raw=False)
+        except (ValueError, msgpack.UnpackException):
+            return []
+    if isinstance(answer, dict):
+        answer = answer.get("objects", [])
+    if not isinstance(answer, list):
+        return []
+    objects = []
+    for item in answer:
+        if not isinstance(item, dict) or "id" not in item:
+            continue
+        kept: dict[str, Any] = {"id": str(item["id"])}
+        if isinstance(item.get("class"), str):
+            kept["class"] = item["class"]
+        for name in OBJECT_FIELDS[2:]:
+            if name in item and _finite_numbers(item[name]):
+                kept[name] = item[name]
+        objects.append(kept)
+    return objects

@@ -1,0 +1,478 @@
+"""``overgrid view``: the pure map → message logic, the footprints and pair states, and the page in a
+real browser (Debian's chromium driven by Playwright) following real fusion and depth processes."""
+
+from __future__ import annotations
+
+import http.client
+import io
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from common.client import latest
+from common.codec import WIRE_ENCODING, encode
+from common.lattice import Window
+from common.mapfiles import PGM_FREE, PGM_OCCUPIED, PICTURE_COLORS
+from common.messages import CALIB_KIND
+from common.occupancy_map import OccupancyMap
+from common.png import decode_png
+from services.camera_sim.rig import RigSpec, layout_pairs
+from services.evaluation.metrics import seen_by_cameras
+from services.viewer.address import available_port, page_url
+from services.viewer.footprints import clip_convex, pair_footprint
+from services.viewer.status import TileRates, objects_of, pair_states
+from services.viewer.wire import (
+    CHUNK_CELLS,
+    NO_HEIGHT_MM,
+    MapLayers,
+    changed_windows,
+    frames_between,
+    height_mm,
+    read_frame,
+)
+from tests.conftest import REPO, Bus, free_port, wait_for
+from tests.tiles import tile_payload
+
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+RESOLUTION_M = 0.05
+FLOOR_SIZE_M = (6.0, 5.0)
+
+
+def _map(occupancy: np.ndarray, i0: int = 0, j0: int = 0, version: int = 1) -> OccupancyMap:
+    return OccupancyMap(occupancy.astype(np.int8), RESOLUTION_M, i0, j0, version, 0)
+
+
+# ---- wire: full map once, then changed rectangles -------------------------------------------
+
+
+def test_changed_windows_are_row_runs_of_changed_chunks() -> None:
+    base = np.full((200, 300), -1, np.int8)
+    old = MapLayers.of(_map(base, i0=-10, j0=5))
+    changed = base.copy()
+    changed[3, 3] = 90  # chunk (0, 0)
+    changed[3, 70] = 90  # chunk (0, 1): joins the first in one run
+    changed[150, 299] = 0  # chunk (2, 4), the ragged last column
+    new = MapLayers.of(_map(changed, i0=-10, j0=5, version=2))
+    windows = changed_windows(old, new)
+    assert windows == [
+        Window(-10, 5, 2 * CHUNK_CELLS, CHUNK_CELLS),
+        Window(-10 + 4 * CHUNK_CELLS, 5 + 2 * CHUNK_CELLS, 300 - 4 * CHUNK_CELLS, CHUNK_CELLS),
+    ]
+    assert changed_windows(new, new) == []
+
+
+def test_a_grown_map_or_a_mostly_changed_one_goes_whole() -> None:
+    old = MapLayers.of(_map(np.full((100, 100), -1)))
+    assert changed_windows(old, MapLayers.of(_map(np.full((100, 120), -1)))) is None
+    assert changed_windows(old, MapLayers.of(_map(np.zeros((100, 100))))) is None
+    assert [read_frame(f)[0]["type"] for f in frames_between(None, old)] == ["map"]
+
+
+def test_frames_carry_exact_cells_and_heights() -> None:
+    occupancy = (np.arange(100 * 100) % 102 - 1).astype(np.int8).reshape(100, 100)
+    heights = np.full((100, 100), np.nan, np.float32)
+    heights[2, 3] = 1.2345
+    layered = OccupancyMap(occupancy, RESOLUTION_M, 4, -2, 7, 123, height_m=heights)
+    header, cells, height = read_frame(frames_between(None, MapLayers.of(layered))[0])
+    assert header == {
+        "type": "map",
+        "version": 7,
+        "stamp_ns": 123,
+        "resolution_m": RESOLUTION_M,
+        "i0": 4,
+        "j0": -2,
+        "cols": 100,
+        "rows": 100,
+    }
+    np.testing.assert_array_equal(cells, occupancy)
+    assert height[2, 3] == 1234 and (height == NO_HEIGHT_MM).sum() == 100 * 100 - 1
+    old = MapLayers.of(layered)
+    changed = occupancy.copy()
+    changed[99, 99] = 5
+    new = old.with_occupancy(_map(changed, 4, -2, version=8))
+    assert new.height_mm[2, 3] == 1234  # updates carry no height: the known one is kept
+    (rect,) = frames_between(old, new)
+    header, cells, height = read_frame(rect)
+    assert header["type"] == "rect" and header["version"] == 8
+    edge = 100 - CHUNK_CELLS
+    assert (header["i0"], header["j0"], header["cols"], header["rows"]) == (
+        4 + CHUNK_CELLS,
+        -2 + CHUNK_CELLS,
+        edge,
+        edge,
+    )
+    np.testing.assert_array_equal(cells, changed[CHUNK_CELLS:, CHUNK_CELLS:])
+
+
+def test_height_follows_the_map_window() -> None:
+    assert list(height_mm(np.array([np.nan, -0.01, 0.5, 99.0], np.float32), (4,))) == [
+        NO_HEIGHT_MM,
+        0,
+        500,
+        NO_HEIGHT_MM - 1,
+    ]
+    heights = np.full((4, 4), 0.3, np.float32)
+    small = OccupancyMap(np.zeros((4, 4), np.int8), RESOLUTION_M, 0, 0, 1, 0, height_m=heights)
+    small_mm = height_mm(small.height_m, (4, 4))
+    layers = MapLayers.of(_map(np.zeros((4, 4)))).with_height(small_mm, small.window, RESOLUTION_M)
+    grown = layers.with_occupancy(_map(np.zeros((4, 6)), i0=-2, version=2))
+    assert (grown.height_mm[:, 2:] == 300).all() and (grown.height_mm[:, :2] == NO_HEIGHT_MM).all()
+    older = MapLayers.of(_map(np.zeros((4, 6)), i0=-2)).with_height(
+        small_mm, small.window, RESOLUTION_M
+    )
+    assert (older.height_mm == grown.height_mm).all()
+
+
+# ---- footprints and pair states ----------------------------------------------------------------
+
+
+def test_a_pair_footprint_is_the_floor_both_cameras_see() -> None:
+    (calib,) = layout_pairs(RigSpec(pair_count=1), FLOOR_SIZE_M)
+    polygon = pair_footprint(calib)
+    assert polygon is not None and len(polygon) == 4
+    xs, ys = zip(*polygon, strict=True)
+    # 640 px at f ≈ 554 px from 6 m: 6.93 m wide, less the 0.5 m baseline; 5.2 m deep.
+    assert max(xs) - min(xs) == pytest.approx(6.93 - 0.5, abs=0.02)
+    assert max(ys) - min(ys) == pytest.approx(5.2, abs=0.02)
+    # The same floor the evaluation counts as seen by this pair, cell for cell.
+    window = Window.covering(-1.0, -1.0, 7.0, 6.0, RESOLUTION_M)
+    seen = seen_by_cameras([calib], window, RESOLUTION_M)
+    x, y = window.cell_centers(RESOLUTION_M)
+    inside = (x > min(xs)) & (x < max(xs)) & (y > min(ys)) & (y < max(ys))
+    assert (inside == seen).mean() > 0.995
+
+
+def test_clipping_convex_polygons() -> None:
+    square = [(0.0, 0.0), (2.0, 0.0), (2.0, 2.0), (0.0, 2.0)]
+    shifted = [(1.0, 1.0), (1.0, 3.0), (3.0, 3.0), (3.0, 1.0)]  # clockwise: orientation is free
+    assert sorted(clip_convex(square, shifted)) == [(1.0, 1.0), (1.0, 2.0), (2.0, 1.0), (2.0, 2.0)]
+    assert clip_convex(square, [(5.0, 5.0), (6.0, 5.0), (6.0, 6.0)]) == []
+
+
+def test_pair_states_from_health_calibrations_and_depth_health() -> None:
+    rates = TileRates()
+    square = [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0)]
+    answer: dict[str, Any] = {
+        "pairs": {
+            "p0": {"alive": True, "tiles": 10, "last_tile_age_s": 0.1, "capture_to_fused_ms": 30}
+        }
+    }
+    pair_states(answer, rates, 100.0, {}, {})
+    answer["pairs"]["p0"]["tiles"] = 20
+    rows = pair_states(
+        answer, rates, 102.0, {"p0": {"floor_model": {"state": "learning"}}}, {"p1": square}
+    )
+    assert [r["pair"] for r in rows] == ["p0", "p1"]
+    assert rows[0]["frame_rate_hz"] == 5.0 and rows[0]["floor_model"] == "learning"
+    assert rows[0]["alive"] and rows[0]["footprint_m"] is None
+    assert not rows[1]["alive"] and not rows[1]["known_to_fusion"] and rows[1]["footprint_m"]
+
+
+def test_objects_are_read_from_json_or_msgpack_and_nothing_is_invented() -> None:
+    objects = [{"id": 3, "class": "box", "center_m": [1, 2], "velocity_mps": [0.5, float("nan")]}]
+    assert objects_of(json.dumps({"objects": objects[:1]}).encode().replace(b"NaN", b"0")) == [
+        {"id": "3", "class": "box", "center_m": [1, 2], "velocity_mps": [0.5, 0]}
+    ]
+    assert objects_of(msgpack.packb(objects)) == [{"id": "3", "class": "box", "center_m": [1, 2]}]
+    assert objects_of(b"\xff\x00garbage") == [] and objects_of(b'{"no": "objects"}') == []
+
+
+def test_address_helpers() -> None:
+    assert page_url("0.0.0.0", 8470) == "http://127.0.0.1:8470/"
+    assert page_url("::1", 80, "a b") == "http://[::1]:80/?token=a%20b"
+    port = free_port()
+    assert available_port("127.0.0.1", port) == port
+    with __import__("socket").socket() as held:
+        held.bind(("127.0.0.1", port))
+        held.listen()
+        assert available_port("127.0.0.1", port) != port
+
+
+def test_the_robot_client_never_imports_the_web_server() -> None:
+    code = (
+        "import sys, common.client, common.mapfiles, services.client_cli, services.cli, services.up;"
+        "heavy = [m for m in ('aiohttp', 'playwright') if m in sys.modules];"
+        "print(heavy); sys.exit(1 if heavy else 0)"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+# ---- the server, without a browser ---------------------------------------------------------------
+
+
+def _request(
+    port: int, path: str, method: str = "GET", headers: dict[str, str] | None = None
+) -> http.client.HTTPResponse:
+    connection = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    connection.request(method, path, headers=headers or {})
+    response = connection.getresponse()
+    response.read()
+    return response
+
+
+def _wait_http(port: int) -> None:
+    def up() -> bool:
+        try:
+            _request(port, "/static/app.js", headers={"Authorization": "Bearer secret-token"})
+        except OSError:
+            return False
+        return True
+
+    wait_for(up, 30, "the viewer to serve")
+
+
+@pytest.mark.process
+def test_token_loopback_and_read_only(bus: Bus, tmp_path: Path) -> None:
+    port = free_port()
+    bus.start(
+        "view", "--http-port", str(port), "--token", "secret-token", log_path=tmp_path / "v.log"
+    )
+    _wait_http(port)
+    assert _request(port, "/").status == 401
+    assert _request(port, "/?token=wrong-token").status == 401
+    good = _request(port, "/?token=secret-token")
+    assert good.status == 200 and "overgrid_token=secret-token" in good.getheader("Set-Cookie", "")
+    assert "default-src 'self'" in good.getheader("Content-Security-Policy", "")
+    assert _request(port, "/", headers={"Cookie": "overgrid_token=secret-token"}).status == 200
+    cookie = {"Cookie": "overgrid_token=secret-token"}
+    assert _request(port, "/", "POST", cookie).status == 405
+    assert _request(port, "/", headers={**cookie, "Host": "rebound.example:80"}).status == 403
+    upgrade = {
+        **cookie,
+        "Connection": "Upgrade",
+        "Upgrade": "websocket",
+        "Sec-WebSocket-Version": "13",
+        "Sec-WebSocket-Key": "dGhlIHNhbXBsZSBub25jZQ==",
+    }
+    assert _request(port, "/ws", headers={**upgrade, "Origin": "http://evil.example"}).status == 403
+    assert (
+        _request(port, "/ws", headers={**upgrade, "Origin": f"http://127.0.0.1:{port}"}).status
+        == 101
+    )
+    assert _request(port, "/download/map.png", headers=cookie).status == 503  # no fusion: no map
+
+
+@pytest.mark.process
+def test_view_stops_on_sigterm_within_2_s(bus: Bus, tmp_path: Path) -> None:
+    port = free_port()
+    command = [sys.executable, "-m", "services.cli", "view", "--http-port", str(port), *bus.flags()]
+    with open(tmp_path / "view.log", "wb") as log:
+        process = subprocess.Popen(command, cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        wait_for(lambda: b"overgrid view: http" in (tmp_path / "view.log").read_bytes(), 30, "view")
+        started = time.monotonic()
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(10) == 0
+        assert time.monotonic() - started < 2.0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+
+
+def test_up_starts_the_viewer_and_prints_its_url() -> None:
+    from services.up import UpSettings, _commands
+
+    commands = dict(_commands(UpSettings(view_port=8471)))
+    assert commands["viewer"] == ["view", "--http-port", "8471"]
+    assert "viewer" not in dict(_commands(UpSettings(view=False)))
+
+
+# ---- the page in a real browser ------------------------------------------------------------------
+
+
+def _chromium() -> str:
+    path = shutil.which("chromium")
+    if path is None:
+        pytest.fail("the browser tests need Debian's chromium: run scripts/setup.sh")
+    return path
+
+
+@pytest.fixture
+def browser_page(tmp_path: Path) -> Iterator[Any]:
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as playwright:
+        context = playwright.chromium.launch_persistent_context(
+            str(tmp_path / "chromium-profile"),
+            executable_path=_chromium(),
+            args=CHROMIUM_ARGS,
+            headless=True,
+            viewport={"width": 1280, "height": 800},
+        )
+        context.set_default_timeout(20_000)
+        try:
+            yield context.new_page()
+        finally:
+            context.close()
+
+
+def _serve_calibrations(session: zenoh.Session) -> list[Any]:
+    """The camera source's part: cam/{pair}/calib answered, as camera_sim does, without a render."""
+    queryables = []
+    for calib in layout_pairs(RigSpec(pair_count=1), FLOOR_SIZE_M):
+        key, payload = f"cam/{calib.pair}/calib", encode(CALIB_KIND, calib)
+
+        def answer(query: zenoh.Query, key: str = key, payload: bytes = payload) -> None:
+            query.reply(key, payload, encoding=WIRE_ENCODING)
+
+        queryables.append(session.declare_queryable(key, answer))
+    return queryables
+
+
+def _window_m(x0: float, y0: float, x1: float, y1: float) -> Window:
+    return Window.covering(x0, y0, x1, y1, RESOLUTION_M)
+
+
+def _rgb(page: Any, x_m: float, y_m: float) -> tuple[int, int, int]:
+    r, g, b, _ = page.evaluate(f"window.overgridView.pixelAt({x_m}, {y_m})")
+    return (r, g, b)
+
+
+def _drawn_as(page: Any, x_m: float, y_m: float, color: str) -> str:
+    """A JS predicate: the canvas pixel over world point (x, y) has the map files' colour."""
+    r, g, b = PICTURE_COLORS[color]
+    return (
+        f"() => {{ const p = window.overgridView.pixelAt({x_m}, {y_m});"
+        f" return Math.abs(p[0] - {r}) + Math.abs(p[1] - {g}) + Math.abs(p[2] - {b}) < 12; }}"
+    )
+
+
+def _screenshot(page: Any, tmp_path: Path, name: str) -> None:
+    """A test artefact under the test's directory, and a copy where OVERGRID_SCREENSHOT_DIR says."""
+    path = tmp_path / name
+    page.screenshot(path=str(path))
+    if os.environ.get("OVERGRID_SCREENSHOT_DIR"):
+        target = Path(os.environ["OVERGRID_SCREENSHOT_DIR"])
+        target.mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, target / name)
+
+
+@pytest.mark.process
+def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: Any) -> None:
+    page = browser_page
+    problems: list[str] = []
+    page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
+    page.on("pageerror", lambda error: problems.append(str(error)))
+    queryables = _serve_calibrations(bus.session)
+    fusion_args = (
+        "fusion",
+        "--state-dir",
+        str(tmp_path / "state"),
+        "--decay-after-s",
+        "600",
+        "--save-interval-s",
+        "1",
+    )
+    fusion = bus.start(*fusion_args, log_path=tmp_path / "fusion.log")
+    depth = bus.start("depth", "--pair", "p0", log_path=tmp_path / "depth.log")
+    port = free_port()
+    bus.start("view", "--http-port", str(port), log_path=tmp_path / "view.log")
+    tiles = bus.session.declare_publisher(
+        "depth/p0/tile", encoding=WIRE_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
+    )
+    seq = iter(range(10_000))
+
+    def land(window: Window, logodds: float, height_m: float = 0.0) -> None:
+        tiles.put(tile_payload("p0", window, logodds, seq=next(seq), height_m=height_m))
+
+    wait_for(lambda: latest(bus.session, timeout_s=5).version >= 0, 30, "fusion")
+
+    def scene_fused() -> bool:  # until fusion's subscription reaches the router, puts go nowhere
+        land(_window_m(0.5, 0.5, 5.5, 4.5), -2.0)  # free floor
+        land(_window_m(2.0, 2.0, 2.6, 2.6), 3.0, height_m=1.2)  # a box
+        time.sleep(0.2)
+        return latest(bus.session).value_at(2.3, 2.3) > 65
+
+    wait_for(scene_fused, 20, "the box in the map")
+
+    page.goto(f"http://127.0.0.1:{port}/")
+    page.wait_for_function(_drawn_as(page, 2.3, 2.3, "occupied"))
+    page.wait_for_function(_drawn_as(page, 1.0, 3.5, "free"))
+    page.wait_for_selector('#pairs li[data-pair="p0"][data-state="alive"]')
+    assert page.is_hidden("#banner")
+
+    # A tile lands: the open page shows it within a second, no reload.
+    before = _rgb(page, 4.3, 1.3)
+    land(_window_m(4.0, 1.0, 4.6, 1.6), 3.0, height_m=0.8)
+    page.wait_for_function(_drawn_as(page, 4.3, 1.3, "occupied"), timeout=1000)
+    assert before == PICTURE_COLORS["free"]
+    _screenshot(page, tmp_path, "viewer-live.png")
+
+    # The cell under the pointer, with the height layer the viewer fetches beside the updates.
+    corner = page.locator("#map").bounding_box()
+
+    def readout_shows(x_m: float, y_m: float, height: str) -> bool:
+        sx, sy = page.evaluate(f"window.overgridView.worldToScreen({x_m}, {y_m})")
+        page.mouse.move(corner["x"] + sx, corner["y"] + sy)
+        text = page.inner_text("#readout")
+        return "p(occ) " in text and f"height {height}" in text
+
+    wait_for(lambda: readout_shows(2.3, 2.3, "1.20 m"), 10, "the readout to show the box's top")
+    wait_for(lambda: readout_shows(4.3, 1.3, "0.80 m"), 10, "the readout to show the new top")
+    page.check("#height-mode")
+    assert _rgb(page, 2.3, 2.3) not in (PICTURE_COLORS["occupied"], PICTURE_COLORS["free"])
+    assert _rgb(page, 1.0, 3.5) == PICTURE_COLORS["free"]
+    _screenshot(page, tmp_path, "viewer-height.png")
+    page.uncheck("#height-mode")
+
+    # The download buttons give the map as the page shows it.
+    served = latest(bus.session)
+    zipped = page.request.get(f"http://127.0.0.1:{port}/download/map.zip")
+    with zipfile.ZipFile(io.BytesIO(zipped.body())) as archive:
+        names = sorted(archive.namelist())
+        assert [Path(n).suffix for n in names] == [".pgm", ".yaml"]
+        pgm = archive.read(names[0])
+    cols, rows = served.occupancy.shape[1], served.occupancy.shape[0]
+    pixels = np.frombuffer(pgm.split(b"\n", 3)[3], np.uint8).reshape(rows, cols)[::-1]
+
+    def pgm_at(x_m: float, y_m: float) -> int:
+        return int(pixels[int(y_m / RESOLUTION_M) - served.j0, int(x_m / RESOLUTION_M) - served.i0])
+
+    assert pgm_at(2.3, 2.3) == PGM_OCCUPIED and pgm_at(1.0, 3.5) == PGM_FREE
+    picture = decode_png(page.request.get(f"http://127.0.0.1:{port}/download/map.png").body())
+    assert picture.shape[1] >= 800
+
+    # A depth process dies: its pair shows dead.
+    bus.kill(depth)
+    page.wait_for_selector('#pairs li[data-pair="p0"][data-state="dead"]', timeout=10_000)
+
+    # Fusion stops: the page warns that the map is stale, then recovers when fusion is back.
+    fusion.send_signal(signal.SIGINT)
+    fusion.wait(15)
+    page.wait_for_selector('#banner[data-kind="stale"]', state="visible", timeout=10_000)
+    assert "stale" in page.inner_text("#banner")
+    _screenshot(page, tmp_path, "viewer-stale.png")
+    bus.start(*fusion_args, log_path=tmp_path / "fusion-again.log")
+    page.wait_for_selector("#banner", state="hidden", timeout=30_000)
+    assert _rgb(page, 2.3, 2.3) == PICTURE_COLORS["occupied"]  # the restored map
+    land(_window_m(1.0, 1.0, 1.4, 1.4), 3.0)
+    page.wait_for_function(_drawn_as(page, 1.2, 1.2, "occupied"), timeout=5000)
+    assert problems == []
+    for queryable in queryables:
+        queryable.undeclare()
