@@ -18,10 +18,16 @@ import numpy.typing as npt
 _EDGE_EPS = 1e-9
 
 
+MIN_RESOLUTION_M = 0.005
+"""Finer cells than 5 mm are below what overhead cameras resolve (about 1 cm a pixel), and integer
+cell indices of a site would overflow long before the resolution reaches 1e-300."""
+MAX_RESOLUTION_M = 1.0
+
+
 def check_resolution(resolution_m: float) -> float:
-    if not (math.isfinite(resolution_m) and resolution_m > 0):
+    if not (math.isfinite(resolution_m) and MIN_RESOLUTION_M <= resolution_m <= MAX_RESOLUTION_M):
         raise ValueError(
-            f"lattice resolution must be a positive number of metres, got {resolution_m}"
+            f"lattice resolution must be {MIN_RESOLUTION_M}–{MAX_RESOLUTION_M} m, got {resolution_m}"
         )
     return float(resolution_m)
 

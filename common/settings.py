@@ -13,7 +13,7 @@ import types
 import typing
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated, Any, Literal, TypeVar, get_args, get_origin
+from typing import Annotated, Any, Literal, NoReturn, TypeVar, get_args, get_origin
 
 from pydantic import BeforeValidator, Field, ValidationError
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -125,13 +125,21 @@ def describe_validation_error(error: ValidationError) -> str:
     return "\n".join(lines)
 
 
+STARTUP_ERROR_EXIT = 2
+
+
+def startup_error(message: str) -> NoReturn:
+    """Stop start-up with one line naming the setting or file and what is wrong (exit 2)."""
+    print(message, file=sys.stderr)
+    raise SystemExit(STARTUP_ERROR_EXIT)
+
+
 def load_settings(settings_cls: type[S], **values: Any) -> S:
     """Validate ``values`` (CLI wins over env); exit with a clear message naming bad settings."""
     try:
         return settings_cls(**{k: v for k, v in values.items() if v is not None})
     except ValidationError as error:
-        print(describe_validation_error(error), file=sys.stderr)
-        raise SystemExit(2) from None
+        startup_error(describe_validation_error(error))
 
 
 def parse_settings(

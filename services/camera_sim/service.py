@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 import zenoh
 from pydantic import Field, model_validator
 
@@ -18,7 +20,7 @@ from common.lattice import Window, check_resolution
 from common.lifecycle import stop_on_signals
 from common.logs import setup_logging
 from common.messages import CALIB_KIND, STEREO_KIND, TRUTH_KIND, StereoFrameHeader, TruthHeader
-from common.settings import CommaList, ZenohSettings, parse_settings
+from common.settings import CommaList, ZenohSettings, parse_settings, startup_error
 from common.zenoh_session import open_session
 from services.camera_sim import truth
 from services.camera_sim.calibration_error import CalibrationError
@@ -115,8 +117,9 @@ class CameraSimSettings(ZenohSettings):
         if self.scene is not None:
             try:
                 return load_scene(self.scene)
-            except (OSError, ValueError) as error:  # pydantic's ValidationError is a ValueError
-                raise SystemExit(f"--scene {self.scene}: {error}") from None
+            except (OSError, ValueError, yaml.YAMLError) as error:  # ValidationError: ValueError
+                reason = " ".join(str(error).split())
+                startup_error(f"--scene {self.scene}: {reason}")
         return generate_scene(
             self.seed,
             (self.floor_x_m, self.floor_y_m),
@@ -153,9 +156,7 @@ def jpeg_encoder(quality: int) -> Callable[[np.ndarray], bytes] | None:
     try:
         import cv2
     except ImportError:
-        raise SystemExit(
-            "--jpeg-quality needs OpenCV: pip install 'overgrid[depth]' (or [all])"
-        ) from None
+        startup_error("--jpeg-quality needs OpenCV: pip install 'overgrid[depth]' (or [all])")
 
     def encode_jpeg(image: np.ndarray) -> bytes:
         ok, buffer = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
@@ -200,11 +201,13 @@ def _truth_reply(scene: SceneSpec, lighting: Lighting, query: zenoh.Query) -> by
     stamp_ns = (
         int(params["stamp_ns"])
         if "stamp_ns" in params
-        else int(float(params.get("t", time.time())) * 1e9)
+        else int(float(params.get("t", time.time())) * 1e9)  # inf, nan: OverflowError, ValueError
     )
+    if not 0 <= stamp_ns < 2**63:
+        raise ValueError(f"stamp_ns {stamp_ns} is outside 0 … 2^63")
     resolution_m = check_resolution(float(params.get("resolution", 0.05)))
     band = tuple(float(v) for v in params.get("band", "0.1,2.0").split(","))
-    if len(band) != 2 or band[0] >= band[1]:
+    if len(band) != 2 or not all(math.isfinite(v) for v in band) or band[0] >= band[1]:
         raise ValueError(f"band must be h_min,h_max with h_min < h_max, got {params.get('band')}")
     objects = scene.truth_objects(stamp_ns / 1e9)
     margin = scene.wall_thickness_m
@@ -282,7 +285,7 @@ def main(settings: CameraSimSettings) -> None:
                     _truth_reply(scene, renderer.lighting, query),
                     encoding=WIRE_ENCODING,
                 )
-            except (ValueError, KeyError) as error:
+            except (ValueError, KeyError, OverflowError) as error:
                 query.reply_err(
                     f"sim/truth: {error}; parameters: t or stamp_ns, resolution, band=h_min,h_max"
                 )

@@ -20,6 +20,7 @@ from pydantic import Field, model_validator
 from common import keys
 from common.camera import StereoCalibration
 from common.codec import WIRE_ENCODING, CodecError, decode, encode, pack_arrays
+from common.lattice import MAX_RESOLUTION_M, MIN_RESOLUTION_M
 from common.lifecycle import stop_on_signals
 from common.logs import RateLimitedLog, setup_logging
 from common.messages import CALIB_KIND, STEREO_KIND, TILE_KIND, StereoFrameHeader, TileHeader
@@ -48,7 +49,9 @@ class DepthSettings(ZenohSettings):
     rate_hz: float = Field(
         0.0, ge=0.0, description="pace for recorded input (0: as fast as processed)"
     )
-    resolution_m: float = Field(0.05, gt=0.0, le=1.0, description="lattice cell size")
+    resolution_m: float = Field(
+        0.05, ge=MIN_RESOLUTION_M, le=MAX_RESOLUTION_M, description="lattice cell size"
+    )
     downscale: Literal[1, 2, 4] = Field(2, description="process images at 1/downscale resolution")
     matcher: Literal["sgbm", "bm"] = Field("sgbm", description="stereo matcher")
     block_size: int = Field(3, ge=1, le=21, description="matcher block size (odd)")

@@ -18,7 +18,7 @@ from pydantic import Field, field_validator
 
 from common import keys
 from common.codec import WIRE_ENCODING, encode
-from common.lattice import Window
+from common.lattice import MAX_RESOLUTION_M, MIN_RESOLUTION_M, Window
 from common.lifecycle import stop_on_signals
 from common.logs import RateLimitedLog, setup_logging
 from common.messages import MAP_UPDATE_KIND, MapUpdateHeader
@@ -43,7 +43,12 @@ def default_state_dir() -> Path:
 
 
 class FusionSettings(ZenohSettings):
-    resolution_m: float = Field(0.05, gt=0.0, le=1.0, description="map cell size; tiles must match")
+    resolution_m: float = Field(
+        0.05,
+        ge=MIN_RESOLUTION_M,
+        le=MAX_RESOLUTION_M,
+        description="map cell size; tiles must match",
+    )
     logodds_min: float = Field(
         -1.5,
         lt=0.0,

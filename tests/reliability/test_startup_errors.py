@@ -1,0 +1,81 @@
+"""Bad settings and files stop start-up with one line that names them (exit 2), never a traceback;
+bad queries to the simulator get an error reply, never silence."""
+
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from common import keys
+from tests.conftest import REPO, Bus, free_port
+
+pytestmark = pytest.mark.process
+
+
+def _overgrid(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+def _one_line_exit_2(result: subprocess.CompletedProcess[str], *names: str) -> None:
+    assert result.returncode == 2, result.stderr
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    for name in names:
+        assert name in lines[0], lines[0]
+    assert "/.cargo/" not in lines[0]  # no build paths of the Zenoh library
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [('{ mode: "bogus" }', "bogus"), ("{ mode: ", "expected"), ("{ connect: 7 }", "")],
+)
+def test_a_bad_zenoh_config_file_is_named(tmp_path: Path, text: str, says: str) -> None:
+    config = tmp_path / "zenoh.json5"
+    config.write_text(text)
+    _one_line_exit_2(_overgrid("health", "--config", str(config)), str(config), says)
+
+
+def test_a_missing_zenoh_config_file_is_named(tmp_path: Path) -> None:
+    missing = tmp_path / "missing.json5"
+    _one_line_exit_2(_overgrid("health", "--config", str(missing)), str(missing), "No such file")
+
+
+def test_a_malformed_endpoint_and_a_port_in_use_are_reported() -> None:
+    _one_line_exit_2(_overgrid("health", "--connect", "nonsense"), "nonsense")
+    port = free_port()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", port))
+        taken.listen()
+        result = _overgrid("router", "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting")
+    _one_line_exit_2(result, f"127.0.0.1:{port}", "in use")
+
+
+@pytest.mark.parametrize("text", ["objects: [", "floor: marble", "objects: 3"])
+def test_a_bad_scene_file_is_named(tmp_path: Path, text: str) -> None:
+    scene = tmp_path / "scene.yaml"
+    scene.write_text(text)
+    _one_line_exit_2(_overgrid("camera-sim", "--scene", str(scene), "--frames", "1"), str(scene))
+
+
+def test_truth_queries_with_impossible_times_or_bands_get_an_error_reply(bus: Bus) -> None:
+    bus.start("camera-sim", "--pair-count", "1", "--rate-hz", "1", "--frames", "60")
+    for parameters in ("t=inf", "t=nan", "stamp_ns=-5", "band=nan,1", "resolution=1e-300"):
+        replies: list[zenoh.Reply] = []
+        deadline = time.monotonic() + 60
+        while not replies and time.monotonic() < deadline:  # until the simulator is up
+            replies = list(bus.session.get(f"{keys.SIM_TRUTH}?{parameters}", timeout=5.0))
+            time.sleep(0.2)
+        assert len(replies) == 1, parameters
+        assert replies[0].err is not None, parameters
+        assert "sim/truth" in replies[0].err.payload.to_string()
