@@ -17,7 +17,7 @@ import zenoh
 import zenoh.ext
 
 from common import keys
-from common.client import latest
+from common.client import MapUnavailable, latest
 from common.codec import WIRE_ENCODING
 from common.lattice import Window
 from services.ros2 import cdr
@@ -51,17 +51,7 @@ def graph_tokens(session: zenoh.Session) -> list[str]:
 def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
     map_hash = shipped_type_hash("nav_msgs", "OccupancyGrid")
     assert cdr.type_hash("jazzy", cdr.OCCUPANCY_GRID) == map_hash
-    bus.start(
-        "fusion",
-        "--state-dir",
-        str(tmp_path / "state"),
-        "--publish-interval-s",
-        "0.05",
-        "--decay-after-s",
-        "600",  # nothing but the tiles below changes the map
-    )
-    tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
-    wait_for(lambda: _try_put_and_version(bus, tiles) >= 1, 30, "fusion to fuse a first tile")
+    tiles = start_fusion_with_a_tile(bus, tmp_path, FIRST)
     log = tmp_path / "rmw-zenoh.log"
     bus.start(
         "rmw-zenoh",
@@ -147,12 +137,29 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
     updates_subscriber.undeclare()
 
 
-def _try_put_and_version(bus: Bus, tiles: zenoh.Publisher) -> int:
-    tiles.put(tile_payload("p0", FIRST, 1.0, seq=int(time.monotonic() * 10), height_m=0.7))
-    try:
-        return latest(bus.session, timeout_s=1).version
-    except Exception:
-        return 0
+def start_fusion_with_a_tile(bus: Bus, tmp_path: Path, window: Window) -> zenoh.Publisher:
+    """A real fusion process whose map holds one tile over ``window`` (occupied, 0.7 m tall);
+    nothing but the tiles a test puts changes it afterwards (no decay). The tile publisher."""
+    bus.start(
+        "fusion",
+        "--state-dir",
+        str(tmp_path / "state"),
+        "--publish-interval-s",
+        "0.05",
+        "--decay-after-s",
+        "600",
+    )
+    tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
+
+    def fused() -> bool:  # fusion may not be subscribed yet: put until a tile lands
+        tiles.put(tile_payload("p0", window, 1.0, seq=time.monotonic_ns() // 1000, height_m=0.7))
+        try:
+            return latest(bus.session, timeout_s=1).version >= 1
+        except MapUnavailable:
+            return False
+
+    wait_for(fused, 30, "fusion to fuse a first tile")
+    return tiles
 
 
 def _rclpy_reserializes(tmp_path: Path, raw: bytes) -> bool:

@@ -2,8 +2,8 @@
 started after the map exists gets /map (transient_local) equal to map/latest cell for cell, then a
 newer /map after tiles change it, and the height layer.
 
-DDS isolation: rmw_fastrtps_cpp on a domain id of this run only, discovery kept to this host, so
-concurrent runs never cross."""
+DDS isolation: rmw_fastrtps_cpp on a random domain id, discovery kept to this host, and topic names
+of this run only, so concurrent runs never cross."""
 
 from __future__ import annotations
 
@@ -11,17 +11,15 @@ import json
 import random
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from common import keys
 from common.client import latest
-from common.codec import WIRE_ENCODING
 from common.lattice import Window
 from tests.conftest import REPO, Bus, wait_for
+from tests.test_ros2_native import start_fusion_with_a_tile
 from tests.tiles import tile_payload
 
 pytestmark = pytest.mark.process
@@ -35,7 +33,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from nav_msgs.msg import OccupancyGrid
 from sensor_msgs.msg import Image
 
-deadline = time.monotonic() + float(sys.argv[1])
+deadline, prefix = time.monotonic() + float(sys.argv[1]), sys.argv[2]
 rclpy.init()
 node = rclpy.create_node("overgrid_test_subscriber")
 maps, heights = [], []
@@ -55,8 +53,8 @@ def on_height(msg):
     print(json.dumps({"height": {"encoding": msg.encoding, "width": msg.width,
                                  "height": msg.height, "step": msg.step}}), flush=True)
 
-node.create_subscription(OccupancyGrid, "/map", on_map, qos)
-node.create_subscription(Image, "/map_height", on_height, 1)
+node.create_subscription(OccupancyGrid, prefix + "/map", on_map, qos)
+node.create_subscription(Image, prefix + "/map_height", on_height, 1)
 def done():  # a /map that differs from the first one, and a height image
     return bool(heights) and any(m["data"] != maps[0]["data"] for m in maps[1:])
 
@@ -72,7 +70,7 @@ sys.exit(0 if done() else 1)
 def ros_env(monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
     env = {
         "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
-        "ROS_DOMAIN_ID": str(random.randint(1, 100)),
+        "ROS_DOMAIN_ID": str(random.randint(1, 232)),
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
     }
     for name, value in env.items():
@@ -80,31 +78,18 @@ def ros_env(monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
     return env
 
 
-def _put_until_fused(bus: Bus, tiles: object, window: Window, logodds: float) -> int:
-    tiles.put(tile_payload("p0", window, logodds, seq=time.monotonic_ns() // 1000, height_m=0.7))  # type: ignore[attr-defined]
-    try:
-        return latest(bus.session, timeout_s=1).version
-    except Exception:
-        return 0
-
-
 def test_rclpy_subscriber_gets_map_then_newer_map(
     bus: Bus, tmp_path: Path, ros_env: dict[str, str]
 ) -> None:
-    bus.start(
-        "fusion",
-        "--state-dir",
-        str(tmp_path / "state"),
-        "--publish-interval-s",
-        "0.05",
-        "--decay-after-s",
-        "600",  # nothing but the tiles below changes the map
-    )
-    tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
-    wait_for(lambda: _put_until_fused(bus, tiles, FIRST, 1.0) >= 1, 30, "a first fused tile")
+    tiles = start_fusion_with_a_tile(bus, tmp_path, FIRST)
     node_log = tmp_path / "ros2.log"
+    prefix = "/" + bus.namespace.replace("-", "_")  # topics of this run only, whatever the domain
     bus.start(
         "ros2",
+        "--map-topic",
+        prefix + "/map",
+        "--height-topic",
+        prefix + "/map_height",
         "--frame-id",
         "site",
         "--world-in-map",
@@ -119,7 +104,7 @@ def test_rclpy_subscriber_gets_map_then_newer_map(
     subscriber = subprocess.Popen(
         [
             *("timeout", "-s", "INT", "-k", "5", str(SUBSCRIBER_LIFETIME_S)),
-            *(sys.executable, "-c", SUBSCRIBER, str(SUBSCRIBER_LIFETIME_S - 10)),
+            *(sys.executable, "-c", SUBSCRIBER, str(SUBSCRIBER_LIFETIME_S - 10), prefix),
         ],
         cwd=REPO,
         stdout=subprocess.PIPE,
