@@ -1,6 +1,5 @@
 """Real renders → real OpenCV stereo → tiles, checked against MuJoCo's depth buffer and the scene."""
 
-import cv2
 import numpy as np
 import pytest
 
@@ -10,13 +9,7 @@ from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import ObjectSpec, SceneSpec, generate_scene
 from services.depth.pipeline import DepthPipeline, PipelineConfig
-from services.depth.stereo import (
-    MatcherConfig,
-    Rectifier,
-    disparity_px,
-    make_matcher,
-    refine_subpixel,
-)
+from services.depth.stereo import Rectifier
 
 BOX = ObjectSpec(
     name="box_k", shape="box", center_xy_m=(6.4, 4.6), yaw_rad=0.3, size_m=(1.0, 0.7, 0.9)
@@ -71,53 +64,19 @@ def test_floor_depth_error_against_mujoco_depth_buffer() -> None:
     assert np.median(np.abs(depth[floor] - truth_small[floor])) <= 0.03
 
 
-def test_object_top_depth_error_against_mujoco_depth_buffer() -> None:
-    # Pair p0 sees dark, weakly textured box tops: SGBM's own sub-pixel fit locks to whole pixels
-    # there (3.2 cm median error measured); the refinement brings it to 1.4 cm.
-    calib, (left, right, depth_true) = _render(generate_scene(0), pair_count=4, pair_index=0)
+def test_object_top_depth_error_against_mujoco_depth_buffer(box_scene) -> None:
+    # A cardboard box's top: weak texture, where SGBM's own sub-pixel fit locks to whole pixels;
+    # the chain's sub-pixel stage (tests/test_stereo.py) undoes that. (The generated scene's plain
+    # crate has no texture at all: stereo cannot measure it, and tops there say nothing of this.)
+    _scene, calib, depth_true, result = box_scene
     pipeline = DepthPipeline(calib, PipelineConfig())
-    result = pipeline.process(left, right)
     blocks = depth_true.reshape(240, 2, 320, 2)
     nearest, farthest = blocks.min(axis=(1, 3)), blocks.max(axis=(1, 3))
     depth = pipeline.rectifier.focal_px * pipeline.rectifier.baseline_m / result.disparity_px
     tops = (farthest < 5.85) & (farthest - nearest < 0.002) & np.isfinite(depth)  # flat, ≥ 15 cm
     assert tops.sum() > 1000
-    assert np.median(np.abs(depth[tops] - farthest[tops])) <= 0.02
-
-
-def _textured_pair(disparity_px: float, contrast: float) -> tuple[np.ndarray, np.ndarray]:
-    """A fronto-parallel textured plane seen with exactly ``disparity_px`` (band-limited texture,
-    shifted with cubic interpolation)."""
-    rng = np.random.default_rng(3)
-    height, width, pad = 240, 320, 32
-    texture = cv2.GaussianBlur(
-        rng.normal(0, 1, (height, width + 2 * pad)).astype(np.float32), (0, 0), 1.0
-    )
-    texture = texture / texture.std() * contrast + 128
-    shift = np.float32([[1, 0, disparity_px], [0, 1, 0]])
-    right = cv2.warpAffine(
-        texture, shift, texture.shape[::-1], flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP
-    )
-    crop = (slice(None), slice(pad, pad + width))
-    return (
-        np.clip(texture[crop], 0, 255).astype(np.uint8),
-        np.clip(right[crop], 0, 255).astype(np.uint8),
-    )
-
-
-@pytest.mark.parametrize("true_disparity", [20.3, 20.7])  # not multiples of SGBM's 1/16 px
-@pytest.mark.parametrize("contrast", [8.0, 40.0])
-def test_subpixel_refinement_removes_pixel_locking(true_disparity: float, contrast: float) -> None:
-    left, right = _textured_pair(true_disparity, contrast)
-    matcher = make_matcher(MatcherConfig(), 0, 32)
-    sgbm = disparity_px(matcher, left, right, 0)
-    refined = refine_subpixel(left, right, sgbm)
-    inner = (slice(20, -20), slice(60, -20))  # away from the borders SGBM cannot match
-    assert np.isfinite(refined[inner]).mean() > 0.99
-    error = np.nanmedian(np.abs(refined[inner] - true_disparity))
-    assert error <= 0.035
-    # SGBM's own fit is pulled toward whole pixels: 0.05–0.11 px off here.
-    assert error < np.nanmedian(np.abs(sgbm[inner] - true_disparity)) / 1.5
+    # 0.56 cm measured; 1.04 cm without the sub-pixel stage, 1.51 cm with SGBM alone.
+    assert np.median(np.abs(depth[tops] - farthest[tops])) <= 0.008
 
 
 def test_tile_is_on_the_lattice(box_scene) -> None:

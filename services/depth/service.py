@@ -54,12 +54,20 @@ class DepthSettings(ZenohSettings):
     )
     downscale: Literal[1, 2, 4] = Field(2, description="process images at 1/downscale resolution")
     matcher: Literal["sgbm", "bm"] = Field("sgbm", description="stereo matcher")
-    block_size: int = Field(3, ge=1, le=21, description="matcher block size (odd)")
+    block_size: int = Field(
+        MatcherConfig.block_size, ge=1, le=21, description="matcher block size (odd)"
+    )
+    full_width: bool = Field(
+        MatcherConfig.full_width, description="match the image's left margin too (padded)"
+    )
     edge_filter_px: float = Field(
-        0.75, ge=0.0, description="drop pixels whose 3×3 disparity range exceeds this (0: off)"
+        MatcherConfig.edge_filter_px,
+        ge=0.0,
+        description="drop pixels whose 3×3 disparity range exceeds this (0: off)",
     )
     subpixel: bool = Field(
-        True, description="re-measure the sub-pixel disparity (SSD parabola) instead of SGBM's"
+        MatcherConfig.subpixel,
+        description="undo SGBM's pixel locking (equiangular fraction, 5×5 mean) instead of its own",
     )
     disparity_sigma_px: float = Field(0.25, gt=0.0, description="Δd, disparity noise")
     calibration_sigma_m: float = Field(0.01, ge=0.0, description="ε, calibration error term")
@@ -93,6 +101,7 @@ class DepthSettings(ZenohSettings):
             matcher=MatcherConfig(
                 algorithm=self.matcher,
                 block_size=self.block_size,
+                full_width=self.full_width,
                 edge_filter_px=self.edge_filter_px,
                 subpixel=self.subpixel,
             ),

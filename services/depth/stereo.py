@@ -3,6 +3,7 @@ derived from the geometry: from the floor's disparity to that of the tallest hei
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -151,9 +152,38 @@ class MatcherConfig:
     uniqueness_ratio: int = 10
     speckle_window: int = 100
     speckle_range: int = 2
-    edge_filter_px: float = 0.75
+    full_width: bool = True
+    """Match the left margin too (:func:`match_full_width`) instead of leaving it invalid."""
+    edge_filter_px: float = 1.0
+    """Drop pixels whose 3×3 disparity range exceeds this (:func:`invalidate_depth_edges`; 0: off)."""
     subpixel: bool = True
-    """Re-estimate the fraction of a pixel (:func:`refine_subpixel`) instead of SGBM's own."""
+    """Sub-pixel disparity free of pixel locking: :func:`equiangular_fraction`, then, after the
+    edge filter, a 5×5 :func:`neighbourhood_mean` within 1 px. Each half alone helps one world and
+    hurts the other: the re-mapped fraction is unbiased but noisy (its slope is 2 near whole
+    pixels), and a mean of SGBM's own fractions keeps their bias (a flat floor at one fraction stays
+    pulled toward the whole pixel). Figures: README, bench/stereo_real.py, bench/depth_pipeline.py."""
+
+
+OPTIONAL_STAGES = ("full_width", "edge_filter_px", "subpixel")
+"""The chain's optional stages: :class:`MatcherConfig` fields that are off at False or 0."""
+
+
+def stage_variants(configured: MatcherConfig) -> dict[str, MatcherConfig]:
+    """What the benches compare: the configured chain, SGBM alone (every optional stage off) and
+    the configured chain with each optional stage toggled ("-stage" off, "+stage" on; the edge
+    filter's "on" is 1 px)."""
+    off = dataclasses.replace(configured, full_width=False, edge_filter_px=0.0, subpixel=False)
+    on = dataclasses.replace(
+        configured, full_width=True, edge_filter_px=configured.edge_filter_px or 1.0, subpixel=True
+    )
+    result = {"configured": configured, "sgbm": off}
+    for stage in OPTIONAL_STAGES:
+        is_on = getattr(configured, stage) != getattr(off, stage)
+        toggled = getattr(off if is_on else on, stage)
+        result[("-" if is_on else "+") + stage] = dataclasses.replace(
+            configured, **{stage: toggled}
+        )
+    return result
 
 
 def make_matcher(
@@ -161,7 +191,8 @@ def make_matcher(
 ) -> cv2.StereoMatcher:
     """SGBM 3WAY with preFilterCap=63 and P1/P2 ∝ blockSize²: the default preFilterCap=0 locks
     disparities to whole pixels. P1 = 2·bs², P2 = 8·bs² gave the lowest error on object tops at half
-    resolution among the settings tried (bench/depth_pipeline.py), at the same speed."""
+    resolution among the settings tried (bench/depth_pipeline.py), at the same speed. 3WAY ignores
+    disp12MaxDiff (no left-right check), so it is left at OpenCV's "off"."""
     bs = config.block_size
     if config.algorithm == "bm":
         matcher = cv2.StereoBM.create(numDisparities=num_disparities, blockSize=max(5, bs | 1))
@@ -177,7 +208,6 @@ def make_matcher(
         blockSize=bs,
         P1=2 * bs * bs,
         P2=8 * bs * bs,
-        disp12MaxDiff=1,
         preFilterCap=63,
         uniquenessRatio=config.uniqueness_ratio,
         speckleWindowSize=config.speckle_window,
@@ -186,60 +216,80 @@ def make_matcher(
     )
 
 
-def disparity_px(matcher: Any, left: U8, right: U8, min_disparity: int) -> F32:
-    """Disparity in pixels (float32); invalid pixels are NaN."""
-    raw = np.asarray(matcher.compute(left, right))
-    disparity: F32 = raw.astype(np.float32) * np.float32(1.0 / 16.0)
-    disparity[raw < min_disparity * 16] = np.nan
+FULL_WIDTH_INSIDE_PX = 4
+"""A margin pixel's match must lie this far inside the right image: nearer its edge, the block and
+the prefilter see the black band (top errors on the renders' margins 18 → 12 cm; see README)."""
+
+
+def match_full_width(matcher: Any, left: U8, right: U8, num_disparities: int) -> np.ndarray:
+    """The matcher's fixed-point disparity (1/16 px) with the left margin matched as well.
+
+    OpenCV leaves the first minDisparity + numDisparities columns invalid, because there some
+    candidate disparities point left of the right image: 17 % of a 320-px image with a 32-px band
+    from 21 px. With black columns in front of both images, every pixel whose match can lie inside
+    the right image is matched; a match within FULL_WIDTH_INSIDE_PX of the right image's edge (or
+    beyond it, in the black band) is dropped. The extra columns cost their share of SGBM's time.
+    """
+    pad_px = num_disparities - FULL_WIDTH_INSIDE_PX
+    pad = ((0, 0), (pad_px, 0))
+    raw = np.asarray(matcher.compute(np.pad(left, pad), np.pad(right, pad)))[:, pad_px:]
+    # Disparity d at column x matches right column x - d; keep x - d >= FULL_WIDTH_INSIDE_PX.
+    limit_16 = (np.arange(raw.shape[1], dtype=np.int32) - FULL_WIDTH_INSIDE_PX) * 16
+    raw[raw > limit_16[None, :]] = (matcher.getMinDisparity() - 1) * 16
+    return raw
+
+
+_FRACTION_16 = np.arange(-8, 8, dtype=np.float32) / 16.0
+_EQUIANGULAR_LUT = np.zeros(256, np.float32)
+_EQUIANGULAR_LUT[:16] = 2.0 * _FRACTION_16 / (1.0 + 2.0 * np.abs(_FRACTION_16))
+"""Index: SGBM's fraction in 1/16 px plus 8 (so 8 is a whole pixel)."""
+SUBPIXEL_WINDOW_PX = 5
+SUBPIXEL_MEAN_RANGE_PX = 1.0
+
+
+def equiangular_fraction(raw_16: np.ndarray) -> F32:
+    """Disparity in pixels from the matcher's fixed-point output (1/16 px), with SGBM's fraction of
+    a pixel re-mapped as an equiangular (V) fit would give it: δ = 2f / (1 + 2|f|).
+
+    SGBM fits a parabola to three aggregated costs that are V-shaped near their minimum (absolute
+    differences, plus P1 for every pixel of disparity change along a path); a parabola through a V
+    of true offset δ puts its vertex at f = δ / (2 − 2|δ|), pulled toward the whole pixel. On
+    Middlebury Motorcycle the ground truth follows this curve of SGBM's fraction within 0.02 px.
+    A table over the 16 fractions: one lookup per pixel.
+    """
+    offset = np.asarray(raw_16, np.int16) + np.int16(8)
+    whole = (offset >> 4).astype(np.float32)  # nearest whole pixel (halves up)
+    fraction = cv2.LUT((offset & 15).astype(np.uint8), _EQUIANGULAR_LUT)
+    disparity: F32 = np.asarray(cv2.add(whole, fraction), dtype=np.float32)
     return disparity
 
 
-SUBPIXEL_BLUR_SIGMA_PX = 1.0
-SUBPIXEL_WINDOW_PX = 5
-SUBPIXEL_MEDIAN_PX = 5
-
-
-def refine_subpixel(left: U8, right: U8, disparity: F32) -> F32:
-    """Disparity with its fraction of a pixel measured again, free of SGBM's pixel locking.
-
-    SGBM fits a parabola to costs aggregated along paths; on weakly textured surfaces that fit is
-    pulled toward whole pixels by up to ⅛ px, which is 2 cm of depth at 5 m at half resolution (one
-    bias for a whole flat box top: it does not average out). Here, per pixel, the sum of squared
-    differences is taken at the rounded disparity and one pixel either side, with exact whole-pixel
-    shifts (no interpolation), on images blurred so that SSD is close to a parabola in the shift; the
-    parabola's vertex is the new fraction. A 5×5 median then removes the noise of the small window
-    while keeping depth edges. Pixels whose fit fails (no curvature, vertex more than a pixel off, or
-    mostly invalid neighbours) become NaN. Sizes: bench/depth_pipeline.py.
-    """
-    height, width = disparity.shape
-    valid = np.isfinite(disparity)
-    whole = np.round(np.where(valid, disparity, 0.0)).astype(np.float32)
-    left_f = cv2.GaussianBlur(left.astype(np.float32), (0, 0), SUBPIXEL_BLUR_SIGMA_PX)
-    right_f = cv2.GaussianBlur(right.astype(np.float32), (0, 0), SUBPIXEL_BLUR_SIGMA_PX)
-    # Channel k holds right(x + 1 - k), so one remap at x - whole fetches the shifts whole-1, whole,
-    # whole+1 together.
-    padded = cv2.copyMakeBorder(right_f, 0, 0, 1, 1, cv2.BORDER_REPLICATE)
-    shifts = cv2.merge([padded[:, 2:], padded[:, 1:-1], padded[:, :-2]])
-    map_x = np.arange(width, dtype=np.float32) - whole
-    map_y = np.repeat(np.arange(height, dtype=np.float32)[:, None], width, axis=1)
-    difference = cv2.subtract(
-        cv2.merge([left_f, left_f, left_f]), cv2.remap(shifts, map_x, map_y, cv2.INTER_NEAREST)
-    )
-    squared = cv2.multiply(difference, difference)
-    squared[~valid] = 0.0  # no disparity, no meaningful cost at its shifts
-    window = (SUBPIXEL_WINDOW_PX, SUBPIXEL_WINDOW_PX)
-    before, at, after = cv2.split(cv2.boxFilter(squared, -1, window, normalize=False))
-    curvature = before - 2.0 * at + after
-    with np.errstate(divide="ignore", invalid="ignore"):
-        fraction = (before - after) / (2.0 * curvature)
-    fitted = valid & (curvature > 0) & (np.abs(fraction) <= 1.0)
-    refined = np.where(fitted, whole + fraction, 0.0).astype(np.float32)
-    k = SUBPIXEL_MEDIAN_PX
-    smoothed = np.asarray(cv2.medianBlur(refined, k))
-    support = cv2.boxFilter(fitted.astype(np.float32), -1, (k, k), normalize=False)
-    keep = fitted & (support > k * k / 2) & (np.abs(smoothed - whole) <= 1.0)
-    result: F32 = np.where(keep, smoothed, np.float32(np.nan)).astype(np.float32)
+def neighbourhood_mean(disparity: F32, window_px: int, max_range_px: float) -> F32:
+    """Each valid pixel replaced by the mean of the valid pixels of its ``window_px`` square, where
+    that square spans at most ``max_range_px`` of disparity (elsewhere it keeps its own value, so
+    no mean mixes the two sides of a depth edge)."""
+    invalid = np.isnan(disparity)
+    window = (window_px, window_px)
+    highest, lowest = _window_range(disparity, invalid, np.ones(window, np.uint8))
+    zeroed = disparity.copy()
+    zeroed[invalid] = 0.0
+    total = cv2.boxFilter(zeroed, -1, window, normalize=False)
+    count = cv2.boxFilter((~invalid).astype(np.float32), -1, window, normalize=False)
+    with np.errstate(invalid="ignore", over="ignore"):  # all-invalid windows: -inf - inf
+        smooth = (highest - lowest <= max_range_px) & ~invalid
+    result = disparity.copy()
+    np.copyto(result, cv2.divide(total, count), where=smooth)
     return result
+
+
+def _window_range(disparity: F32, invalid: npt.NDArray[np.bool_], kernel: U8) -> tuple[F32, F32]:
+    """Highest and lowest valid disparity in each pixel's window (−inf/inf where none)."""
+    filled = disparity.copy()
+    filled[invalid] = -np.inf
+    highest = np.asarray(cv2.dilate(filled, kernel), dtype=np.float32)
+    filled[invalid] = np.inf
+    lowest = np.asarray(cv2.erode(filled, kernel), dtype=np.float32)
+    return highest, lowest
 
 
 _NEIGHBOURHOOD = np.ones((3, 3), np.uint8)
@@ -255,11 +305,9 @@ def invalidate_depth_edges(disparity: F32, max_range_px: float) -> F32:
     """
     if max_range_px <= 0:
         return disparity
-    invalid = np.isnan(disparity)
-    highest = cv2.dilate(np.where(invalid, -np.inf, disparity).astype(np.float32), _NEIGHBOURHOOD)
-    lowest = cv2.erode(np.where(invalid, np.inf, disparity).astype(np.float32), _NEIGHBOURHOOD)
+    highest, lowest = _window_range(disparity, np.isnan(disparity), _NEIGHBOURHOOD)
     filtered = disparity.copy()
-    with np.errstate(over="ignore", invalid="ignore"):  # all-invalid neighbourhoods: -inf - inf
+    with np.errstate(invalid="ignore", over="ignore"):  # all-invalid neighbourhoods: -inf - inf
         filtered[highest - lowest > max_range_px] = np.nan
     return filtered
 
@@ -273,13 +321,23 @@ class DisparityChain:
     def __init__(self, config: MatcherConfig, min_disparity: int, num_disparities: int) -> None:
         self.config = config
         self.min_disparity = min_disparity
+        self.num_disparities = num_disparities
         self.matcher = make_matcher(config, min_disparity, num_disparities)
 
     def __call__(self, left_gray: U8, right_gray: U8) -> F32:
-        disparity = disparity_px(self.matcher, left_gray, right_gray, self.min_disparity)
+        if self.config.full_width:
+            raw = match_full_width(self.matcher, left_gray, right_gray, self.num_disparities)
+        else:
+            raw = np.asarray(self.matcher.compute(left_gray, right_gray))
         if self.config.subpixel:
-            disparity = refine_subpixel(left_gray, right_gray, disparity)
-        return invalidate_depth_edges(disparity, self.config.edge_filter_px)
+            disparity = equiangular_fraction(raw)
+        else:
+            disparity = raw.astype(np.float32) * np.float32(1.0 / 16.0)
+        disparity[raw < self.min_disparity * 16] = np.nan
+        disparity = invalidate_depth_edges(disparity, self.config.edge_filter_px)
+        if self.config.subpixel:
+            disparity = neighbourhood_mean(disparity, SUBPIXEL_WINDOW_PX, SUBPIXEL_MEAN_RANGE_PX)
+        return disparity
 
 
 def compute_disparity(
