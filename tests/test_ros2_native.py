@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import queue
+import signal
 import subprocess
 import sys
 import time
@@ -53,7 +54,7 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
     assert cdr.type_hash("jazzy", cdr.OCCUPANCY_GRID) == map_hash
     tiles = start_fusion_with_a_tile(bus, tmp_path, FIRST)
     log = tmp_path / "rmw-zenoh.log"
-    bus.start(
+    native = bus.start(
         "rmw-zenoh",
         "--domain-id",
         str(DOMAIN),
@@ -135,6 +136,11 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
     wait_for(copy_is_current, 10, "the copy kept by /map_updates to equal map/latest")
     late.undeclare()
     updates_subscriber.undeclare()
+
+    # Stopped, it leaves the robots' graph: its tokens go with it.
+    native.send_signal(signal.SIGINT)
+    assert native.wait(10) == 0
+    wait_for(lambda: not graph_tokens(bus.session), 10, "the graph tokens to be gone")
 
 
 def start_fusion_with_a_tile(bus: Bus, tmp_path: Path, window: Window) -> zenoh.Publisher:
