@@ -88,7 +88,7 @@ class NativePublisher:
 
     def close(self) -> None:
         self._token.undeclare()  # type: ignore[no-untyped-call]
-        self._publisher.undeclare()
+        self._publisher.undeclare()  # type: ignore[no-untyped-call]
 
 
 class NativeSink:
