@@ -25,11 +25,17 @@ from common.lifecycle import stop_on_signals
 from common.logs import RateLimitedLog, setup_logging
 from common.messages import CALIB_KIND, STEREO_KIND, TILE_KIND, StereoFrameHeader, TileHeader
 from common.sensor_model import SensorModelParams
-from common.settings import ZenohSettings, parse_settings
+from common.settings import ZenohSettings, parse_settings, startup_error
 from common.zenoh_session import open_session
 from services.depth.floor_model import FloorModelConfig
 from services.depth.pipeline import DepthPipeline, PipelineConfig
-from services.depth.sources import LatestSlot, load_calibration, recorded_frames
+from services.depth.sources import (
+    InputError,
+    LatestSlot,
+    check_recording,
+    load_calibration,
+    recorded_frames,
+)
 from services.depth.stereo import MatcherConfig
 
 log = logging.getLogger("depth")
@@ -261,12 +267,14 @@ def main(settings: DepthSettings) -> None:
     if settings.threads:
         cv2.setNumThreads(settings.threads)
     stop = stop_on_signals()
+    try:
+        calib_file = load_calibration(settings.calib) if settings.calib else None
+        if settings.images is not None:
+            check_recording(settings.images)
+    except InputError as error:
+        startup_error(str(error))
     with open_session(settings) as session:
-        calib = (
-            load_calibration(settings.calib)
-            if settings.calib
-            else fetch_calibration(session, settings, stop.wait)
-        )
+        calib = calib_file or fetch_calibration(session, settings, stop.wait)
         if calib is None:
             return
         if calib.pair != settings.pair:
@@ -277,7 +285,7 @@ def main(settings: DepthSettings) -> None:
         try:
             pipeline = DepthPipeline(calib, settings.pipeline_config())
         except (ValueError, cv2.error) as error:
-            raise SystemExit(f"calibration of pair {settings.pair} is unusable: {error}") from None
+            startup_error(f"calibration of pair {settings.pair} is unusable: {error}")
         publisher = TilePublisher(session, settings.pair)
         intake = FrameIntake(pipeline, int(settings.max_message_mb * 1024 * 1024))
 

@@ -16,6 +16,7 @@ from typing import Generic, TypeVar
 import cv2
 import numpy as np
 import yaml
+from pydantic import ValidationError
 
 from common.camera import StereoCalibration
 
@@ -24,11 +25,40 @@ T = TypeVar("T")
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"}
 
 
+class InputError(ValueError):
+    """A calibration or recording that cannot be used; the message names the file."""
+
+
 def load_calibration(path: Path) -> StereoCalibration:
     """A YAML or JSON file with the fields of :class:`StereoCalibration` (see README)."""
-    text = Path(path).read_text()
-    data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
-    return StereoCalibration.model_validate(data)
+    try:
+        text = Path(path).read_text()
+        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+        return StereoCalibration.model_validate(data)
+    except ValidationError as error:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in e['loc']) or 'file'}: {e['msg']}" for e in error.errors()
+        )
+        raise InputError(f"--calib {path}: {problems}") from None
+    except (OSError, ValueError, yaml.YAMLError) as error:
+        raise InputError(f"--calib {path}: {' '.join(str(error).split())}") from None
+
+
+def check_recording(source: Path) -> None:
+    """Fail at start-up, not at the first frame, on a recording that is not there or not one."""
+    if source.is_dir():
+        try:
+            _image_pairs(source)
+        except ValueError as error:
+            raise InputError(f"--images {source}: {error}") from None
+    elif not source.exists():
+        raise InputError(f"--images {source}: no such folder or video file")
+    else:
+        capture = cv2.VideoCapture(str(source))
+        opened = capture.isOpened()
+        capture.release()
+        if not opened:
+            raise InputError(f"--images {source}: not a folder of image pairs or a readable video")
 
 
 def _image_pairs(folder: Path) -> list[tuple[Path, Path]]:

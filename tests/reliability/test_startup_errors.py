@@ -79,3 +79,32 @@ def test_truth_queries_with_impossible_times_or_bands_get_an_error_reply(bus: Bu
         assert len(replies) == 1, parameters
         assert replies[0].err is not None, parameters
         assert "sim/truth" in replies[0].err.payload.to_string()
+
+
+CAMERA = "{width: 640, height: 480, K: [[554, 0, 319.5], [0, 554, 239.5], [0, 0, 1]], T_world_cam: "
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("pair: p0\nleft: {width: 640", "expected"),
+        (
+            f"pair: p0\nleft: {CAMERA}[[1,0,0,0],[0,1,0,0],[0,0,1,6],[0,0,0,1]], dist: [.nan, 0, 0, 0, 0]}}\n"
+            f"right: {CAMERA}[[1,0,0,0.5],[0,1,0,0],[0,0,1,6],[0,0,0,1]]}}\n",
+            "NaN",
+        ),
+        ("pair: p0\n", "left"),
+    ],
+)
+def test_a_bad_calibration_file_is_named(tmp_path: Path, text: str, says: str) -> None:
+    calib = tmp_path / "calib.yaml"
+    calib.write_text(text)
+    _one_line_exit_2(_overgrid("depth", "--pair", "p0", "--calib", str(calib)), str(calib), says)
+    missing = tmp_path / "missing.yaml"
+    _one_line_exit_2(_overgrid("depth", "--pair", "p0", "--calib", str(missing)), str(missing))
+
+
+def test_a_recording_that_is_not_there_is_named(tmp_path: Path) -> None:
+    for source in (tmp_path / "nonexistent", tmp_path):  # missing; a folder without image pairs
+        result = _overgrid("depth", "--pair", "p0", "--images", str(source))
+        _one_line_exit_2(result, f"--images {source}")
