@@ -417,6 +417,26 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
     page.wait_for_selector('#pairs li[data-pair="p0"][data-state="alive"]')
     assert page.is_hidden("#banner")
 
+    # Zoom keeps the point under the pointer in place; a drag pans; "fit" shows the whole map.
+    corner = page.locator("#map").bounding_box()
+    sx, sy = page.evaluate("window.overgridView.worldToScreen(2.3, 2.3)")
+    fitted = page.evaluate("window.overgridView.state.view.pxPerM")
+    page.mouse.move(corner["x"] + sx, corner["y"] + sy)
+    page.mouse.wheel(0, -400)
+    page.wait_for_function(f"() => window.overgridView.state.view.pxPerM > {1.5 * fitted}")
+    assert page.evaluate("window.overgridView.worldToScreen(2.3, 2.3)") == pytest.approx(
+        [sx, sy], abs=1
+    )
+    page.mouse.down()
+    page.mouse.move(corner["x"] + sx + 50, corner["y"] + sy, steps=5)
+    page.mouse.up()
+    assert page.evaluate("window.overgridView.worldToScreen(2.3, 2.3)")[0] == pytest.approx(
+        sx + 50, abs=1
+    )
+    page.click("#fit")
+    page.wait_for_function(_drawn_as(page, 2.3, 2.3, "occupied"))
+    assert page.evaluate("window.overgridView.state.view.pxPerM") == pytest.approx(fitted)
+
     # A tile lands: the open page shows it within a second, no reload.
     before = _rgb(page, 4.3, 1.3)
     land(_window_m(4.0, 1.0, 4.6, 1.6), 3.0, height_m=0.8)
@@ -425,7 +445,6 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
     _screenshot(page, tmp_path, "viewer-live.png")
 
     # The cell under the pointer, with the height layer the viewer fetches beside the updates.
-    corner = page.locator("#map").bounding_box()
 
     def readout_shows(x_m: float, y_m: float, height: str) -> bool:
         sx, sy = page.evaluate(f"window.overgridView.worldToScreen({x_m}, {y_m})")

@@ -20,6 +20,7 @@ import zenoh
 
 from common.client import MapFollower, MapUnavailable, calibrations, health, latest, query_all
 from common.codec import CodecError
+from common.logs import RateLimitedLog
 from common.occupancy_map import OccupancyMap
 from services.viewer.footprints import Polygon, pair_footprint
 from services.viewer.status import TileRates, objects_of, pair_states
@@ -78,6 +79,7 @@ class MapFeed:
         self._depth_health: dict[str, dict[str, Any]] = {}
         self._height_version = -1
         self._threads: list[threading.Thread] = []
+        self._warn = RateLimitedLog(log)
 
     def state(self) -> FeedState:
         with self._lock:
@@ -107,14 +109,15 @@ class MapFeed:
         if self._follower is not None:
             self._follower.close()
 
-    @staticmethod
-    def _loop(stop: threading.Event, period_s: float, poll: Callable[[], None]) -> None:
+    def _loop(self, stop: threading.Event, period_s: float, poll: Callable[[], None]) -> None:
         while not stop.is_set():
             started = time.monotonic()
             try:
                 poll()
             except (MapUnavailable, CodecError, zenoh.ZError) as error:
-                log.debug("poll failed", extra={"error": str(error)[:200]})
+                log.debug("poll failed", extra={"poll": poll.__name__, "error": str(error)[:200]})
+            except Exception as error:  # a poller must outlive one odd answer, and say so
+                self._warn.warning(poll.__name__, "poll failed", error=repr(error)[:200])
             stop.wait(max(0.05, period_s - (time.monotonic() - started)))
 
     def _update(self, **changes: Any) -> None:

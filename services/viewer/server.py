@@ -138,12 +138,15 @@ class Page:
                 self.queue.put_nowait(message)
 
     async def send_loop(self) -> None:
-        while not self.ws.closed:
-            message = await self.queue.get()
-            if isinstance(message, bytes):
-                await self.ws.send_bytes(message)
-            else:
-                await self.ws.send_str(message)
+        try:
+            while not self.ws.closed:
+                message = await self.queue.get()
+                if isinstance(message, bytes):
+                    await self.ws.send_bytes(message)
+                else:
+                    await self.ws.send_str(message)
+        except (ConnectionResetError, RuntimeError):  # the page went away mid-send
+            await self.ws.close()
 
 
 class Broadcaster:
@@ -197,7 +200,10 @@ class Broadcaster:
             self.wake.clear()
             now = time.monotonic()
             heartbeat = now - last_status >= HEARTBEAT_S
-            self.push(heartbeat)
+            try:
+                self.push(heartbeat)
+            except Exception:  # one bad state must not stop every page's updates for good
+                log.exception("push failed")
             if heartbeat:
                 last_status = now
             await asyncio.sleep(self.settings.push_interval_s)
