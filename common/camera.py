@@ -41,6 +41,15 @@ class PinholeCamera(BaseModel):
             raise ValueError(f"focal lengths must be positive, got fx={arr[0, 0]}, fy={arr[1, 1]}")
         return k
 
+    @model_validator(mode="after")
+    def _principal_point_in_image(self) -> PinholeCamera:
+        cx, cy = self.K[0][2], self.K[1][2]
+        if not (-0.5 <= cx <= self.width - 0.5 and -0.5 <= cy <= self.height - 0.5):
+            raise ValueError(
+                f"principal point ({cx:g}, {cy:g}) lies outside the {self.width}×{self.height} image"
+            )
+        return self
+
     @field_validator("dist")
     @classmethod
     def _check_dist(cls, dist: list[float]) -> list[float]:

@@ -79,14 +79,32 @@ def test_depth_turns_frames_into_tiles_and_survives_bad_frames(bus: Bus) -> None
             {"left": small, "right": small},
         )
     )
+    # The right size but what other camera drivers send: 16-bit, float, signed, bool, 1 or 4
+    # channels. Each is rejected and counted at intake; none reaches (or kills) the worker.
+    for image in (
+        np.zeros((480, 640), np.uint16),
+        np.zeros((480, 640), np.float32),
+        np.zeros((480, 640), np.int8),
+        np.zeros((480, 640), np.bool_),
+        np.zeros((480, 640, 1), np.uint8),
+        np.zeros((480, 640, 4), np.uint8),
+    ):
+        huge_seq += 1
+        publisher.put(
+            encode(
+                STEREO_KIND,
+                StereoFrameHeader(pair="p0", seq=huge_seq, stamp_ns=time.time_ns()),
+                {"left": image, "right": image},
+            )
+        )
     wait_for(
-        lambda: sum(_health(bus.session, "p0").get("rejected", {}).values()) >= 3,
+        lambda: sum(_health(bus.session, "p0").get("rejected", {}).values()) >= 9,
         20,
-        "3 rejections counted",
+        "9 rejections counted",
     )
     health = _health(bus.session, "p0")
     assert (
-        health["rejected"].get("malformed", 0) >= 2 and health["rejected"].get("bad_image", 0) >= 1
+        health["rejected"].get("malformed", 0) >= 2 and health["rejected"].get("bad_image", 0) >= 7
     )
     before = sink.count()
     wait_for(lambda: sink.count() >= before + 2, 30, "tiles to keep coming after bad frames")

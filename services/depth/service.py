@@ -28,7 +28,7 @@ from common.sensor_model import SensorModelParams
 from common.settings import ZenohSettings, parse_settings, startup_error
 from common.zenoh_session import open_session
 from services.depth.floor_model import FloorModelConfig
-from services.depth.pipeline import DepthPipeline, PipelineConfig
+from services.depth.pipeline import DepthPipeline, PipelineConfig, to_gray
 from services.depth.sources import (
     InputError,
     LatestSlot,
@@ -235,9 +235,9 @@ class FrameIntake:
         try:
             self.slot.put(self._parse(sample.payload.to_bytes()))
         except (CodecError, KeyError) as error:
-            self._reject("malformed", error)
+            self.reject("malformed", error)
         except (ValueError, cv2.error) as error:
-            self._reject("bad_image", error)
+            self.reject("bad_image", error)
 
     def _parse(self, payload: bytes) -> Frame:
         message = decode(payload, STEREO_KIND, StereoFrameHeader, self._max_bytes)
@@ -250,15 +250,31 @@ class FrameIntake:
             )
             if left is None or right is None:
                 raise ValueError(f"{message.header.encoding} images do not decode")
+        # Gray 8-bit (or RGB, converted here) of the calibration's size, checked on arrival: a
+        # 16-bit or 4-channel camera driver is rejected and counted, never crashes the worker.
+        left, right = to_gray(left), to_gray(right)
         self._pipeline.check_frame(left, right)
         return Frame(message.header, left, right, time.time_ns())
 
-    def _reject(self, reason: str, error: Exception) -> None:
+    def reject(self, reason: str, error: Exception) -> None:
         with self._lock:
             self.rejected[reason] += 1
             total = sum(self.rejected.values())
         self._warn.warning(
             reason, "frame rejected", reason=reason, error=str(error)[:200], rejected=total
+        )
+
+
+def check_search_band(pipeline: DepthPipeline) -> None:
+    """A calibration can pass validation and still describe no stereo pair this service can match
+    (a 1000 m baseline, a principal point far off the image): its disparity band would not fit the
+    image, and SGBM would try to allocate it at the first frame."""
+    width = pipeline.rectifier.size[0]
+    low, count = pipeline.min_disparity, pipeline.num_disparities
+    if low + count > width // 2:
+        raise ValueError(
+            f"the floor-to-obstacle disparities {low}…{low + count} px do not fit an image "
+            f"{width} px wide: check the baseline, focal length and poses"
         )
 
 
@@ -284,7 +300,8 @@ def main(settings: DepthSettings) -> None:
             )
         try:
             pipeline = DepthPipeline(calib, settings.pipeline_config())
-        except (ValueError, cv2.error) as error:
+            check_search_band(pipeline)
+        except (ValueError, cv2.error, MemoryError) as error:
             startup_error(f"calibration of pair {settings.pair} is unusable: {error}")
         publisher = TilePublisher(session, settings.pair)
         intake = FrameIntake(pipeline, int(settings.max_message_mb * 1024 * 1024))
@@ -328,14 +345,17 @@ def main(settings: DepthSettings) -> None:
                         "camera": (frame.received_ns - frame.header.stamp_ns) / 1e6,
                         "queue": (time.time_ns() - frame.received_ns) / 1e6,
                     }
-                    publisher.publish(
-                        pipeline,
-                        frame.left,
-                        frame.right,
-                        frame.header.seq,
-                        frame.header.stamp_ns,
-                        upstream_ms,
-                    )
+                    try:
+                        publisher.publish(
+                            pipeline,
+                            frame.left,
+                            frame.right,
+                            frame.header.seq,
+                            frame.header.stamp_ns,
+                            upstream_ms,
+                        )
+                    except (ValueError, cv2.error) as error:  # one bad frame never ends the loop
+                        intake.reject("processing_failed", error)
                 if time.monotonic() - last_summary >= settings.summary_s:
                     last_summary = time.monotonic()
                     counters = health()

@@ -5,12 +5,16 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
+import yaml
 import zenoh
 
 from common import keys
+from services.camera_sim.rig import RigSpec, layout_pairs
 from tests.conftest import REPO, Bus, free_port
 
 pytestmark = pytest.mark.process
@@ -108,3 +112,26 @@ def test_a_recording_that_is_not_there_is_named(tmp_path: Path) -> None:
     for source in (tmp_path / "nonexistent", tmp_path):  # missing; a folder without image pairs
         result = _overgrid("depth", "--pair", "p0", "--images", str(source))
         _one_line_exit_2(result, f"--images {source}")
+
+
+@pytest.mark.parametrize(
+    ("change", "says"),
+    [
+        (lambda d: d["right"]["T_world_cam"][0].__setitem__(3, 1000.0), "disparities"),  # baseline
+        (lambda d: d["left"].__setitem__("dist", [0, 0, 0, 0, 100.0]), "disparities"),  # k3
+        (lambda d: d["left"]["K"][0].__setitem__(2, 1e9), "principal point"),
+    ],
+)
+def test_a_calibration_of_absurd_geometry_is_refused_at_start(
+    tmp_path: Path, change: Callable[[dict[str, Any]], None], says: str
+) -> None:
+    calib = layout_pairs(RigSpec(pair_count=1), (12.0, 10.0))[0].model_dump()
+    calib["right"]["dist"] = calib["left"]["dist"] = [0.0] * 5
+    change(calib)
+    path = tmp_path / "calib.yaml"
+    path.write_text(yaml.safe_dump(calib))
+    _one_line_exit_2(
+        _overgrid("depth", "--pair", "p0", "--calib", str(path)),
+        str(path) if "principal" in says else "p0",
+        says,
+    )
