@@ -5,64 +5,90 @@ the floor's disparity is a known affine function of the pixel. Two cues follow, 
 on the rectified images at the processing resolution:
 
 - **Floor test** (plane consistency): the right image is remapped at the floor's disparity, so that
-  a floor pixel of the left image meets its own floor point in the right; zero-mean normalised
-  cross-correlation over a small window says *agree* (textured and matching), *contradict*
-  (textured and not matching: something above or below the floor) or nothing (too little texture).
+  a floor pixel of the left image meets its own floor point in the right. Zero-mean normalised
+  cross-correlation over a small window says *agree* (textured, matching, no residual shift),
+  *contradict* (textured and not matching, or matching only shifted: something above the floor) or
+  nothing (too little texture); one Lucas–Kanade step measures the residual shift, i.e. a surface's
+  height above the floor, to a fraction of a pixel.
 - **Background**: a per-pixel appearance model of the empty floor for each camera (the right one on
-  the floor-warped grid, so pixel p of both models looks at the same floor point), mean and spread
-  after a global gain normalisation (auto-exposure, a lighting step scale every floor pixel alike).
+  the floor-warped grid, so pixel p of both models looks at the same floor point): mean and spread
+  after a global gain normalisation per camera (auto-exposure, gain and a lighting step scale every
+  floor pixel alike).
 
-Evidence rules (what :meth:`FloorModel.update` returns):
+Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile is built from):
 
-1. A pixel with a stereo disparity keeps it, except *fattening*: an object disparity where the
-   floor test agrees, or where both cameras match their backgrounds and the floor test does not
-   contradict, is the matcher's window dragging a nearby edge's disparity onto the floor: it
-   becomes a floor observation.
+0. Near the floor (residual shift under a pixel, textured) the floor test's measurement replaces
+   the matcher's: a 14 cm pallet is half a pixel at the processing resolution, below what the
+   matcher's search resolves reliably.
+1. Fattening: an object disparity on an untextured pixel is the matcher's window dragging a nearby
+   edge onto smooth floor; where both cameras match their floor backgrounds and the floor test does
+   not contradict, it becomes a floor observation.
 2. A pixel without a disparity is a floor observation only where both cameras' pixels (the left
    pixel and its floor-homography partner in the right) match their backgrounds and the floor test
    does not contradict.
-3. The floor test alone never makes a floor observation: a uniform box top also "agrees" under the
-   floor warp.
+3. The floor test alone never makes a floor observation where stereo has nothing: a uniform box top
+   also "agrees" under the floor warp (it has no texture to disagree with).
 4. A pixel whose appearance departs from the background and has no disparity gives no evidence
-   (unknown); it is never called free, and occupied only where stereo says so.
-5. Shadows lie on the floor: on texture they keep the floor test's agreement and stereo's floor
-   disparity (rule 1 and the matcher's own output), on a plain floor they are a departure (rule 4,
-   unknown), never an obstacle.
+   (unknown); it is occupied only where stereo or the floor test measures it in the obstacle band.
+5. Shadows lie on the floor: on texture the floor test still agrees (rule 0 measures the floor), on
+   a plain floor a shadow is a departure (rule 4: unknown), never an obstacle.
 
-Learning (never from pixels where something stands):
+Learning (never from pixels where something stands), every ``learn_every`` frames:
 
-- *Seeds* are pixels stereo measures at the floor's disparity, or that the floor test agrees on.
+- *Seeds* are pixels the floor test agrees on, or that stereo measures at the floor's disparity on
+  texture (with most of their window there too).
 - The model grows from seeds over *smooth* pixels (no intensity edge, no contradiction): a smooth
   connected region holding enough seeds is floor, so a plain floor is learned from the few floor
   edges stereo can measure (object bases, wall bases, markings). An object standing since start-up
-  is bounded by its outline (an intensity edge, a contradiction or an object disparity) and never
-  joins: it stays unmodelled, so it is never a floor observation.
-- A pixel is modelled once it has been confirmed as floor in ``confirm_frames`` frames; later it is
-  updated (running mean and variance) only while it is confirmed and still matches.
+  is bounded by its outline and never joins: it stays unmodelled, so it is never a floor
+  observation.
+- *Line of sight*: a pixel is never learned where its ray to the floor passes through the column
+  under an obstacle point measured in this frame (a box's side face between its base and its top
+  edge: learned as floor, it would put free cells inside the box).
+- A pixel is modelled once confirmed in ``confirm_frames`` learning frames; later it is updated
+  (running mean and variance) only while it is confirmed and still matches.
 - When most modelled pixels depart at once after gain normalisation (a lighting change that is not
-  a global scale), the model re-learns: every pixel confirmed in that frame starts again from it.
+  a global scale), the model re-learns from that frame: confirmed pixels restart from it, the rest
+  is forgotten.
 - The floor's disparity from the calibration is off by a fraction of a pixel when the calibration
-  is: an affine offset in the pixel is fitted to the pixels stereo measures near the floor.
+  is: an affine offset in the pixel is fitted to the pixels measured near the floor.
 
 Pure numpy/OpenCV, no I/O: the depth pipeline owns one per pair.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
+from services.depth.stereo import Rectifier
+
 F32 = npt.NDArray[np.float32]
+U8 = npt.NDArray[np.uint8]
 Mask = npt.NDArray[np.bool_]
 
-
 FLOOR_WINDOW_SHARE = 0.6
-"""A seed needs this share of its window measured at the floor's disparity."""
-OFFSET_EVERY_FRAMES = 4
-"""The calibration offset drifts, if at all, over hours: fit it every few frames only."""
+"""A stereo seed needs this share of its window measured at the floor's disparity."""
+RESIDUAL_FIT_PX = 0.5
+"""The residual is fitted to pixels the floor test measures within this of the floor."""
+RESIDUAL_SCALE_PX = 0.1
+RESIDUAL_RIDGE = 0.1
+"""Slopes need the pixels spread over the image (variance of u', v' over this) to count fully."""
+MAX_RESIDUAL_PX = 1.0
+"""A good calibration's residual is a fraction of this; a fit beyond it is not believed."""
+"""Scale of the robust weights in the calibration-residual fit."""
+MIN_FIT_PIXELS = 200
+"""Fewer pixels than this fit no residual, and a share of fewer modelled pixels decides nothing."""
+SEED_PROBE_PX = (2.0, 3.5)
+"""A smooth pixel is touched by a seed this far outward of it (away from the nadir)."""
+LINE_ACROSS_PX = 3.0
+"""Beyond an inward seed, the floor this much further on is compared with the pixel."""
+LINE_OF_SIGHT_MARGIN_PX = 1.5
+"""An obstacle's foot within this of a pixel does not block it (the floor at an object's base)."""
 
 
 @dataclass(frozen=True)
@@ -71,18 +97,25 @@ class FloorModelConfig:
     window_px: int = 5
     """Side of the floor test's correlation window (processing pixels)."""
     blur_sigma_px: float = 1.0
-    """Gaussian blur before every comparison: sensor noise, JPEG blocks, a fraction-of-a-pixel
-    calibration error all matter less on a slightly blurred image."""
+    """Gaussian blur before every comparison: sensor noise and JPEG blocks matter less."""
     texture_gray: float = 1.0
     """Local standard deviation (gray levels) both windows need for the floor test to speak."""
     agree_zncc: float = 0.7
     contradict_zncc: float = 0.3
+    measure_zncc: float = 0.5
+    """Below this correlation the floor test measures no shift."""
+    max_shift_px: float = 1.0
+    """The shift is a linearisation: trusted up to this far from the floor's disparity."""
+    floor_shift_px: float = 0.2
+    """Residual shift (processing pixels) within which the floor test agrees (≈ 5 cm)."""
+    raised_shift_px: float = 0.35
+    """Residual shift beyond which it contradicts (≈ 9 cm; the obstacle band starts at 10)."""
     floor_tolerance_px: float = 0.35
-    """Stereo measures the floor when its disparity is within this of the floor's."""
+    """Stereo measures the floor where its disparity is within this of the floor's."""
     edge_gray: float = 1.0
     """Gradient (gray levels per pixel, blurred image) that stops the model's growth."""
     min_seeds: int = 40
-    """A smooth region is learned as floor only with at least this many seeds in it …"""
+    """A smooth region is learned as floor only with at least this many pixels touched by seeds …"""
     seed_share: float = 0.002
     """… and at least this share of its pixels."""
     match_sigmas: float = 4.0
@@ -90,39 +123,199 @@ class FloorModelConfig:
     match_relative: float = 0.05
     """A pixel matches its background within max(match_sigmas·σ, match_min_gray, match_relative·mean)."""
     learn_rate: float = 0.05
+    learn_every: int = 2
+    """Learn (grow, line of sight, update) every this many frames; the floor changes slowly."""
     confirm_frames: int = 2
     ready_share: float = 0.3
     """The model reports *ready* once this share of the image is modelled."""
     relearn_share: float = 0.5
     """Re-learn when more than this share of the modelled pixels departs at once."""
-    offset_rate: float = 0.2
-    min_offset_pixels: int = 200
+    offset_every: int = 4
+    offset_rate: float = 0.5
 
 
 @dataclass(frozen=True)
-class FloorFrame:
-    """One frame's verdict: what goes to the sensor model, and what the health report shows."""
+class FloorGeometry:
+    """What the floor model needs of a pair's rectified geometry."""
 
-    disparity_px: F32
-    """Stereo disparity with fattening removed and floor observations filled in at the floor's
-    disparity; NaN where there is no evidence."""
-    floor_observed: Mask
-    """Pixels whose evidence is the floor model's (rules 1 and 2), not the matcher's own."""
-    modelled_share: float
-    state: str
+    floor_disparity_px: F32
+    """Disparity of the plane z = 0 at every rectified pixel."""
+    ray_down: F32
+    """−ray_z of every pixel's ray (scaled so that depth z multiplies it): height = C_z − z·ray_down."""
+    camera_height_m: float
+    focal_baseline_px_m: float
+    """f·b: depth z = f·b / d."""
+    nadir_px: tuple[float, float]
+    """Where vertical lines vanish in the rectified left image (the point below the camera)."""
+
+    @staticmethod
+    def from_rectifier(rectifier: Rectifier, rays_world: F32) -> FloorGeometry:
+        down = np.maximum(-rays_world[2].astype(np.float64), 1e-9)
+        height_m = float(rectifier.C_world[2])
+        focal_baseline = rectifier.focal_px * rectifier.baseline_m
+        below = rectifier.R_world_rect.T @ np.array([0.0, 0.0, -1.0])
+        if below[2] <= 1e-6:
+            raise ValueError("the camera does not look down: no floor model")
+        nadir = (
+            rectifier.cx_px + rectifier.focal_px * below[0] / below[2],
+            rectifier.cy_px + rectifier.focal_px * below[1] / below[2],
+        )
+        return FloorGeometry(
+            floor_disparity_px=(focal_baseline * down / height_m).astype(np.float32),
+            ray_down=down.astype(np.float32),
+            camera_height_m=height_m,
+            focal_baseline_px_m=focal_baseline,
+            nadir_px=(float(nadir[0]), float(nadir[1])),
+        )
+
+    def height_m(self, disparity_px: F32) -> F32:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = np.float32(self.focal_baseline_px_m) / disparity_px
+        height: F32 = (np.float32(self.camera_height_m) - depth * self.ray_down).astype(np.float32)
+        return height
 
 
-def floor_disparity_px(
-    rays_world: F32, camera_height_m: float, focal_px: float, baseline_m: float
-) -> F32:
-    """Disparity of the plane z = 0 at every rectified pixel: depth z = -C_z / ray_z along rays
-    scaled so that P = C + z·ray (``Rectifier.pixel_rays_world``), then d = f·b / z."""
-    down = np.maximum(-rays_world[2].astype(np.float64), 1e-9)
-    disparity: F32 = (focal_px * baseline_m * down / camera_height_m).astype(np.float32)
-    return disparity
+@dataclass(frozen=True)
+class FloorTest:
+    """Left against the floor-warped right, per pixel (see :func:`floor_test`)."""
+
+    textured: Mask
+    """Enough texture in both windows for the test to speak."""
+    shift_px: F32
+    """Disparity minus the floor's, measured to a fraction of a pixel; NaN where not measured."""
+    agree: Mask
+    contradict: Mask
 
 
-def _blur(image: npt.NDArray[np.uint8] | F32, sigma_px: float) -> F32:
+def floor_test(left: F32, warped: F32, inside: Mask, config: FloorModelConfig) -> FloorTest:
+    """Zero-mean normalised cross-correlation of ``left`` and ``warped`` (the right image remapped
+    at the floor's disparity) over a small window, and the residual shift between them.
+
+    The shift is one Lucas–Kanade step along x: where the surface has disparity d = d_floor + δ,
+    left(u) = warped(u − δ) ≈ warped(u) − δ·∂warped/∂u, so δ = ⟨(warped − left)·g⟩ / ⟨g²⟩ with g
+    the x-gradient, after removing each window's mean and the cameras' gain ratio.
+    """
+    k = (config.window_px, config.window_px)
+    gradient = cv2.Sobel(left + warped, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 16.0)
+    products = [left * left, warped * warped, left * warped]
+    products += [gradient * gradient, warped * gradient, left * gradient]
+    stack = cv2.merge([left, warped, gradient, *products])
+    means = cv2.split(cv2.blur(stack, k))
+    mean_l, mean_r, mean_g, mean_ll, mean_rr, mean_lr, mean_gg, mean_rg, mean_lg = means
+    var_l = mean_ll - mean_l * mean_l
+    var_r = mean_rr - mean_r * mean_r
+    texture = config.texture_gray**2
+    textured: Mask = (var_l > texture) & (var_r > texture) & inside
+    zncc = (mean_lr - mean_l * mean_r) / np.sqrt(np.maximum(var_l * var_r, 1e-6))
+    gain = np.sqrt(np.maximum(var_l, 1e-6) / np.maximum(var_r, 1e-6))
+    energy = mean_gg - mean_g * mean_g
+    along = gain * (mean_rg - mean_r * mean_g) - (mean_lg - mean_l * mean_g)
+    shift = along / np.maximum(energy, 1e-6)
+    measured = (
+        textured
+        & (zncc >= config.measure_zncc)
+        & (energy > texture / 2)
+        & (np.abs(shift) < config.max_shift_px)
+    )
+    shift_px: F32 = np.where(measured, shift, np.float32(np.nan)).astype(np.float32)
+    agree: Mask = measured & (zncc >= config.agree_zncc) & (np.abs(shift) <= config.floor_shift_px)
+    contradict: Mask = textured & (
+        (zncc < config.contradict_zncc) | (measured & (np.abs(shift) >= config.raised_shift_px))
+    )
+    return FloorTest(textured, shift_px, agree, contradict)
+
+
+def floor_shift_2d(left: F32, warped: F32, config: FloorModelConfig) -> tuple[F32, F32]:
+    """Residual shift (x, y) between ``left`` and ``warped`` per pixel: the 2-D Lucas–Kanade step
+    (x alone is what :func:`floor_test` measures every frame; y shows the rows' misalignment).
+    NaN where the window's gradients leave a component undetermined."""
+    k = (config.window_px, config.window_px)
+    both = left + warped
+    gx = np.asarray(cv2.Sobel(both, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 16.0), np.float32)
+    gy = np.asarray(cv2.Sobel(both, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 16.0), np.float32)
+    error = warped - left
+    # Zero-mean in each window, as the correlation is: a gain or offset between cameras is no shift.
+    error -= np.asarray(cv2.blur(error, k), np.float32)
+    gx -= np.asarray(cv2.blur(gx, k), np.float32)
+    gy -= np.asarray(cv2.blur(gy, k), np.float32)
+    xx, xy, yy = cv2.blur(gx * gx, k), cv2.blur(gx * gy, k), cv2.blur(gy * gy, k)
+    ex, ey = cv2.blur(error * gx, k), cv2.blur(error * gy, k)
+    det = xx * yy - xy * xy
+    floor = config.texture_gray**2
+    determined = (det > floor * np.maximum(xx, yy)) & (np.minimum(xx, yy) > floor / 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        shift_x = np.where(determined, (yy * ex - xy * ey) / det, np.nan).astype(np.float32)
+        shift_y = np.where(determined, (xx * ey - xy * ex) / det, np.nan).astype(np.float32)
+    return shift_x, shift_y
+
+
+def robust_affine_fit(basis: npt.NDArray[np.float32], values: F32) -> npt.NDArray[np.float64]:
+    """a + b·u' + c·v' by least squares with Cauchy weights (scale ``RESIDUAL_SCALE_PX``), the
+    slopes held toward zero (ridge): the floor's residual is a fraction of a pixel, pixels on low
+    objects or mismatches must not pull it, and pixels bunched in one corner of the image must
+    not tilt it across the rest."""
+    weights = np.ones(values.size, np.float64)
+    a = basis.astype(np.float64)
+    coef: npt.NDArray[np.float64] = np.zeros(basis.shape[1], np.float64)
+    for _ in range(3):
+        ridge = np.diag([0.0] + [RESIDUAL_RIDGE * float(weights.sum())] * (basis.shape[1] - 1))
+        normal = (a * weights[:, None]).T @ a + ridge
+        coef = np.asarray(np.linalg.solve(normal, (a * weights[:, None]).T @ values), np.float64)
+        weights = 1.0 / (1.0 + ((values - a @ coef) / RESIDUAL_SCALE_PX) ** 2)
+    clipped: npt.NDArray[np.float64] = np.clip(coef, -MAX_RESIDUAL_PX, MAX_RESIDUAL_PX)
+    return clipped
+
+
+class LineOfSight:
+    """Pixels whose ray to the floor passes through the column under a measured obstacle point.
+
+    A vertical segment (an obstacle point and the floor below it) images as a segment toward the
+    nadir: from the point's pixel inward to its foot, at a radius (1 − h/C_z) times the point's
+    from the nadir. In polar coordinates about the nadir that is a run along the radius, so "is any
+    column over me" is a reverse cumulative minimum of the feet's radii along each ray.
+    """
+
+    def __init__(self, shape: tuple[int, int], nadir_px: tuple[float, float]) -> None:
+        height, width = shape
+        cx, cy = nadir_px
+        corners = np.array([[0, 0], [width, 0], [0, height], [width, height]], np.float64)
+        max_radius = float(np.max(np.hypot(corners[:, 0] - cx, corners[:, 1] - cy)))
+        radii = max(2, math.ceil(max_radius))
+        angles = max(8, math.ceil(2 * math.pi * max_radius / 1.5))
+        theta = np.linspace(0, 2 * math.pi, angles, endpoint=False, dtype=np.float64)[:, None]
+        radius = np.arange(radii, dtype=np.float64)[None, :]
+        self._to_polar = (
+            (cx + radius * np.cos(theta)).astype(np.float32),
+            (cy + radius * np.sin(theta)).astype(np.float32),
+        )
+        self.radius_px = np.broadcast_to(radius.astype(np.float32), (angles, radii))
+        v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+        self.pixel_radius_px = np.hypot(u - cx, v - cy).astype(np.float32)
+        back_theta = np.mod(np.arctan2(v - cy, u - cx), 2 * math.pi)
+        self._from_polar = (
+            np.minimum(np.round(self.pixel_radius_px), radii - 1).astype(np.float32),
+            np.mod(np.round(back_theta * angles / (2 * math.pi)), angles).astype(np.float32),
+        )
+
+    def blocked(self, foot_radius_px: F32) -> Mask:
+        """``foot_radius_px``: per pixel, the radius of its obstacle point's foot (inf: none)."""
+        # A 3×3 minimum first, so the polar rays (1.5 px apart at the rim) miss no column.
+        feet = cv2.erode(foot_radius_px, np.ones((3, 3), np.uint8))
+        polar = cv2.remap(
+            feet,
+            *self._to_polar,
+            cv2.INTER_NEAREST,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=np.inf,
+        )
+        inward = np.minimum.accumulate(polar[:, ::-1], axis=1)[:, ::-1]
+        under = (inward < self.radius_px - LINE_OF_SIGHT_MARGIN_PX).astype(np.uint8)
+        back = cv2.remap(under, *self._from_polar, cv2.INTER_NEAREST)
+        blocked: Mask = back > 0
+        return blocked
+
+
+def _blur(image: U8 | F32, sigma_px: float) -> F32:
     blurred: F32 = np.asarray(
         cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma_px), dtype=np.float32
     )
@@ -132,54 +325,78 @@ def _blur(image: npt.NDArray[np.uint8] | F32, sigma_px: float) -> F32:
 class FloorModel:
     """Floor test, background per camera, and the evidence rules of the module docstring."""
 
-    def __init__(self, floor_disparity: F32, config: FloorModelConfig | None = None) -> None:
+    def __init__(
+        self, geometry: FloorGeometry, obstacle_min_m: float, config: FloorModelConfig | None = None
+    ) -> None:
         self.config = config or FloorModelConfig()
-        self.floor_disparity = floor_disparity.astype(np.float32)
-        height, width = floor_disparity.shape
+        self.geometry = geometry
+        self.obstacle_min_m = obstacle_min_m
+        height, width = geometry.floor_disparity_px.shape
         self.shape = (height, width)
         v, u = np.mgrid[0:height, 0:width].astype(np.float32)
         self._u, self._v = u, v
         # Affine floor-disparity offset a + b·u' + c·v' (u', v' in [-1, 1]); fitted at run time.
         self._basis = np.stack([np.ones_like(u), u / width * 2 - 1, v / height * 2 - 1])
-        self.offset_coef = np.zeros(3, np.float64)
+        self.residual_coef = np.zeros((2, 3), np.float64)
+        """Affine calibration residual on the floor: disparity (row 0) and row offset (row 1)."""
+        self.line_of_sight = LineOfSight(self.shape, geometry.nadir_px)
         self.mean = np.zeros((2, height, width), np.float32)
         self.var = np.zeros((2, height, width), np.float32)
         self.confirmed = np.zeros((height, width), np.uint8)
         self.frames = 0
         self.relearned = 0
-        side = self.config.window_px
-        self._neighbourhood = np.ones((side, side), np.uint8)
+        self._window = np.ones((self.config.window_px, self.config.window_px), np.uint8)
+        nx, ny = geometry.nadir_px
+        radius = np.maximum(np.hypot(u - nx, v - ny), 1e-3)
+        out_x, out_y = (u - nx) / radius, (v - ny) / radius
+
+        def probe(step_px: float) -> tuple[np.ndarray, np.ndarray]:
+            maps: tuple[np.ndarray, np.ndarray] = cv2.convertMaps(
+                u + step_px * out_x, v + step_px * out_y, cv2.CV_16SC2
+            )
+            return maps
+
+        self._outward_probes = [probe(step) for step in SEED_PROBE_PX]
+        self._inward_probes = [
+            (probe(-step), probe(-step - LINE_ACROSS_PX)) for step in SEED_PROBE_PX
+        ]
         self._gain = (1.0, 1.0)
-        self._touch = np.ones((3, 3), np.uint8)
-        self._floor_now = self._offset_floor()
+        self._set_floor(self.geometry.floor_disparity_px)
 
     # -- geometry -------------------------------------------------------------------------------
 
-    def floor_disparity_now(self) -> F32:
-        """The floor's disparity with the fitted calibration offset."""
-        return self._floor_now
+    def _set_floor(self, floor_px: F32, row_offset_px: F32 | float = 0.0) -> None:
+        self.floor_now = floor_px.astype(np.float32)
+        """The floor's disparity with the fitted calibration residual."""
+        self._warp_maps = cv2.convertMaps(
+            self._u - self.floor_now, self._v + row_offset_px, cv2.CV_16SC2
+        )
 
-    def _offset_floor(self) -> F32:
-        offset = np.tensordot(self.offset_coef.astype(np.float32), self._basis, axes=1)
-        disparity: F32 = (self.floor_disparity + offset).astype(np.float32)
-        return disparity
-
-    def _fit_offset(self, disparity: F32, floor_now: F32) -> None:
-        """Least-squares affine fit of stereo − floor over pixels within a pixel of the floor."""
-        step = 3
-        d = disparity[::step, ::step]
-        r = d - floor_now[::step, ::step]
-        near = np.isfinite(r) & (np.abs(r) < 1.0)
-        if int(near.sum()) < self.config.min_offset_pixels // (step * step):
+    def _fit_residual(self, left: F32, warped: F32, test: FloorTest) -> None:
+        """Fit the calibration's residual on the floor: an affine disparity offset and an affine
+        row offset (the vertical misalignment a rectification from a slightly wrong calibration
+        leaves), by a robust least-squares fit of the floor test's 2-D shift where it agrees."""
+        step = 2
+        with np.errstate(invalid="ignore"):
+            near = np.abs(test.shift_px[::step, ::step]) < RESIDUAL_FIT_PX
+        if int(near.sum()) < MIN_FIT_PIXELS:
+            return
+        shift_x, shift_y = floor_shift_2d(left[::step, ::step], warped[::step, ::step], self.config)
+        near &= np.isfinite(shift_x) & np.isfinite(shift_y)
+        if int(near.sum()) < MIN_FIT_PIXELS:
             return
         basis = self._basis[:, ::step, ::step][:, near].T
-        residual = r[near] + basis @ self.offset_coef  # residual against the calibration's floor
-        coef, *_ = np.linalg.lstsq(basis, residual, rcond=None)
-        rate = 1.0 if self.frames == 0 else self.config.offset_rate
-        self.offset_coef += rate * (coef - self.offset_coef)
-        self._floor_now = self._offset_floor()
+        rate = self.config.offset_rate
+        for axis, shift in ((0, shift_x[near]), (1, shift_y[near])):
+            coef = robust_affine_fit(basis, shift)
+            # The shift is measured against the current warp: it adds to what is fitted already
+            # (x: disparity = floor + shift; y: the warp must move by −shift to align rows).
+            self.residual_coef[axis] += rate * (coef if axis == 0 else -coef)
+        disparity_px = np.tensordot(self.residual_coef[0].astype(np.float32), self._basis, axes=1)
+        row_px = np.tensordot(self.residual_coef[1].astype(np.float32), self._basis, axes=1)
+        self._set_floor(self.geometry.floor_disparity_px + disparity_px, row_px)
 
-    # -- one frame --------------------------------------------------------------------------
+    # -- state ----------------------------------------------------------------------------------
 
     @property
     def modelled(self) -> Mask:
@@ -192,75 +409,60 @@ class FloorModel:
     def state(self) -> str:
         return "ready" if self.modelled_share() >= self.config.ready_share else "learning"
 
-    def update(
-        self, left_rect: npt.NDArray[np.uint8], right_rect: npt.NDArray[np.uint8], disparity: F32
-    ) -> FloorFrame:
-        """Apply the evidence rules to one frame, then learn from it."""
+    # -- one frame --------------------------------------------------------------------------
+
+    def update(self, left_rect: U8, right_rect: U8, disparity: F32) -> F32:
+        """The disparity the tile is built from: this frame under the evidence rules (NaN where
+        there is no evidence). Learns from the frame as well."""
         cfg = self.config
-        floor_now = self.floor_disparity_now()
+        floor_now = self.floor_now
         left = _blur(left_rect, cfg.blur_sigma_px)
-        right_full = _blur(right_rect, cfg.blur_sigma_px)
-        map_x = self._u - floor_now
+        map_xy, map_fraction = self._warp_maps
         warped = np.asarray(
-            cv2.remap(right_full, map_x, self._v, cv2.INTER_LINEAR, borderValue=np.nan),
+            cv2.remap(
+                _blur(right_rect, cfg.blur_sigma_px),
+                map_xy,
+                map_fraction,
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=-1.0,
+            ),
             dtype=np.float32,
         )
-        inside = np.isfinite(warped)
-        warped[~inside] = 0.0
-
-        agree, contradict, textured = self._floor_test(left, warped, inside)
+        inside = warped >= 0.0
+        test = floor_test(left, warped, inside, cfg)
 
         valid = np.isfinite(disparity)
         with np.errstate(invalid="ignore"):
+            near_floor = floor_now + test.shift_px
+            # Rule 0: near the floor the floor test measures, finer than the matcher.
+            refined = np.isfinite(near_floor) & (
+                ~valid | test.agree | (np.abs(disparity - near_floor) <= 1.0)
+            )
             at_floor = valid & (np.abs(disparity - floor_now) <= cfg.floor_tolerance_px)
-        near_object = cv2.dilate((valid & ~at_floor).astype(np.uint8), self._neighbourhood) > 0
-        # A disparity on an untextured pixel is the matcher's interpolation, not a measurement; and
-        # one pixel at the floor's disparity is noise unless most of its window is there too.
-        window = (cfg.window_px, cfg.window_px)
-        floor_share = cv2.blur(at_floor.astype(np.float32), window)
-        measured_floor = textured & (floor_share >= FLOOR_WINDOW_SHARE)
-        seeds = (measured_floor | (agree & ~valid & ~near_object)) & inside
+        measured = np.where(refined, near_floor, disparity).astype(np.float32)
 
         match_left, match_right, departed = self._match(left, warped, inside)
-        modelled = self.modelled & inside
-        matches = modelled & match_left & match_right & ~contradict
+        matches = self.modelled & inside & match_left & match_right & ~test.contradict
+        # Rule 1 (fattening on untextured pixels) and rule 2 (no disparity): floor observations.
+        observed = matches & ((valid & ~at_floor & ~test.textured) | (~valid & ~refined))
+        # Floor observations sit at height 0: the calibration's floor, not the fitted one.
+        out = np.where(observed, self.geometry.floor_disparity_px, measured).astype(np.float32)
 
-        # Rules 1 and 2: fattening over the floor, and floor without a disparity.
-        fattened = valid & ~at_floor & ~textured & matches
-        filled = ~valid & matches
-        floor_observed = fattened | filled
-        out = disparity.copy()
-        out[floor_observed] = floor_now[floor_observed]
-
-        self._learn(left, warped, inside, seeds, contradict, matches, departed, modelled)
-        if self.frames % OFFSET_EVERY_FRAMES == 0:
-            self._fit_offset(disparity, floor_now)
+        relearn = departed > cfg.relearn_share
+        if relearn or self.frames % cfg.learn_every == 0:
+            self._learn(left, warped, inside, test, measured, at_floor, matches, relearn)
+        if self.frames % cfg.offset_every == 0:
+            self._fit_residual(left, warped, test)
         self.frames += 1
-        return FloorFrame(out, floor_observed, self.modelled_share(), self.state())
-
-    def _floor_test(self, left: F32, warped: F32, inside: Mask) -> tuple[Mask, Mask, Mask]:
-        """Agree, contradict (both on texture only) and textured, from ZNCC over a small window."""
-        cfg = self.config
-        k = (cfg.window_px, cfg.window_px)
-        mean_l = cv2.blur(left, k)
-        mean_r = cv2.blur(warped, k)
-        var_l = cv2.blur(left * left, k) - mean_l * mean_l
-        var_r = cv2.blur(warped * warped, k) - mean_r * mean_r
-        cov = cv2.blur(left * warped, k) - mean_l * mean_r
-        texture = cfg.texture_gray**2
-        textured_left: Mask = var_l > texture
-        textured = textured_left & (var_r > texture) & inside
-        zncc = cov / np.sqrt(np.maximum(var_l * var_r, 1e-6))
-        agree: Mask = textured & (zncc >= cfg.agree_zncc)
-        contradict: Mask = textured & (zncc < cfg.contradict_zncc)
-        return agree, contradict, textured_left
+        return out
 
     def _gains(self, left: F32, warped: F32, modelled: Mask) -> tuple[float, float]:
         """Global gain of each camera against its background (median ratio over modelled pixels):
         exposure, gain and a uniform lighting change scale every floor pixel alike."""
         step = 4
         sample = modelled[::step, ::step]
-        if int(sample.sum()) < 50:
+        if int(sample.sum()) < MIN_FIT_PIXELS // (step * step):
             return 1.0, 1.0
         gains = []
         for side, image in ((0, left), (1, warped)):
@@ -283,15 +485,23 @@ class FloorModel:
                 cfg.match_relative * mean,
             )
             matches.append(np.abs(image - mean) <= tolerance)
-        both = matches[0] & matches[1]
-        count = int(modelled.sum())
-        if count < self.config.min_offset_pixels:
+        count = int(np.count_nonzero(modelled))
+        if count < MIN_FIT_PIXELS:
             return matches[0], matches[1], 0.0
-        departed = 1.0 - float(np.count_nonzero(both & modelled)) / count
+        departed = 1.0 - float(np.count_nonzero(matches[0] & matches[1] & modelled)) / count
         return matches[0], matches[1], departed
 
+    def _seeds(self, test: FloorTest, at_floor: Mask, inside: Mask) -> Mask:
+        # A disparity on an untextured pixel is the matcher's interpolation, not a measurement; and
+        # one pixel at the floor's disparity is noise unless most of its window is there too.
+        k = (self.config.window_px, self.config.window_px)
+        floor_share = cv2.blur(at_floor.astype(np.float32), k)
+        stereo_floor = test.textured & (floor_share >= FLOOR_WINDOW_SHARE) & ~test.contradict
+        seeds: Mask = (test.agree | stereo_floor) & inside
+        return seeds
+
     def _grown(self, left: F32, seeds: Mask, contradict: Mask) -> Mask:
-        """Smooth connected regions holding enough seeds (the plain floor around floor edges)."""
+        """Smooth connected regions touched by enough seeds (the plain floor around floor edges)."""
         cfg = self.config
         gx = cv2.Sobel(left, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
         gy = cv2.Sobel(left, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
@@ -300,37 +510,64 @@ class FloorModel:
         if count <= 1:
             return np.zeros(self.shape, np.bool_)
         sizes = np.bincount(labels.ravel(), minlength=count)
-        # Seeds sit on floor-level edges, next to the smooth floor rather than inside it.
-        touching = cv2.dilate(seeds.astype(np.uint8), self._touch) > 0
+        # Seeds sit on floor-level edges, next to the smooth floor rather than inside it. An edge
+        # at floor level vouches only for its side toward the nadir: there lies the floor, while on
+        # the other side of a box's base rises its face (a marking has floor on both sides).
+        seeds_u8 = seeds.astype(np.uint8)
+        touching = np.zeros(self.shape, np.bool_)
+        for probe in self._outward_probes:
+            touching |= cv2.remap(seeds_u8, *probe, cv2.INTER_NEAREST) > 0
+        # A line at floor level (a marking) vouches for both sides: inward of it as well, where
+        # the floor beyond it looks the same as here (a box's base has its face beyond).
+        for probe, beyond in self._inward_probes:
+            seed_inward = cv2.remap(seeds_u8, *probe, cv2.INTER_NEAREST) > 0
+            across = cv2.remap(left, *beyond, cv2.INTER_NEAREST)
+            touching |= seed_inward & (np.abs(across - left) < 2 * cfg.texture_gray)
         seeded = np.bincount(labels[touching & smooth], minlength=count)
         enough = (seeded >= cfg.min_seeds) & (seeded >= cfg.seed_share * sizes)
-        enough[0] = False  # label 0 is the non-smooth background
+        enough[0] = False  # label 0: the pixels that are not smooth
         grown: Mask = enough[labels]
         return grown
+
+    def _blocked(self, test: FloorTest, measured: F32) -> Mask:
+        """Line of sight: pixels under the columns of this frame's measured obstacle points."""
+        height = self.geometry.height_m(measured)
+        with np.errstate(invalid="ignore"):
+            obstacle = test.textured & (height >= self.obstacle_min_m)
+        radius = self.line_of_sight.pixel_radius_px
+        feet = np.where(
+            obstacle, radius * (1.0 - height / np.float32(self.geometry.camera_height_m)), np.inf
+        ).astype(np.float32)
+        return self.line_of_sight.blocked(feet)
 
     def _learn(
         self,
         left: F32,
         warped: F32,
         inside: Mask,
-        seeds: Mask,
-        contradict: Mask,
+        test: FloorTest,
+        measured: F32,
+        at_floor: Mask,
         matches: Mask,
-        departed: float,
-        modelled: Mask,
+        relearn: bool,
     ) -> None:
         cfg = self.config
-        confirmed = (seeds | self._grown(left, seeds, contradict)) & inside
-        relearn = departed > cfg.relearn_share and self.frames > 0
+        seeds = self._seeds(test, at_floor, inside)
+        confirmed = (seeds | self._grown(left, seeds, test.contradict)) & inside
+        confirmed &= ~self._blocked(test, measured)
+        modelled = self.modelled & inside
         if relearn:
             # Most of the floor changed at once, and not by a global gain: start again from here.
             self.relearned += 1
-            self.confirmed[:] = 0
-        fresh = confirmed & (self.confirmed == 0)
+            self.confirmed[~confirmed] = 0
+            fresh = confirmed
+            gains = (1.0, 1.0)
+        else:
+            fresh = confirmed & (self.confirmed == 0)
+            gains = self._gain
         # Modelled pixels learn only while they still match: a pixel under something never does.
         rate = np.where(confirmed & ~fresh & (matches | ~modelled), np.float32(cfg.learn_rate), 0)
         rate = rate.astype(np.float32)
-        gains = self._gain if not relearn else (1.0, 1.0)
         var_start = np.float32(cfg.match_min_gray**2 / cfg.match_sigmas**2)
         for side, image in ((0, left), (1, warped)):
             normalised = image * np.float32(1.0 / max(gains[side], 1e-3))

@@ -16,7 +16,7 @@ import numpy.typing as npt
 from common.camera import StereoCalibration
 from common.lattice import check_resolution
 from common.sensor_model import SensorModelParams
-from services.depth.floor_model import FloorFrame, FloorModel, FloorModelConfig, floor_disparity_px
+from services.depth.floor_model import FloorGeometry, FloorModel, FloorModelConfig
 from services.depth.inverse_model import Tile, build_tile
 from services.depth.projection import WorldPoints, project_to_world
 from services.depth.stereo import DisparityChain, MatcherConfig, Rectifier
@@ -42,8 +42,8 @@ class FrameResult:
     disparity_px: npt.NDArray[np.float32]
     """The disparity chain's own output (what stereo measured)."""
     stage_ms: dict[str, float]
-    floor: FloorFrame | None = None
-    """The floor model's verdict; its ``disparity_px`` is what the tile was built from."""
+    evidence_disparity_px: npt.NDArray[np.float32]
+    """What the tile was built from: ``disparity_px`` under the floor model's evidence rules."""
 
 
 def to_gray(image: np.ndarray) -> npt.NDArray[np.uint8]:
@@ -71,12 +71,8 @@ class DepthPipeline:
         )
         self.floor_model = (
             FloorModel(
-                floor_disparity_px(
-                    self.rays_world,
-                    float(self.rectifier.C_world[2]),
-                    self.rectifier.focal_px,
-                    self.rectifier.baseline_m,
-                ),
+                FloorGeometry.from_rectifier(self.rectifier, self.rays_world),
+                config.model.obstacle_min_m,
                 config.floor,
             )
             if config.floor.enabled
@@ -99,14 +95,12 @@ class DepthPipeline:
         times.append(time.perf_counter())
         disparity = self.disparity_chain(left_rect, right_rect)
         times.append(time.perf_counter())
-        floor = None
-        observed = disparity
+        evidence = disparity
         if self.floor_model is not None:
-            floor = self.floor_model.update(left_rect, right_rect, disparity)
-            observed = floor.disparity_px
+            evidence = self.floor_model.update(left_rect, right_rect, disparity)
         times.append(time.perf_counter())
         points = project_to_world(
-            observed,
+            evidence,
             self.rays_world,
             self.rectifier.C_world,
             self.rectifier.focal_px,
@@ -124,10 +118,14 @@ class DepthPipeline:
         stage_ms = {
             name: (b - a) * 1e3
             for name, a, b in zip(names, times[:-1], times[1:], strict=True)
-            if name != "floor" or floor is not None
+            if name != "floor" or self.floor_model is not None
         }
         return FrameResult(
-            tile=tile, points=points, disparity_px=disparity, stage_ms=stage_ms, floor=floor
+            tile=tile,
+            points=points,
+            disparity_px=disparity,
+            stage_ms=stage_ms,
+            evidence_disparity_px=evidence,
         )
 
     def floor_health(self) -> dict[str, object]:
@@ -140,5 +138,6 @@ class DepthPipeline:
             "modelled_share": round(model.modelled_share(), 4),
             "frames": model.frames,
             "relearned": model.relearned,
-            "offset_px": round(float(model.offset_coef[0]), 3),
+            "disparity_offset_px": round(float(model.residual_coef[0, 0]), 3),
+            "row_offset_px": round(float(model.residual_coef[1, 0]), 3),
         }
