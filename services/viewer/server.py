@@ -339,7 +339,8 @@ async def serve(settings: ViewSettings, feed: MapFeed, stop: threading.Event) ->
     loop = asyncio.get_running_loop()
 
     def notify() -> None:
-        loop.call_soon_threadsafe(broadcaster.wake.set)
+        with contextlib.suppress(RuntimeError):  # the loop closed: the viewer is stopping
+            loop.call_soon_threadsafe(broadcaster.wake.set)
 
     feed.notify = notify
     runner = web.AppRunner(app, shutdown_timeout=1.0, access_log=None)

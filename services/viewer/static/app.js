@@ -23,7 +23,7 @@
     map: null, // {i0, j0, cols, rows, resolution_m, version, stamp_ns, occupancy, height, image}
     status: null,
     view: { cx: 0, cy: 0, pxPerM: 40 },
-    fitted: false,
+    userMoved: false,
     socket: null,
     connected: false,
     lastMessageMs: 0,
@@ -49,7 +49,7 @@
     image.height = Math.max(header.rows, 1);
     state.map = { ...header, occupancy: new Int8Array(occupancy), height, image };
     paint(0, 0, header.cols, header.rows);
-    if (!state.fitted && header.cols > 0) fit();
+    if (!state.userMoved && header.cols > 0) fit(); // the map grew: show all of it, unless moved
     queueDraw();
   }
 
@@ -134,7 +134,6 @@
     state.view.cx = map.i0 * r + width / 2;
     state.view.cy = map.j0 * r + height / 2;
     state.view.pxPerM = 0.95 * Math.min(canvas.width / width, canvas.height / height);
-    state.fitted = true;
     queueDraw();
   }
 
