@@ -15,7 +15,13 @@ import zenoh
 from common import keys
 from common.camera import StereoCalibration
 from common.codec import CodecError, decode
-from common.messages import CALIB_KIND, MAP_UPDATE_KIND, MapUpdateHeader
+from common.messages import (
+    CALIB_KIND,
+    MAP_UPDATE_KIND,
+    OBJECTS_KIND,
+    MapUpdateHeader,
+    ObjectsHeader,
+)
 from common.occupancy_map import OccupancyMap
 
 Region = tuple[float, float, float, float]
@@ -82,6 +88,17 @@ def latest_encoded(
 def health(session: zenoh.Session, timeout_s: float = 5.0) -> dict[str, Any]:
     answer: dict[str, Any] = json.loads(query_first(session, keys.MAP_HEALTH, timeout_s))
     return answer
+
+
+def objects(session: zenoh.Session, timeout_s: float = 5.0) -> ObjectsHeader:
+    """The tracked obstacles of ``map/objects``: each with id, class, oriented footprint, top
+    height, velocity and its covariance."""
+    try:
+        return decode(
+            query_first(session, keys.MAP_OBJECTS, timeout_s), OBJECTS_KIND, ObjectsHeader
+        ).header
+    except CodecError as error:
+        raise MapUnavailable(f"map/objects: {error}") from None
 
 
 def calibrations(session: zenoh.Session, timeout_s: float = 5.0) -> list[StereoCalibration]:

@@ -14,6 +14,8 @@ DEPTH_ALIVE_ALL = "depth/*/alive"
 MAP_LATEST = "map/latest"
 MAP_UPDATES = "map/updates"
 MAP_HEALTH = "map/health"
+MAP_OBJECTS = "map/objects"
+OBJECTS_ALL = "depth/*/objects"
 
 
 def check_pair_id(pair: str) -> str:
@@ -33,6 +35,11 @@ def calib(pair: str) -> str:
 
 def tile(pair: str) -> str:
     return f"depth/{check_pair_id(pair)}/tile"
+
+
+def objects(pair: str) -> str:
+    """One pair's object detections per frame (DESIGN.md, Objects)."""
+    return f"depth/{check_pair_id(pair)}/objects"
 
 
 def depth_alive(pair: str) -> str:

@@ -144,3 +144,76 @@ class MapUpdateHeader(_OnLattice):
     @property
     def map_window(self) -> Window:
         return Window(self.map_i0, self.map_j0, self.map_cols, self.map_rows)
+
+
+DETECTIONS_KIND = "detections"
+OBJECTS_KIND = "objects"
+
+
+class Footprint(BaseModel):
+    """An oriented rectangle on the floor: centre, length ≥ width, yaw of the long side (world
+    frame, metres, radians in [0, π))."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    center_m: tuple[float, float]
+    size_m: tuple[float, float] = Field(description="length, width")
+    yaw_rad: float
+
+    @field_validator("center_m", "size_m", "yaw_rad")
+    @classmethod
+    def _finite(cls, value: float | tuple[float, float]) -> float | tuple[float, float]:
+        values = value if isinstance(value, tuple) else (value,)
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError("footprint values must be finite")
+        return value
+
+
+class DetectionRecord(Footprint):
+    """One object as one pair's frame shows it (``depth/{pair}/objects``)."""
+
+    top_m: float
+    points: int = Field(ge=0, description="world points the object was measured from")
+    partial: bool = Field(description="reaches the edge of what the pair can match")
+
+
+class DetectionsHeader(_Header):
+    """``depth/{pair}/objects``: the objects of one frame, with the tile's pair, seq and stamp."""
+
+    pair: str
+    seq: int = Field(ge=0)
+    stamp_ns: int = Field(ge=0)
+    detections: list[DetectionRecord] = Field(max_length=4096)
+
+    @field_validator("pair")
+    @classmethod
+    def _pair_id(cls, pair: str) -> str:
+        return check_pair_id(pair)
+
+
+class TrackedObject(Footprint):
+    """One tracked obstacle of ``map/objects``. ``class`` is ``static`` or ``moving``; a static
+    object never becomes moving (a moved one ends and a new track begins)."""
+
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, validate_by_name=True, serialize_by_alias=True
+    )
+
+    id: int = Field(ge=0)
+    object_class: Literal["static", "moving"] = Field(alias="class")
+    top_m: float
+    velocity_mps: tuple[float, float]
+    velocity_cov_m2ps2: tuple[tuple[float, float], tuple[float, float]]
+    first_seen_ns: int = Field(ge=0)
+    last_seen_ns: int = Field(ge=0)
+    pairs: list[str] = Field(description="pairs whose frames saw it last")
+    partial: bool = Field(description="no pair has seen all of it: its size is a lower bound")
+    detections: int = Field(ge=0, description="frames it was measured in")
+
+
+class ObjectsHeader(_Header):
+    """``map/objects`` reply and put: every current track at ``stamp_ns`` (newest capture)."""
+
+    version: int = Field(ge=0)
+    stamp_ns: int = Field(ge=0)
+    objects: list[TrackedObject]

@@ -13,6 +13,8 @@ from common.messages import MAP_KIND, MapHeader
 
 UNKNOWN = -1
 """nav_msgs/OccupancyGrid: unknown cell; known cells hold the occupancy probability in 0..100."""
+OCCUPIED = 100
+"""nav_msgs/OccupancyGrid: certainly occupied."""
 
 
 OCCUPANCY_LUT_RANGE = 16.0
@@ -61,6 +63,8 @@ class OccupancyMap:
     pairs: list[str] = field(default_factory=list)
     logodds: npt.NDArray[np.float32] | None = None
     height_m: npt.NDArray[np.float32] | None = None
+    predicted: npt.NDArray[np.bool_] | None = None
+    """Cells occupied because a moving object's path covers them, not because a frame saw it."""
 
     @property
     def window(self) -> Window:
@@ -85,6 +89,7 @@ class OccupancyMap:
             j0=part.j0,
             logodds=None if self.logodds is None else self.logodds[rows, cols],
             height_m=None if self.height_m is None else self.height_m[rows, cols],
+            predicted=None if self.predicted is None else self.predicted[rows, cols],
         )
 
     def value_at(self, x_m: float, y_m: float) -> int:
@@ -111,6 +116,8 @@ class OccupancyMap:
             arrays["logodds"] = self.logodds
         if self.height_m is not None:
             arrays["height_m"] = self.height_m
+        if self.predicted is not None:
+            arrays["predicted"] = self.predicted
         return encode(MAP_KIND, header, arrays, compress=True)
 
     @staticmethod
@@ -130,4 +137,5 @@ class OccupancyMap:
             pairs=list(h.pairs),
             logodds=message.arrays.get("logodds"),
             height_m=message.arrays.get("height_m"),
+            predicted=message.arrays.get("predicted"),
         )

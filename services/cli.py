@@ -23,6 +23,7 @@ COMMANDS = {
         "score the running map against the simulator's ground truth",
     ),
     "health": ("services.client_cli", "show the fusion service's health"),
+    "objects": ("services.client_cli", "show the tracked obstacles (map/objects) as a table"),
     "view": ("services.viewer.server", "the live map in a browser (http://127.0.0.1:8470/)"),
     "router": ("services.router", "a Zenoh router for boxes that multicast scouting cannot reach"),
     "ros2": ("services.ros2.node", "a ROS 2 node (rclpy) publishing /map, /map_updates, height"),
@@ -42,7 +43,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         print("usage: overgrid COMMAND [options]\n\ncommands:\n" + "\n".join(lines))
         raise SystemExit(0 if args and args[0] in ("-h", "--help") else 2)
     module = importlib.import_module(COMMANDS[args[0]][0])
-    entry = {"map": "map_cli", "health": "health_cli"}.get(args[0], "cli")
+    entry = {"map": "map_cli", "health": "health_cli", "objects": "objects_cli"}.get(args[0], "cli")
     getattr(module, entry)(args[1:])
 
 

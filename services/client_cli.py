@@ -1,4 +1,5 @@
-"""``overgrid map get`` and ``overgrid health``: what a person or a robot's script runs."""
+"""``overgrid map get``, ``overgrid health`` and ``overgrid objects``: what a person or a robot's
+script runs."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from pathlib import Path
 
 from pydantic import Field
 
-from common.client import MapUnavailable, health, latest
+from common.client import MapUnavailable, health, latest, objects
 from common.mapfiles import write_map
 from common.settings import CommaList, ZenohSettings, parse_settings
 from common.zenoh_session import open_session
@@ -73,4 +74,33 @@ def health_cli(argv: Sequence[str] | None = None) -> None:
         )
         print(
             f"{pair:<10}{'yes' if row['alive'] else 'NO':<7}{row['tiles']:>8}{age:>12}{latency:>14}"
+        )
+
+
+class ObjectsSettings(ZenohSettings):
+    timeout_s: float = Field(5.0, gt=0.0, description="how long to wait for the fusion service")
+
+
+def objects_cli(argv: Sequence[str] | None = None) -> None:
+    settings = parse_settings(
+        ObjectsSettings, argv, "overgrid objects", "Show the tracked obstacles (map/objects)."
+    )
+    with open_session(settings) as session:
+        try:
+            answer = objects(session, settings.timeout_s)
+        except MapUnavailable as error:
+            raise SystemExit(f"fusion unavailable: {error}") from None
+    print(f"objects v{answer.version}  {len(answer.objects)} tracked")
+    print(
+        f"{'id':>5} {'class':<7}{'x m':>7}{'y m':>7}{'length':>8}{'width':>7}{'yaw°':>6}"
+        f"{'top m':>7}{'vx m/s':>8}{'vy m/s':>8}{'σv':>6}  {'age s':>6}  pairs"
+    )
+    for o in answer.objects:
+        sigma_v = (o.velocity_cov_m2ps2[0][0] + o.velocity_cov_m2ps2[1][1]) ** 0.5
+        age_s = (o.last_seen_ns - o.first_seen_ns) / 1e9
+        print(
+            f"{o.id:>5} {o.object_class:<7}{o.center_m[0]:>7.2f}{o.center_m[1]:>7.2f}"
+            f"{o.size_m[0]:>8.3f}{o.size_m[1]:>7.3f}{o.yaw_rad * 57.29578:>6.0f}{o.top_m:>7.2f}"
+            f"{o.velocity_mps[0]:>8.2f}{o.velocity_mps[1]:>8.2f}{sigma_v:>6.2f}  {age_s:>6.1f}  "
+            f"{','.join(o.pairs)}{'  partial' if o.partial else ''}"
         )

@@ -23,11 +23,19 @@ from common.codec import WIRE_ENCODING, CodecError, decode, encode, pack_arrays
 from common.lattice import MAX_RESOLUTION_M, MIN_RESOLUTION_M
 from common.lifecycle import stop_on_signals
 from common.logs import RateLimitedLog, setup_logging
-from common.messages import CALIB_KIND, STEREO_KIND, TILE_KIND, StereoFrameHeader, TileHeader
+from common.messages import (
+    CALIB_KIND,
+    DETECTIONS_KIND,
+    STEREO_KIND,
+    TILE_KIND,
+    StereoFrameHeader,
+    TileHeader,
+)
 from common.sensor_model import SensorModelParams
 from common.settings import ZenohSettings, parse_settings, startup_error
 from common.zenoh_session import open_session
 from services.depth.floor_model import FloorModelConfig
+from services.depth.objects import PixelGrid, detect_objects, detections_header
 from services.depth.pipeline import DepthPipeline, PipelineConfig, to_gray
 from services.depth.sources import (
     InputError,
@@ -165,6 +173,11 @@ class TilePublisher:
             encoding=WIRE_ENCODING,
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
+        self._objects = session.declare_publisher(
+            keys.objects(pair),
+            encoding=WIRE_ENCODING,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
         self.pair = pair
         self.published = 0
         self.stage_ms_sum: Counter[str] = Counter()
@@ -201,6 +214,19 @@ class TilePublisher:
         )
         self._publisher.put(encode(TILE_KIND, header, packed_arrays=packed))
         self.published += 1
+        # After the tile: measuring objects must not delay the map's evidence.
+        started = time.perf_counter()
+        rectifier = pipeline.rectifier
+        detections = detect_objects(
+            result.points,
+            PixelGrid.from_valid(np.isfinite(result.evidence_disparity_px)),
+            camera_height_m=float(rectifier.C_world[2]),
+            pixel_angle_rad=1.0 / float(rectifier.focal_px),
+            params=pipeline.config.model,
+        )
+        header = detections_header(detections, self.pair, seq, stamp_ns)
+        self._objects.put(encode(DETECTIONS_KIND, header))
+        stage_ms["objects"] = (time.perf_counter() - started) * 1e3
         self.stage_ms_sum.update(stage_ms)
 
 

@@ -23,6 +23,7 @@ LAYER_FILLS = (
     ("known", False),
     ("last_seen_s", 0.0),
     ("occupancy", UNKNOWN),
+    ("predicted", False),
 )
 """Every per-cell array of the grid and the value of a cell never observed."""
 """The map grows in chunks so a stream of tiles at its edge does not reallocate every time."""
@@ -75,6 +76,8 @@ class FusedGrid:
         self.last_seen_s = np.zeros(self.window.shape, np.float64)
         self.occupancy = np.full(self.window.shape, UNKNOWN, np.int8)
         """nav_msgs view of ``logodds``/``known``, kept current cell by cell as they change."""
+        self.predicted = np.zeros(self.window.shape, np.bool_)
+        """Cells a moving object's path covers (its own layer, not evidence: never saved)."""
         self.version = 0
         self.stamp_ns = 0
         self.dirty = Window(0, 0, 0, 0)
@@ -159,6 +162,34 @@ class FusedGrid:
         )
         self.version += 1
         return int(stale.sum())
+
+    def set_predicted(self, swept: list[tuple[Window, npt.NDArray[np.bool_]]]) -> bool:
+        """Replace the predicted layer by these swept cells (those outside the map are dropped);
+        True if it changed. The cells it no longer covers show the frames' evidence again."""
+        predicted = np.zeros(self.window.shape, np.bool_)
+        for window, mask in swept:
+            part = window.intersect(self.window)
+            if not part.empty:
+                predicted[part.slices_in(self.window)] |= mask[part.slices_in(window)]
+        changed = predicted != self.predicted
+        if not changed.any():
+            return False
+        rows, cols = np.nonzero(changed)
+        self.dirty = self.dirty.union(
+            Window(
+                self.window.i0 + int(cols.min()),
+                self.window.j0 + int(rows.min()),
+                int(cols.max() - cols.min()) + 1,
+                int(rows.max() - rows.min()) + 1,
+            )
+        )
+        self.predicted = predicted
+        self.version += 1
+        return True
+
+    def served_occupancy(self) -> npt.NDArray[np.int8]:
+        """What clients read: the evidence, with the predicted layer's cells occupied."""
+        return rules.occupied_where_predicted(self.occupancy, self.predicted)
 
     def take_dirty(self) -> Window:
         dirty, self.dirty = self.dirty, Window(0, 0, 0, 0)

@@ -20,6 +20,7 @@ from common.occupancy_map import (
     OCCUPANCY_LUT_OFFSET,
     OCCUPANCY_LUT_RANGE,
     OCCUPANCY_LUT_SCALE,
+    OCCUPIED,
 )
 
 Function = TypeVar("Function", bound=Callable[..., object])
@@ -87,3 +88,12 @@ def combine_tile(
             known_row[col] = True
             seen_row[col] = stamp_s
             occupancy_row[col] = occupancy_of(logodds_row[col])  # of the stored float32 value
+
+
+def occupied_where_predicted(
+    occupancy: npt.NDArray[np.int8], predicted: npt.NDArray[np.bool_]
+) -> npt.NDArray[np.int8]:
+    """Overwrite with occupied where a moving object's path covers the cell (a copy): the map a
+    robot reads covers where a mover is by the time the map is read, not where a frame saw it.
+    Applied to the served map only; the evidence layers stay as measured."""
+    return np.where(predicted, np.int8(OCCUPIED), occupancy)

@@ -17,16 +17,24 @@ import zenoh
 from pydantic import Field, field_validator
 
 from common import keys
-from common.codec import WIRE_ENCODING, encode
+from common.codec import WIRE_ENCODING, CodecError, decode, encode
 from common.lattice import MAX_RESOLUTION_M, MIN_RESOLUTION_M, Window
 from common.lifecycle import stop_on_signals
 from common.logs import RateLimitedLog, setup_logging
-from common.messages import MAP_UPDATE_KIND, MapUpdateHeader
+from common.messages import (
+    DETECTIONS_KIND,
+    MAP_UPDATE_KIND,
+    OBJECTS_KIND,
+    DetectionsHeader,
+    MapUpdateHeader,
+    ObjectsHeader,
+)
 from common.occupancy_map import OccupancyMap
 from common.settings import CommaList, ZenohSettings, parse_settings
 from common.zenoh_session import open_session
 from services.fusion.grid import FusedGrid, GridParams, TileOutsideMap, compile_rules
 from services.fusion.intake import TileGate, TileRejected
+from services.fusion.objects import ObjectTracker
 from services.fusion.persistence import load_grid, save_grid
 from services.fusion.snapshot import CONTENT_TYPES, MapQuery, MapSnapshot, parse_map_query
 
@@ -134,6 +142,60 @@ class FusionState:
         """Set by each accepted tile: the publishing loop wakes at once instead of polling."""
         self.refresh_cost_s = 0.0
         """Time the last refresh took (copy, encode): it bounds how often one is made."""
+        self.tracker = ObjectTracker()
+        self.objects_rejected: Counter[str] = Counter()
+        self.objects_header = ObjectsHeader(version=0, stamp_ns=0, objects=[])
+
+    def on_detections(self, sample: zenoh.Sample) -> None:
+        """One pair's objects of one frame: held until the rest of the capture arrives."""
+        now_ns = time.time_ns()
+        try:
+            message = decode(
+                sample.payload.to_bytes(), DETECTIONS_KIND, DetectionsHeader, self.gate.max_bytes
+            )
+        except CodecError as error:
+            self._reject_objects("malformed", str(error), str(sample.key_expr))
+            return
+        h = message.header
+        try:
+            key_pair = keys.pair_of(str(sample.key_expr))
+        except ValueError:
+            key_pair = ""
+        if key_pair != h.pair:
+            self._reject_objects("pair", f"header pair {h.pair} ≠ key", str(sample.key_expr))
+            return
+        if abs(now_ns - h.stamp_ns) > self.gate.max_age_ns:
+            self._reject_objects("stale", "detections too old", str(sample.key_expr))
+            return
+        with self.lock:
+            self.tracker.add(h.pair, h.stamp_ns, list(h.detections), now_ns / 1e9)
+        self.changed.set()
+
+    def _reject_objects(self, reason: str, detail: str, key: str) -> None:
+        with self.lock:
+            self.objects_rejected[reason] += 1
+        self.warn.warning(
+            f"objects_{reason}", "detections rejected", reason=reason, key=key, error=detail[:200]
+        )
+
+    def refresh_objects(self) -> ObjectsHeader | None:
+        """Merge and track the captures that are complete, and sweep the moving tracks' paths
+        into the predicted layer up to one frame interval past now (the map's visible time);
+        returns the new object list if the tracks changed."""
+        now_ns = time.time_ns()
+        with self.lock:
+            changed = self.tracker.flush(now_ns / 1e9, self.alive)
+            until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
+            swept = self.tracker.sweep(self.grid.params.resolution_m, self.grid.stamp_ns, until_ns)
+            self.grid.set_predicted(swept)
+            if not changed:
+                return None
+            self.objects_header = ObjectsHeader(
+                version=self.tracker.version,
+                stamp_ns=self.tracker.stamp_ns,
+                objects=self.tracker.objects(),
+            )
+            return self.objects_header
 
     def on_tile(self, sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()
@@ -182,7 +244,7 @@ class FusionState:
         """Copy of the grid's occupancy (and, if asked, its layers); call with the lock held."""
         grid = self.grid
         return OccupancyMap(
-            occupancy=grid.occupancy.copy(),
+            occupancy=grid.served_occupancy(),
             resolution_m=grid.params.resolution_m,
             i0=grid.window.i0,
             j0=grid.window.j0,
@@ -191,6 +253,7 @@ class FusionState:
             pairs=sorted(self.contributors),
             logodds=grid.logodds.copy() if with_layers else None,
             height_m=grid.height_m.copy() if with_layers else None,
+            predicted=grid.predicted.copy() if with_layers else None,
         )
 
     def snapshot_for(self, query: MapQuery) -> MapSnapshot:
@@ -249,6 +312,8 @@ class FusionState:
                 },
                 "tiles_accepted": sum(self.accepted.values()),
                 "tiles_rejected": dict(self.rejected),
+                "detections_rejected": dict(self.objects_rejected),
+                "objects": len(self.objects_header.objects),
                 "map": {
                     "version": grid.version,
                     "cols": grid.window.cols,
@@ -282,6 +347,16 @@ def update_payload(snapshot: MapSnapshot, dirty: Window, previous_version: int) 
     return encode(MAP_UPDATE_KIND, header, arrays)
 
 
+OBJECT_FORMATS = {"msgpack": WIRE_ENCODING, "json": "application/json"}
+
+
+def objects_payload(header: ObjectsHeader, fmt: str) -> bytes:
+    """``map/objects`` as msgpack (the codec's envelope) or, for people, plain JSON."""
+    if fmt == "json":
+        return json.dumps(header.model_dump(mode="json")).encode()
+    return encode(OBJECTS_KIND, header)
+
+
 def main(settings: FusionSettings) -> None:
     setup_logging("fusion", settings.log_level)
     changed = threading.Event()
@@ -307,6 +382,15 @@ def main(settings: FusionSettings) -> None:
             query.key_expr, snapshot.encoded(request), encoding=CONTENT_TYPES[request.format]
         )
 
+    def on_objects_query(query: zenoh.Query) -> None:
+        fmt = dict(query.parameters).get("format", "msgpack")
+        if fmt not in OBJECT_FORMATS:
+            query.reply_err(f"map/objects: format {fmt!r} not one of {', '.join(OBJECT_FORMATS)}")
+            return
+        with state.lock:
+            header = state.objects_header
+        query.reply(query.key_expr, objects_payload(header, fmt), encoding=OBJECT_FORMATS[fmt])
+
     def on_health_query(query: zenoh.Query) -> None:
         query.reply(query.key_expr, json.dumps(state.health()), encoding="application/json")
 
@@ -317,6 +401,14 @@ def main(settings: FusionSettings) -> None:
         )
         map_queryable = session.declare_queryable(keys.MAP_LATEST, on_map_query)
         health_queryable = session.declare_queryable(keys.MAP_HEALTH, on_health_query)
+        detections = session.declare_subscriber(keys.OBJECTS_ALL, state.on_detections)
+        objects_queryable = session.declare_queryable(keys.MAP_OBJECTS, on_objects_query)
+        # DROP, as map/updates: a query of map/objects always gives the current list.
+        objects_publisher = session.declare_publisher(
+            keys.MAP_OBJECTS,
+            encoding=WIRE_ENCODING,
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
         # DROP: a robot on a slow link must never stall fusion; a follower that misses an update sees
         # the version gap and fetches map/latest instead.
         updates = session.declare_publisher(
@@ -337,6 +429,9 @@ def main(settings: FusionSettings) -> None:
             if stop.wait(state.next_refresh_in(time.monotonic() - last["refresh"])):
                 break
             state.changed.clear()
+            objects = state.refresh_objects()
+            if objects is not None:
+                objects_publisher.put(objects_payload(objects, "msgpack"))
             refreshed = state.refresh()
             now = time.monotonic()
             if refreshed is not None:  # the interval runs from the last snapshot actually made
@@ -371,6 +466,8 @@ def main(settings: FusionSettings) -> None:
         liveliness.undeclare()
         map_queryable.undeclare()
         health_queryable.undeclare()
+        detections.undeclare()
+        objects_queryable.undeclare()
     with state.lock:
         path = save_grid(state.grid, settings.state_dir)
     log.info("stopped", extra={"version": state.grid.version, "saved": str(path)})

@@ -1,0 +1,115 @@
+"""Oriented rectangles on the floor: fitting them to points, their corners, overlap, and the
+lattice cells a convex polygon covers. Pure numpy: depth measures objects with it, fusion merges,
+tracks and sweeps them, eval scores them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from common.lattice import Window
+
+F64 = npt.NDArray[np.float64]
+ANGLE_STEP_RAD = math.radians(1.0)
+ANGLE_REFINE_RAD = math.radians(0.1)
+
+Rectangle = tuple[float, float, float, float, float]
+"""(centre x, centre y, length, width, yaw of the long side in [0, π)), metres and radians."""
+
+
+def fit_rectangle(xy_m: F64, trim: float = 0.0) -> Rectangle:
+    """Smallest-area oriented rectangle around the points, after trimming ``trim`` of them at each
+    end of each axis (stray matches), scaled back by 1/(1 − 2·trim) as if they spread uniformly."""
+    mean = xy_m.mean(axis=0)
+    centred = xy_m - mean
+
+    def extents(angles: F64) -> tuple[F64, F64, F64, F64, F64]:
+        c, s = np.cos(angles), np.sin(angles)
+        along = centred[:, :1] * c + centred[:, 1:] * s
+        across = -centred[:, :1] * s + centred[:, 1:] * c
+        lo_a, hi_a = np.quantile(along, [trim, 1 - trim], axis=0)
+        lo_b, hi_b = np.quantile(across, [trim, 1 - trim], axis=0)
+        return lo_a, hi_a, lo_b, hi_b, (hi_a - lo_a) * (hi_b - lo_b)
+
+    coarse = np.arange(0.0, np.pi / 2, ANGLE_STEP_RAD)
+    best = float(coarse[int(np.argmin(extents(coarse)[4]))])
+    fine = best + np.arange(-ANGLE_STEP_RAD, ANGLE_STEP_RAD, ANGLE_REFINE_RAD)
+    lo_a, hi_a, lo_b, hi_b, area = extents(fine)
+    k = int(np.argmin(area))
+    angle = float(fine[k])
+    scale = 1.0 / (1.0 - 2.0 * trim)
+    size_a, size_b = (hi_a[k] - lo_a[k]) * scale, (hi_b[k] - lo_b[k]) * scale
+    mid_a, mid_b = (hi_a[k] + lo_a[k]) / 2, (hi_b[k] + lo_b[k]) / 2
+    c, s = math.cos(angle), math.sin(angle)
+    cx, cy = mean[0] + c * mid_a - s * mid_b, mean[1] + s * mid_a + c * mid_b
+    if size_b > size_a:
+        size_a, size_b, angle = size_b, size_a, angle + math.pi / 2
+    yaw = angle % math.pi
+    return float(cx), float(cy), float(size_a), float(size_b), 0.0 if yaw >= math.pi - 1e-9 else yaw
+
+
+def corners(center_m: tuple[float, float], size_m: tuple[float, float], yaw_rad: float) -> F64:
+    """The rectangle's four corners (4, 2), counter-clockwise."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    half = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], np.float64) * np.asarray(size_m) / 2
+    rotation = np.array([[c, -s], [s, c]])
+    out: F64 = half @ rotation.T + np.asarray(center_m)
+    return out
+
+
+def polygons_overlap(a: F64, b: F64, gap_m: float = 0.0) -> bool:
+    """Whether two convex polygons (N, 2) come within ``gap_m`` of each other (separating axes)."""
+    for polygon in (a, b):
+        edges = np.roll(polygon, -1, axis=0) - polygon
+        normals = np.column_stack([edges[:, 1], -edges[:, 0]])
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        pa, pb = a @ normals.T, b @ normals.T
+        if np.any(
+            (pa.max(axis=0) + gap_m < pb.min(axis=0)) | (pb.max(axis=0) + gap_m < pa.min(axis=0))
+        ):
+            return False
+    return True
+
+
+def convex_hull(xy_m: F64) -> F64:
+    """Counter-clockwise convex hull (Andrew's monotone chain) of a few points."""
+    points = sorted({(float(x), float(y)) for x, y in xy_m})
+    if len(points) <= 2:
+        return np.asarray(points, np.float64)
+
+    def half(sequence: list[tuple[float, float]]) -> list[tuple[float, float]]:
+        out: list[tuple[float, float]] = []
+        for p in sequence:
+            while (
+                len(out) >= 2
+                and (
+                    (out[-1][0] - out[-2][0]) * (p[1] - out[-2][1])
+                    - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0])
+                )
+                <= 0
+            ):
+                out.pop()
+            out.append(p)
+        return out
+
+    lower, upper = half(points), half(points[::-1])
+    return np.asarray(lower[:-1] + upper[:-1], np.float64)
+
+
+def polygon_cells(polygon_m: F64, resolution_m: float) -> tuple[Window, npt.NDArray[np.bool_]]:
+    """Cells whose centre lies inside a convex counter-clockwise polygon (the rule a map cell is
+    judged by), on the smallest window around it."""
+    window = Window.covering(
+        float(polygon_m[:, 0].min()),
+        float(polygon_m[:, 1].min()),
+        float(polygon_m[:, 0].max()),
+        float(polygon_m[:, 1].max()),
+        resolution_m,
+    )
+    x, y = window.cell_centers(resolution_m)
+    inside = np.ones(window.shape, np.bool_)
+    for (ax, ay), (bx, by) in zip(polygon_m, np.roll(polygon_m, -1, axis=0), strict=True):
+        inside &= (bx - ax) * (y - ay) - (by - ay) * (x - ax) >= 0
+    return window, inside

@@ -1,0 +1,201 @@
+"""One pair's frame → object detections: oriented footprints measured on the per-pixel world points,
+below the lattice's cell size (DESIGN.md, Objects).
+
+Why points, not the raster: a 5 cm cell is 5–16 % of a box's width, and an object's cells come out a
+cell too large where a depth edge fattens it. Seen from overhead, an object's top face is the part
+measured best: its pixels are the nearest to the cameras and at one height, so points within a
+band below the object's top height are its top face; the sides, the fattening at depth edges and
+the floor do not reach that band. The rectangle fitted to those points spans pixel centres, which
+fall short of the edges by up to half a pixel's footprint (at that height): see
+:func:`edge_deficit_m`.
+
+A detection whose pixels reach the edge of what the pair can match (the image border, or the left
+margin stereo cannot match) is ``partial``: the object may extend past it, so its size is a lower
+bound, never a confident wrong size. Pure numpy + OpenCV (connected components).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from common.footprints import fit_rectangle
+from common.messages import DetectionRecord, DetectionsHeader
+from common.sensor_model import SensorModelParams
+from services.depth.projection import WorldPoints
+
+
+@dataclass(frozen=True)
+class DetectionConfig:
+    grid_m: float = 0.025
+    """Segmentation grid: half a map cell, so objects 0.5 m apart never touch."""
+    min_points: int = 40
+    min_area_m2: float = 0.03
+    min_width_m: float = 0.12
+    """Narrower blobs are strips along depth edges and floor markings, not objects."""
+    low_strip_top_m: float = 0.3
+    low_strip_aspect: float = 4.0
+    """A blob lower than ``low_strip_top_m`` and this elongated is a floor marking or a shadow's
+    edge that stereo lifted off the floor, not an object."""
+    top_band_m: float = 0.06
+    """Points this far below an object's top height belong to its top face."""
+    top_quantile: float = 0.9
+    """An object's top height: this quantile of its points' heights (robust to a few high outliers)."""
+    trim_points: int = 3
+    """Top-face points trimmed at each end of each axis (stray matches): a few, not a share, since
+    pixel centres on a grid are not spread uniformly enough near an edge to undo a share's cut."""
+    border_px: int = 2
+    """A detection within this many pixels of the matchable image area's edge is partial."""
+
+
+@dataclass(frozen=True)
+class Detection:
+    """An object as one pair's frame shows it: oriented footprint (length ≥ width, yaw of the long
+    side in [0, π)), top height, metres."""
+
+    center_xy_m: tuple[float, float]
+    length_m: float
+    width_m: float
+    yaw_rad: float
+    top_m: float
+    points: int
+    partial: bool
+
+
+@dataclass(frozen=True)
+class PixelGrid:
+    """Where each of the frame's points came from: its image row and column (processed image),
+    and the image's size. ``WorldPoints`` hold valid pixels only, in row-major order of ``valid``."""
+
+    rows: npt.NDArray[np.intp]
+    cols: npt.NDArray[np.intp]
+    shape: tuple[int, int]
+
+    @staticmethod
+    def from_valid(valid: npt.NDArray[np.bool_]) -> PixelGrid:
+        rows, cols = np.nonzero(valid)
+        return PixelGrid(rows, cols, (int(valid.shape[0]), int(valid.shape[1])))
+
+
+def edge_deficit_m(edge_m: float, yaw_rad: float, pixel_m: float) -> float:
+    """How much shorter than the object its pixel centres span along one axis, across the two
+    edges of length ``edge_m`` that end that axis. An edge along the pixel grid (camera axes are
+    the world's here) leaves on average half a pixel uncovered on each side, one pixel in all; an
+    edge crossing n pixel rows has a pixel centre near it in one of them, so the gap shrinks
+    about as 1/(1 + n)."""
+    off_axis_rad = abs(((yaw_rad + math.pi / 4) % (math.pi / 2)) - math.pi / 4)
+    crossings = edge_m * math.sin(off_axis_rad) / max(pixel_m, 1e-9)
+    return pixel_m / (1.0 + crossings)
+
+
+def _matchable_box(pixels: PixelGrid, border_px: int) -> tuple[int, int, int, int]:
+    """Rows and columns inside the area where the pair matched anything, shrunk by ``border_px``:
+    the image border, and the left margin the disparity search cannot reach."""
+    return (
+        int(pixels.rows.min()) + border_px,
+        int(pixels.rows.max()) - border_px,
+        int(pixels.cols.min()) + border_px,
+        int(pixels.cols.max()) - border_px,
+    )
+
+
+def detect_objects(
+    points: WorldPoints,
+    pixels: PixelGrid,
+    camera_height_m: float,
+    pixel_angle_rad: float,
+    params: SensorModelParams,
+    config: DetectionConfig = DetectionConfig(),
+) -> list[Detection]:
+    """Objects of one frame. ``pixel_angle_rad``: the angle one processed pixel subtends (its
+    footprint at distance d is d·angle); ``camera_height_m``: the pair's height above the floor."""
+    band_floor = params.obstacle_min_m
+    band = (points.height_m >= band_floor) & (points.height_m <= params.obstacle_max_m)
+    if np.count_nonzero(band) < config.min_points:
+        return []
+    x, y = points.x_m[band].astype(np.float64), points.y_m[band].astype(np.float64)
+    height = points.height_m[band].astype(np.float64)
+    rows, cols = pixels.rows[band], pixels.cols[band]
+    i = np.floor(x / config.grid_m).astype(np.int64)
+    j = np.floor(y / config.grid_m).astype(np.int64)
+    i0, j0 = int(i.min()), int(j.min())
+    occupied = np.zeros((int(j.max()) - j0 + 1, int(i.max()) - i0 + 1), np.uint8)
+    occupied[j - j0, i - i0] = 1
+    # Close one-cell gaps (a row of unmatched pixels across a box top) before labelling.
+    closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    _, labels = cv2.connectedComponents(closed, connectivity=8)
+    label_of_point = labels[j - j0, i - i0]
+    r0, r1, c0, c1 = _matchable_box(pixels, config.border_px)
+    detections = []
+    order = np.argsort(label_of_point, kind="stable")
+    bounds = np.searchsorted(label_of_point[order], np.arange(1, labels.max() + 2))
+    for start, stop in itertools.pairwise(bounds):
+        members = order[start:stop]
+        if members.size < config.min_points:
+            continue
+        if np.unique(i[members] * 1_000_003 + j[members]).size * config.grid_m**2 < (
+            config.min_area_m2
+        ):
+            continue
+        top_m = float(np.quantile(height[members], config.top_quantile))
+        # A low object (a pallet) is all top: its points' spread is its height noise.
+        face_from_m = top_m - config.top_band_m
+        face = members[height[members] >= face_from_m] if face_from_m > 2 * band_floor else members
+        if face.size < config.min_points // 2:
+            continue
+        xy = np.column_stack([x[face], y[face]])
+        cx, cy, length, width, yaw = fit_rectangle(xy, config.trim_points / face.size)
+        pixel_m = max(camera_height_m - top_m, 0.0) * pixel_angle_rad
+        length, width = (
+            length + edge_deficit_m(width, yaw, pixel_m),
+            width + edge_deficit_m(length, yaw, pixel_m),
+        )
+        if width < config.min_width_m or (
+            top_m < config.low_strip_top_m and length > config.low_strip_aspect * width
+        ):
+            continue
+        partial = bool(
+            rows[members].min() <= r0
+            or rows[members].max() >= r1
+            or cols[members].min() <= c0
+            or cols[members].max() >= c1
+        )
+        detections.append(
+            Detection(
+                center_xy_m=(cx, cy),
+                length_m=length,
+                width_m=width,
+                yaw_rad=yaw,
+                top_m=top_m,
+                points=int(members.size),
+                partial=partial,
+            )
+        )
+    return detections
+
+
+def detections_header(
+    detections: list[Detection], pair: str, seq: int, stamp_ns: int
+) -> DetectionsHeader:
+    """``depth/{pair}/objects`` of one frame: the tile's pair, seq and capture stamp."""
+    return DetectionsHeader(
+        pair=pair,
+        seq=seq,
+        stamp_ns=stamp_ns,
+        detections=[
+            DetectionRecord(
+                center_m=d.center_xy_m,
+                size_m=(d.length_m, d.width_m),
+                yaw_rad=d.yaw_rad,
+                top_m=d.top_m,
+                points=d.points,
+                partial=d.partial,
+            )
+            for d in detections
+        ],
+    )

@@ -1,0 +1,143 @@
+"""How good ``map/objects`` is against ground truth: static objects' sizes (found once, no splits,
+no merges), movers' velocities and identity over time. Pure: scores lists of objects."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.footprints import corners
+from common.messages import TrackedObject, TruthObject
+from services.evaluation.metrics import true_extent
+
+MATCH_MARGIN_M = 0.15
+"""A track belongs to a truth object whose footprint, grown by this, holds the track's centre."""
+MOVER_MATCH_M = 1.0
+"""A moving track within this of a mover's true centre is taken as that mover."""
+
+
+def _inside(obj: TruthObject, xy_m: tuple[float, float], margin_m: float) -> bool:
+    dx, dy = xy_m[0] - obj.center_m[0], xy_m[1] - obj.center_m[1]
+    if obj.shape == "cylinder":
+        return math.hypot(dx, dy) <= obj.size_m[0] / 2 + margin_m
+    c, s = math.cos(obj.yaw_rad), math.sin(obj.yaw_rad)
+    along, across = c * dx + s * dy, -s * dx + c * dy
+    return (
+        abs(along) <= obj.size_m[0] / 2 + margin_m and abs(across) <= obj.size_m[1] / 2 + margin_m
+    )
+
+
+@dataclass(frozen=True)
+class ObjectMatch:
+    name: str
+    true_length_m: float
+    true_width_m: float
+    tracks: int
+    """Tracks matched to it: 1 is right, 0 missed, more a split."""
+    length_m: float
+    width_m: float
+    partial: bool
+    merged: bool
+    """Its track's footprint also covers another object's centre."""
+
+    @property
+    def errors_pct(self) -> tuple[float, float]:
+        return (
+            100 * abs(self.length_m - self.true_length_m) / self.true_length_m,
+            100 * abs(self.width_m - self.true_width_m) / self.true_width_m,
+        )
+
+
+def match_static(
+    tracks: Sequence[TrackedObject], truth: Sequence[TruthObject]
+) -> list[ObjectMatch]:
+    """Each static truth object with the tracks whose centres lie on it; the one seen most often
+    gives the size."""
+    out = []
+    for obj in truth:
+        mine = [t for t in tracks if _inside(obj, t.center_m, MATCH_MARGIN_M)]
+        length_true, width_true = true_extent(obj)
+        if not mine:
+            out.append(ObjectMatch(obj.name, length_true, width_true, 0, 0.0, 0.0, False, False))
+            continue
+        best = max(mine, key=lambda t: t.detections)
+        polygon = corners(best.center_m, best.size_m, best.yaw_rad)
+        others = [o for o in truth if o is not obj]
+        merged = any(_in_polygon(polygon, (o.center_m[0], o.center_m[1])) for o in others)
+        out.append(
+            ObjectMatch(
+                obj.name,
+                length_true,
+                width_true,
+                len(mine),
+                best.size_m[0],
+                best.size_m[1],
+                best.partial,
+                merged,
+            )
+        )
+    return out
+
+
+def _in_polygon(polygon: np.ndarray, xy_m: tuple[float, float]) -> bool:
+    x, y = xy_m
+    for (ax, ay), (bx, by) in zip(polygon, np.roll(polygon, -1, axis=0), strict=True):
+        if (bx - ax) * (y - ay) - (by - ay) * (x - ax) < 0:
+            return False
+    return True
+
+
+@dataclass(frozen=True)
+class MoverScores:
+    velocity_error_mps: list[float]
+    id_switches: dict[str, int]
+    tracked_share: dict[str, float]
+    """Per mover, the share of object lists in which a moving track followed it."""
+
+
+def score_movers(
+    history: Sequence[tuple[Sequence[TrackedObject], Sequence[TruthObject]]],
+) -> MoverScores:
+    """Over a sequence of (object list, truth at its stamp): per mover, the nearest moving track's
+    velocity error and how often the track following it changed id."""
+    errors: list[float] = []
+    last_id: dict[str, int] = {}
+    switches: dict[str, int] = {}
+    seen: dict[str, int] = {}
+    total: dict[str, int] = {}
+    for tracks, truth in history:
+        moving = [t for t in tracks if t.object_class == "moving"]
+        for obj in truth:
+            if not obj.moving:
+                continue
+            total[obj.name] = total.get(obj.name, 0) + 1
+            switches.setdefault(obj.name, 0)
+            if not moving:
+                continue
+            nearest = min(
+                moving,
+                key=lambda t: math.hypot(
+                    t.center_m[0] - obj.center_m[0], t.center_m[1] - obj.center_m[1]
+                ),
+            )
+            distance = math.hypot(
+                nearest.center_m[0] - obj.center_m[0], nearest.center_m[1] - obj.center_m[1]
+            )
+            if distance > MOVER_MATCH_M:
+                continue
+            seen[obj.name] = seen.get(obj.name, 0) + 1
+            errors.append(
+                math.hypot(
+                    nearest.velocity_mps[0] - obj.velocity_mps[0],
+                    nearest.velocity_mps[1] - obj.velocity_mps[1],
+                )
+            )
+            if obj.name in last_id and last_id[obj.name] != nearest.id:
+                switches[obj.name] += 1
+            last_id[obj.name] = nearest.id
+    return MoverScores(
+        errors, switches, {name: seen.get(name, 0) / n for name, n in total.items() if n}
+    )

@@ -1,0 +1,379 @@
+"""Objects over time: every pair's detections of one capture merged (one object at a seam is one
+object), associated with tracks (Hungarian on centre distance within a gate), each track a
+constant-velocity Kalman filter; and the cells a moving track sweeps ahead (DESIGN.md, Objects).
+
+Pure numpy/scipy: no Zenoh, no threads. Fusion holds one :class:`ObjectTracker` behind its lock.
+
+Rules that shape the tracks:
+- a static object never turns into a moving track: once a track has stood still for
+  ``static_after_s`` it is locked static (velocity held at zero); if the object is moved, its
+  detections leave the static gate, the track ends and a new one begins;
+- a track is ``moving`` once its speed exceeds ``moving_speed_mps`` and three standard deviations;
+- a partial detection (at an image border) updates the position loosely and never the size, unless
+  no pair has ever seen all of the object; then the object says ``partial``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+from scipy.optimize import linear_sum_assignment
+
+from common.footprints import convex_hull, corners, fit_rectangle, polygon_cells, polygons_overlap
+from common.lattice import Window
+from common.messages import DetectionRecord, TrackedObject
+
+F64 = npt.NDArray[np.float64]
+NOT_ALLOWED = 1e6
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    group_window_s: float = 0.03
+    """Detections of different pairs captured this close together are one capture."""
+    group_wait_s: float = 1.0
+    """A capture's detections are merged once every live pair reported it (or a later capture),
+    or after this long. Pairs of one capture can arrive a few hundred ms apart (a camera source
+    rendering them in turn); the predicted layer covers that wait for movers."""
+    merge_gap_m: float = 0.1
+    """Footprints of different pairs closer than this in one capture are one object."""
+    measurement_sigma_m: float = 0.05
+    partial_sigma_m: float = 0.3
+    """A partial detection's centre is off by up to half the unseen part."""
+    accel_sigma_mps2: float = 2.0
+    """Constant-velocity model's white acceleration: a forklift braking or turning."""
+    initial_speed_sigma_mps: float = 2.5
+    gate_sigmas: float = 3.5
+    gate_min_m: float = 0.3
+    gate_max_m: float = 2.0
+    lost_after_s: float = 1.5
+    """A track unseen this long has left (or was removed)."""
+    confirm_detections: int = 2
+    """Tracks seen fewer times are not reported (one-frame ghosts)."""
+    moving_speed_mps: float = 0.3
+    static_after_s: float = 3.0
+    static_travel_m: float = 0.2
+    """A track that stayed within this of where it began for ``static_after_s`` is static for good."""
+    size_history: int = 20
+    default_frame_interval_s: float = 0.5
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One object in one capture, after merging the pairs' detections of it."""
+
+    center_m: tuple[float, float]
+    size_m: tuple[float, float]
+    yaw_rad: float
+    top_m: float
+    partial: bool
+    pairs: tuple[str, ...]
+
+
+def _polygon(record: DetectionRecord | Observation) -> F64:
+    return corners(record.center_m, record.size_m, record.yaw_rad)
+
+
+def merge_capture(detections: list[tuple[str, DetectionRecord]], gap_m: float) -> list[Observation]:
+    """Detections of one capture from every pair → one observation per object. Detections of
+    different pairs whose footprints overlap (within ``gap_m``) are one object: a complete view
+    wins; partial views alone are joined into the rectangle around them all."""
+    parent = list(range(len(detections)))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    polygons = [_polygon(d) for _, d in detections]
+    for a in range(len(detections)):
+        for b in range(a + 1, len(detections)):
+            if detections[a][0] != detections[b][0] and polygons_overlap(
+                polygons[a], polygons[b], gap_m
+            ):
+                parent[root(a)] = root(b)
+    groups: dict[int, list[int]] = {}
+    for k in range(len(detections)):
+        groups.setdefault(root(k), []).append(k)
+    out = []
+    for members in groups.values():
+        pairs = tuple(sorted({detections[k][0] for k in members}))
+        complete = [detections[k][1] for k in members if not detections[k][1].partial]
+        top = max(detections[k][1].top_m for k in members)
+        if complete:
+            best = max(complete, key=lambda d: d.points)
+            out.append(Observation(best.center_m, best.size_m, best.yaw_rad, top, False, pairs))
+            continue
+        if len(members) == 1:
+            d = detections[members[0]][1]
+            out.append(Observation(d.center_m, d.size_m, d.yaw_rad, top, True, pairs))
+            continue
+        cx, cy, length, width, yaw = fit_rectangle(np.vstack([polygons[k] for k in members]))
+        out.append(Observation((cx, cy), (length, width), yaw, top, True, pairs))
+    return out
+
+
+@dataclass
+class Track:
+    id: int
+    state: F64
+    """x, y, vx, vy (world, metres and m/s) at ``stamp_ns``."""
+    covariance: F64
+    stamp_ns: int
+    first_seen_ns: int
+    sizes: deque[tuple[float, float, float, float]]
+    """Complete views: length, width, yaw, top."""
+    partial_size: tuple[float, float, float, float]
+    """Largest partial view, used while no complete one exists."""
+    pairs: tuple[str, ...]
+    origin_m: tuple[float, float]
+    detections: int = 1
+    static: bool = False
+    moving: bool = False
+
+    @property
+    def center_m(self) -> tuple[float, float]:
+        return float(self.state[0]), float(self.state[1])
+
+    def size(self) -> tuple[float, float, float, float, bool]:
+        """Length, width, yaw, top and whether the size is a partial view's lower bound."""
+        if not self.sizes:
+            return (*self.partial_size, True)
+        array = np.asarray(self.sizes)
+        doubled = 2 * array[:, 2]  # yaw is modulo π: average on the doubled circle
+        yaw = math.atan2(float(np.sin(doubled).mean()), float(np.cos(doubled).mean())) / 2
+        return (
+            float(np.median(array[:, 0])),
+            float(np.median(array[:, 1])),
+            yaw % math.pi,
+            float(np.median(array[:, 3])),
+            False,
+        )
+
+    def speed_test(self, config: TrackerConfig) -> bool:
+        speed = math.hypot(float(self.state[2]), float(self.state[3]))
+        sigma = math.sqrt(max(float(self.covariance[2, 2] + self.covariance[3, 3]), 0.0))
+        return speed > max(config.moving_speed_mps, 3.0 * sigma)
+
+
+def _transition(dt_s: float) -> F64:
+    f = np.eye(4)
+    f[0, 2] = f[1, 3] = dt_s
+    return f
+
+
+def _process_noise(dt_s: float, accel_sigma: float) -> F64:
+    """White-acceleration noise of the constant-velocity model, per axis."""
+    q = accel_sigma**2 * np.array([[dt_s**4 / 4, dt_s**3 / 2], [dt_s**3 / 2, dt_s**2]])
+    out = np.zeros((4, 4))
+    out[np.ix_([0, 2], [0, 2])] = q
+    out[np.ix_([1, 3], [1, 3])] = q
+    return out
+
+
+H = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+
+
+@dataclass
+class ObjectTracker:
+    config: TrackerConfig = field(default_factory=TrackerConfig)
+    tracks: list[Track] = field(default_factory=list)
+    next_id: int = 1
+    version: int = 0
+    stamp_ns: int = 0
+    frame_interval_s: float = 0.0
+    pending: dict[int, list[tuple[str, DetectionRecord]]] = field(default_factory=dict)
+    """Detections waiting for the rest of their capture: group stamp → (pair, detection)."""
+    pending_pairs: dict[int, set[str]] = field(default_factory=dict)
+    pending_since_s: dict[int, float] = field(default_factory=dict)
+
+    def add(
+        self, pair: str, stamp_ns: int, detections: list[DetectionRecord], now_s: float
+    ) -> None:
+        """One pair's detections of one frame (an empty list says it saw nothing: still counts)."""
+        window_ns = self.config.group_window_s * 1e9
+        group = next((g for g in self.pending if abs(g - stamp_ns) <= window_ns), stamp_ns)
+        self.pending.setdefault(group, []).extend((pair, d) for d in detections)
+        self.pending_pairs.setdefault(group, set()).add(pair)
+        self.pending_since_s.setdefault(group, now_s)
+
+    def flush(self, now_s: float, live_pairs: set[str]) -> bool:
+        """Process every complete (or waited-for) capture in stamp order; True if tracks changed."""
+        changed = False
+        groups = sorted(self.pending)
+        complete = [live_pairs <= self.pending_pairs[g] for g in groups]
+        for k, group in enumerate(groups):
+            waited = now_s - self.pending_since_s[group] >= self.config.group_wait_s
+            # A later capture complete: the pairs missing here skipped this frame.
+            if not (any(complete[k:]) or waited):
+                break  # captures are processed in order
+            detections = self.pending.pop(group)
+            del self.pending_pairs[group], self.pending_since_s[group]
+            if group <= self.stamp_ns:
+                continue  # older than a capture already processed
+            self.update(group, merge_capture(detections, self.config.merge_gap_m))
+            changed = True
+        return changed
+
+    def _predict(self, track: Track, stamp_ns: int) -> tuple[F64, F64]:
+        dt = (stamp_ns - track.stamp_ns) / 1e9
+        f = _transition(dt)
+        accel = 0.0 if track.static else self.config.accel_sigma_mps2
+        return f @ track.state, f @ track.covariance @ f.T + _process_noise(dt, accel)
+
+    def _gate_m(self, track: Track, covariance: F64) -> float:
+        length, _, _, _, _ = track.size()
+        spread = self.config.gate_sigmas * math.sqrt(float(covariance[0, 0] + covariance[1, 1]))
+        if track.static:
+            spread = 0.0
+        base = max(self.config.gate_min_m, 0.5 * length) if track.static else self.config.gate_min_m
+        return min(base + spread, self.config.gate_max_m)
+
+    def update(self, stamp_ns: int, observations: list[Observation]) -> None:
+        """One capture's observations: predict, associate, update, start and end tracks."""
+        if self.stamp_ns:
+            gap_s = (stamp_ns - self.stamp_ns) / 1e9
+            self.frame_interval_s = (
+                gap_s if not self.frame_interval_s else 0.8 * self.frame_interval_s + 0.2 * gap_s
+            )
+        predicted = [self._predict(t, stamp_ns) for t in self.tracks]
+        cost = np.full((len(self.tracks), len(observations)), NOT_ALLOWED)
+        for row, (track, (state, covariance)) in enumerate(
+            zip(self.tracks, predicted, strict=True)
+        ):
+            gate = self._gate_m(track, covariance)
+            for col, obs in enumerate(observations):
+                distance = math.hypot(obs.center_m[0] - state[0], obs.center_m[1] - state[1])
+                if distance <= gate:
+                    cost[row, col] = distance
+        rows, cols = linear_sum_assignment(cost) if cost.size else ([], [])
+        matched_obs: set[int] = set()
+        for row, col in zip(rows, cols, strict=True):
+            if cost[row, col] >= NOT_ALLOWED:
+                continue
+            state, covariance = predicted[row]
+            self._correct(self.tracks[row], state, covariance, stamp_ns, observations[col])
+            matched_obs.add(int(col))
+        for col, obs in enumerate(observations):
+            if col not in matched_obs:
+                self._start(stamp_ns, obs)
+        lost_ns = self.config.lost_after_s * 1e9
+        self.tracks = [t for t in self.tracks if stamp_ns - t.stamp_ns <= lost_ns]
+        self.stamp_ns = stamp_ns
+        self.version += 1
+
+    def _start(self, stamp_ns: int, obs: Observation) -> None:
+        sigma = self.config.partial_sigma_m if obs.partial else self.config.measurement_sigma_m
+        speed_var = self.config.initial_speed_sigma_mps**2
+        track = Track(
+            id=self.next_id,
+            state=np.array([obs.center_m[0], obs.center_m[1], 0.0, 0.0]),
+            covariance=np.diag([sigma**2, sigma**2, speed_var, speed_var]),
+            stamp_ns=stamp_ns,
+            first_seen_ns=stamp_ns,
+            sizes=deque(maxlen=self.config.size_history),
+            partial_size=(*obs.size_m, obs.yaw_rad, obs.top_m),
+            pairs=obs.pairs,
+            origin_m=obs.center_m,
+        )
+        if not obs.partial:
+            track.sizes.append((*obs.size_m, obs.yaw_rad, obs.top_m))
+        self.tracks.append(track)
+        self.next_id += 1
+
+    def _correct(
+        self, track: Track, state: F64, covariance: F64, stamp_ns: int, obs: Observation
+    ) -> None:
+        sigma = self.config.partial_sigma_m if obs.partial else self.config.measurement_sigma_m
+        innovation = np.asarray(obs.center_m) - H @ state
+        s = H @ covariance @ H.T + np.eye(2) * sigma**2
+        gain = covariance @ H.T @ np.linalg.inv(s)
+        track.state = state + gain @ innovation
+        track.covariance = (np.eye(4) - gain @ H) @ covariance
+        if track.static:
+            track.state[2:] = 0.0
+            track.covariance[2:, :] = track.covariance[:, 2:] = 0.0
+        track.stamp_ns = stamp_ns
+        track.pairs = obs.pairs
+        track.detections += 1
+        if obs.partial:
+            if obs.size_m[0] * obs.size_m[1] > track.partial_size[0] * track.partial_size[1]:
+                track.partial_size = (*obs.size_m, obs.yaw_rad, obs.top_m)
+        else:
+            track.sizes.append((*obs.size_m, obs.yaw_rad, obs.top_m))
+        self._classify(track)
+
+    def _classify(self, track: Track) -> None:
+        if track.static:
+            return
+        if not track.moving and track.speed_test(self.config):
+            track.moving = True
+        age_s = (track.stamp_ns - track.first_seen_ns) / 1e9
+        travel = math.hypot(track.state[0] - track.origin_m[0], track.state[1] - track.origin_m[1])
+        if (
+            not track.moving
+            and age_s >= self.config.static_after_s
+            and travel <= self.config.static_travel_m
+        ):
+            track.static = True
+            track.state[2:] = 0.0
+            track.covariance[2:, :] = track.covariance[:, 2:] = 0.0
+
+    def objects(self) -> list[TrackedObject]:
+        """Confirmed tracks as ``map/objects`` reports them."""
+        out = []
+        for t in self.tracks:
+            if t.detections < self.config.confirm_detections:
+                continue
+            length, width, yaw, top, partial = t.size()
+            moving = t.moving
+            velocity = (float(t.state[2]), float(t.state[3])) if moving else (0.0, 0.0)
+            cov = t.covariance[2:, 2:] if moving else np.zeros((2, 2))
+            out.append(
+                TrackedObject(
+                    id=t.id,
+                    object_class="moving" if moving else "static",
+                    center_m=t.center_m,
+                    size_m=(length, width),
+                    yaw_rad=yaw,
+                    top_m=top,
+                    velocity_mps=velocity,
+                    velocity_cov_m2ps2=(
+                        (float(cov[0, 0]), float(cov[0, 1])),
+                        (float(cov[1, 0]), float(cov[1, 1])),
+                    ),
+                    first_seen_ns=t.first_seen_ns,
+                    last_seen_ns=t.stamp_ns,
+                    pairs=list(t.pairs),
+                    partial=partial,
+                    detections=t.detections,
+                )
+            )
+        return out
+
+    def sweep(
+        self, resolution_m: float, from_ns: int, until_ns: int
+    ) -> list[tuple[Window, npt.NDArray[np.bool_]]]:
+        """Per moving track, the cells its footprint sweeps from max(its last capture, ``from_ns``)
+        until ``until_ns`` along its velocity: where it is while the map that shows it is read."""
+        out = []
+        for t in self.tracks:
+            if not t.moving or t.detections < self.config.confirm_detections:
+                continue
+            length, width, yaw, _, _ = t.size()
+            start_s = (max(t.stamp_ns, from_ns) - t.stamp_ns) / 1e9
+            end_s = max((until_ns - t.stamp_ns) / 1e9, start_s)
+            velocity = t.state[2:4]
+            a = corners(tuple(t.state[:2] + velocity * start_s), (length, width), yaw)
+            b = corners(tuple(t.state[:2] + velocity * end_s), (length, width), yaw)
+            out.append(polygon_cells(convex_hull(np.vstack([a, b])), resolution_m))
+        return out
+
+    def ahead_s(self) -> float:
+        """One frame interval: how far past the visible time a sweep must reach."""
+        return self.frame_interval_s or self.config.default_frame_interval_s

@@ -1,0 +1,267 @@
+"""Objects: measured from points below the cell size, merged across pairs, tracked with velocities,
+movers' paths swept into the map's predicted layer."""
+
+import math
+
+import numpy as np
+import pytest
+
+from common.footprints import corners, fit_rectangle, polygon_cells
+from common.lattice import Window
+from common.messages import DetectionRecord, TrackedObject
+from common.occupancy_map import OCCUPIED
+from common.sensor_model import SensorModelParams
+from services.depth.objects import PixelGrid, detect_objects
+from services.depth.projection import WorldPoints
+from services.fusion.grid import FusedGrid, GridParams
+from services.fusion.objects import ObjectTracker, merge_capture
+
+PITCH_M = 0.02
+"""Floor spacing of the synthetic pixels (about a half-resolution pixel at an object's top)."""
+CAMERA_HEIGHT_M = 6.0
+FRAME_NS = 500_000_000  # 2 Hz
+T0_NS = 1_700_000_000 * 10**9
+
+
+def _scene_points(
+    center: tuple[float, float],
+    size: tuple[float, float],
+    yaw: float,
+    top_m: float,
+    rng: np.random.Generator,
+    extent_m: float = 3.0,
+) -> tuple[WorldPoints, PixelGrid]:
+    """A pixel grid over the floor seen from overhead: the box's top where it stands, floor else."""
+    n = int(extent_m / PITCH_M)
+    rows, cols = np.mgrid[0:n, 0:n]
+    x = center[0] - extent_m / 2 + (cols + 0.5) * PITCH_M
+    y = center[1] - extent_m / 2 + (rows + 0.5) * PITCH_M
+    c, s = math.cos(yaw), math.sin(yaw)
+    along = c * (x - center[0]) + s * (y - center[1])
+    across = -s * (x - center[0]) + c * (y - center[1])
+    on_box = (np.abs(along) <= size[0] / 2) & (np.abs(across) <= size[1] / 2)
+    height = np.where(on_box, top_m, 0.0) + rng.normal(0, 0.01, x.shape)
+    points = WorldPoints(
+        x_m=x.ravel().astype(np.float32),
+        y_m=y.ravel().astype(np.float32),
+        height_m=height.ravel().astype(np.float32),
+        height_sigma_m=np.full(x.size, 0.02, np.float32),
+    )
+    return points, PixelGrid.from_valid(np.ones((n, n), np.bool_))
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.03, 0.5, math.pi / 2])
+def test_size_of_a_rotated_box_from_its_points_is_below_the_cell_size(yaw: float) -> None:
+    rng = np.random.default_rng(1)
+    size = (0.83, 0.47)
+    points, pixels = _scene_points((5.0, 4.0), size, yaw, 1.1, rng)
+    pixel_angle = PITCH_M / (CAMERA_HEIGHT_M - 1.1)  # one pixel spans PITCH_M at the top
+    found = detect_objects(points, pixels, CAMERA_HEIGHT_M, pixel_angle, SensorModelParams())
+    assert len(found) == 1
+    d = found[0]
+    # Within the lattice sampling of the edges (under a pixel): a third of a 5 cm cell.
+    assert abs(d.length_m - size[0]) < 0.016 and abs(d.width_m - size[1]) < 0.016
+    assert abs(d.center_xy_m[0] - 5.0) < 0.01 and abs(d.center_xy_m[1] - 4.0) < 0.01
+    assert 0 <= d.yaw_rad < math.pi
+    assert abs(math.remainder(d.yaw_rad - yaw, math.pi)) < math.radians(
+        2
+    )  # a pixel over its length
+    assert abs(d.top_m - 1.1) < 0.03
+    assert not d.partial
+
+
+def test_an_object_cut_by_the_image_border_is_partial() -> None:
+    rng = np.random.default_rng(2)
+    points, pixels = _scene_points((5.0, 4.0), (0.8, 0.5), 0.0, 1.0, rng, extent_m=1.2)
+    keep = points.x_m < 5.2  # the view ends across the box
+    cut = WorldPoints(
+        *(getattr(points, f)[keep] for f in ("x_m", "y_m", "height_m", "height_sigma_m"))
+    )
+    cut_pixels = PixelGrid(pixels.rows[keep], pixels.cols[keep], pixels.shape)
+    found = detect_objects(cut, cut_pixels, CAMERA_HEIGHT_M, 0.004, SensorModelParams())
+    assert len(found) == 1 and found[0].partial
+
+
+def test_fit_rectangle_recovers_a_known_rectangle() -> None:
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-0.5, 0.5, (4000, 2)) * [1.2, 0.6]
+    yaw = 2.0
+    rotation = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    cx, cy, length, width, fitted_yaw = fit_rectangle(xy @ rotation.T + [3.0, 2.0])
+    assert abs(length - 1.2) < 0.01 and abs(width - 0.6) < 0.01
+    assert abs(cx - 3.0) < 0.01 and abs(cy - 2.0) < 0.01
+    assert abs(fitted_yaw - yaw % math.pi) < math.radians(1)
+
+
+def _record(
+    center: tuple[float, float],
+    size: tuple[float, float],
+    partial: bool = False,
+    yaw: float = 0.0,
+    top: float = 1.0,
+) -> DetectionRecord:
+    return DetectionRecord(
+        center_m=center, size_m=size, yaw_rad=yaw, top_m=top, points=500, partial=partial
+    )
+
+
+def test_two_pairs_each_seeing_half_of_an_object_give_one_object() -> None:
+    # A 1.0 × 0.6 m box from x = 2.0 to 3.0; pair p0 sees x < 2.55, pair p1 sees x > 2.45.
+    halves = [
+        ("p0", _record((2.275, 5.0), (0.55, 0.6), partial=True)),
+        ("p1", _record((2.725, 5.0), (0.55, 0.6), partial=True)),
+    ]
+    merged = merge_capture(halves, gap_m=0.1)
+    assert len(merged) == 1
+    assert merged[0].pairs == ("p0", "p1")
+    assert abs(merged[0].size_m[0] - 1.0) < 1e-6 and abs(merged[0].center_m[0] - 2.5) < 1e-6
+
+    tracker = ObjectTracker()
+    for k in range(4):
+        for pair, record in halves:
+            tracker.add(pair, T0_NS + k * FRAME_NS, [record], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0", "p1"})
+    objects = tracker.objects()
+    assert len(objects) == 1 and objects[0].pairs == ["p0", "p1"]
+
+
+def test_a_complete_view_wins_over_a_partial_one() -> None:
+    merged = merge_capture(
+        [
+            ("p0", _record((2.5, 5.0), (1.0, 0.6))),
+            ("p1", _record((2.8, 5.0), (0.4, 0.6), partial=True)),
+        ],
+        gap_m=0.1,
+    )
+    assert len(merged) == 1 and not merged[0].partial and merged[0].size_m == (1.0, 0.6)
+
+
+def _run_mover(
+    tracker: ObjectTracker,
+    start: tuple[float, float],
+    velocity: tuple[float, float],
+    frames: int,
+    rng: np.random.Generator,
+    seam_x_m: float | None = None,
+) -> list[list[TrackedObject]]:
+    """A 1.2 × 0.8 m box moving at constant velocity; with a seam, pair p0 sees x < seam + 0.3 and
+    p1 x > seam − 0.3, each partially near its edge."""
+    history = []
+    size = (1.2, 0.8)
+    for k in range(frames):
+        t_s = k * FRAME_NS / 1e9
+        x = start[0] + velocity[0] * t_s + rng.normal(0, 0.02)
+        y = start[1] + velocity[1] * t_s + rng.normal(0, 0.02)
+        stamp = T0_NS + k * FRAME_NS
+        if seam_x_m is None:
+            tracker.add("p0", stamp, [_record((x, y), size)], now_s=0.0)
+            pairs = {"p0"}
+        else:
+            pairs = {"p0", "p1"}
+            views = {"p0": (-math.inf, seam_x_m + 0.3), "p1": (seam_x_m - 0.3, math.inf)}
+            for pair, (lo, hi) in views.items():
+                x0, x1 = max(x - 0.6, lo), min(x + 0.6, hi)
+                seen = []
+                if x1 - x0 > 0.2:
+                    partial = x0 > x - 0.6 or x1 < x + 0.6
+                    seen.append(_record(((x0 + x1) / 2, y), (x1 - x0, 0.8), partial))
+                tracker.add(pair, stamp, seen, now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs=pairs)
+        history.append(tracker.objects())
+    return history
+
+
+def test_a_constant_velocity_track_has_the_velocity() -> None:
+    tracker = ObjectTracker()
+    history = _run_mover(tracker, (1.0, 1.0), (1.6, 0.5), 12, np.random.default_rng(4))
+    (track,) = history[-1]
+    assert track.object_class == "moving"
+    assert math.hypot(track.velocity_mps[0] - 1.6, track.velocity_mps[1] - 0.5) < 0.12
+    assert track.velocity_cov_m2ps2[0][0] > 0
+
+
+def test_a_mover_crossing_a_seam_keeps_its_id() -> None:
+    tracker = ObjectTracker()
+    history = _run_mover(
+        tracker, (3.0, 1.5), (2.0, 0.0), 14, np.random.default_rng(5), seam_x_m=6.0
+    )
+    ids = {o.id for objects in history for o in objects}
+    assert len(ids) == 1
+    assert {"p0", "p1"} <= {p for objects in history for o in objects for p in o.pairs}
+    assert history[-1][0].object_class == "moving"
+
+
+def test_a_static_objects_track_never_gains_velocity() -> None:
+    tracker = ObjectTracker()
+    rng = np.random.default_rng(6)
+    for k in range(40):
+        jitter = rng.normal(0, 0.03, 2)
+        # Now and then only a partial view, whose centre is off by a lot.
+        partial = k % 5 == 3
+        center = (4.0 + jitter[0] + (0.2 if partial else 0.0), 3.0 + jitter[1])
+        tracker.add("p0", T0_NS + k * FRAME_NS, [_record(center, (0.8, 0.5), partial)], 0.0)
+        tracker.flush(0.0, {"p0"})
+        for obj in tracker.objects():
+            assert obj.object_class == "static" and obj.velocity_mps == (0.0, 0.0)
+    (obj,) = tracker.objects()
+    assert abs(obj.size_m[0] - 0.8) < 1e-6 and not obj.partial
+
+
+def test_a_moved_static_object_ends_its_track_and_starts_a_new_one() -> None:
+    tracker = ObjectTracker()
+    for k in range(10):
+        tracker.add("p0", T0_NS + k * FRAME_NS, [_record((4.0, 3.0), (0.8, 0.5))], 0.0)
+        tracker.flush(0.0, {"p0"})
+    (before,) = tracker.objects()
+    for k in range(10, 16):
+        tracker.add("p0", T0_NS + k * FRAME_NS, [_record((6.0, 3.0), (0.8, 0.5))], 0.0)
+        tracker.flush(0.0, {"p0"})
+    (after,) = tracker.objects()
+    assert after.id != before.id and after.object_class == "static"
+
+
+def test_the_predicted_layer_covers_a_mover_ahead_and_clears_behind() -> None:
+    resolution = 0.05
+    tracker = ObjectTracker()
+    _run_mover(tracker, (2.0, 2.0), (2.0, 0.0), 6, np.random.default_rng(7))
+    (track,) = tracker.objects()
+    seen_ns = track.last_seen_ns
+    ahead_ns = seen_ns + int(0.6e9)  # latency + one frame interval
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
+    grid.occupancy[:] = 0  # every cell seen free
+    assert grid.set_predicted(tracker.sweep(resolution, seen_ns, ahead_ns))
+    served = grid.served_occupancy()
+    x_now = track.center_m[0]
+
+    def cell(x: float, y: float) -> tuple[int, int]:
+        return int(y / resolution), int(x / resolution)
+
+    ahead = cell(x_now + 0.6 + 2.0 * 0.5, 2.0)  # its front edge 0.5 s ahead
+    behind = cell(x_now - 0.8, 2.0)
+    assert served[ahead] == OCCUPIED and grid.predicted[ahead]
+    assert served[behind] == 0 and not grid.predicted[behind]
+    assert grid.occupancy[ahead] == 0  # the evidence layer is not touched
+
+    # The next frame sees it 1 m further on: the sweep starts there, the cells it left are clear.
+    version = grid.version
+    later_ns = seen_ns + FRAME_NS
+    grid.set_predicted(tracker.sweep(resolution, later_ns, later_ns + int(0.6e9)))
+    left = cell(x_now - 0.3, 2.0)
+    assert not grid.predicted[left] and grid.served_occupancy()[left] == 0
+    assert grid.version > version and not grid.take_dirty().empty
+
+
+def test_polygon_cells_are_the_cells_whose_centres_it_holds() -> None:
+    window, mask = polygon_cells(corners((1.0, 1.0), (0.5, 0.3), 0.0), 0.05)
+    assert mask.sum() == 10 * 6
+    assert window.cols >= 10 and window.rows >= 6
+
+
+@pytest.mark.parametrize("partial", [False, True])
+def test_partial_flag_reaches_the_object(partial: bool) -> None:
+    tracker = ObjectTracker()
+    for k in range(3):
+        tracker.add("p0", T0_NS + k * FRAME_NS, [_record((4.0, 3.0), (0.8, 0.5), partial)], 0.0)
+        tracker.flush(0.0, {"p0"})
+    (obj,) = tracker.objects()
+    assert obj.partial is partial
