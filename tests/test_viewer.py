@@ -415,6 +415,7 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
     page.wait_for_function(_drawn_as(page, 2.3, 2.3, "occupied"))
     page.wait_for_function(_drawn_as(page, 1.0, 3.5, "free"))
     page.wait_for_selector('#pairs li[data-pair="p0"][data-state="alive"]')
+    page.wait_for_selector('#pairs li[data-pair="p0"]:has-text("floor model")')  # depth health
     assert page.is_hidden("#banner")
 
     # Zoom keeps the point under the pointer in place; a drag pans; "fit" shows the whole map.

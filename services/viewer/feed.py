@@ -18,6 +18,7 @@ from typing import Any
 
 import zenoh
 
+from common import keys
 from common.client import MapFollower, MapUnavailable, calibrations, health, latest, query_all
 from common.codec import CodecError
 from common.logs import RateLimitedLog
@@ -27,7 +28,7 @@ from services.viewer.status import TileRates, objects_of, pair_states
 from services.viewer.wire import MapLayers, height_mm
 
 log = logging.getLogger("view")
-DEPTH_HEALTH_ALL = "depth/*/health"
+DEPTH_HEALTH_TIMEOUT_S = 0.3
 MAP_OBJECTS = "map/objects"
 """DESIGN.md's tracked obstacles; not served yet: the page shows objects once it answers."""
 
@@ -224,14 +225,20 @@ class MapFeed:
             self._update(pairs=self._pairs(self._state.map_health))
 
     def _poll_depth_health(self) -> None:
+        """Each known pair's own ``depth/{pair}/health``: asked one by one, since a depth process
+        answers on the query's key and a wildcard query keeps only one of the answers."""
         rows: dict[str, dict[str, Any]] = {}
-        for payload in query_all(self._session, DEPTH_HEALTH_ALL, self.periods.query_timeout_s):
+        for pair in sorted({row["pair"] for row in self._state.pairs}):
             try:
-                row = json.loads(payload)
+                payloads = query_all(self._session, keys.depth_health(pair), DEPTH_HEALTH_TIMEOUT_S)
+            except MapUnavailable:
+                continue  # not running: fusion's liveliness says so already
+            try:
+                row = json.loads(payloads[0])
             except json.JSONDecodeError:
                 continue
-            if isinstance(row, dict) and isinstance(row.get("pair"), str):
-                rows[row["pair"]] = row
+            if isinstance(row, dict):
+                rows[pair] = row
         with self._lock:
             self._depth_health = rows
 
