@@ -328,7 +328,7 @@
 
   // ---- side panel, summary, banner ----------------------------------------------------------
   function fmt(value, digits, unit) {
-    return value === null || value === undefined ? "—" : `${Number(value).toFixed(digits)} ${unit}`;
+    return value === null || value === undefined ? "—" : `${Number(value).toFixed(digits)}\u00a0${unit}`;
   }
 
   function renderPanel() {
