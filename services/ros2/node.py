@@ -11,7 +11,7 @@ quantised and with an invented scale; width, height, row order and frame are /ma
 
 Settings are overgrid's flags and ``OVERGRID_*`` variables, and also this node's ROS parameters
 (``--ros-args -p frame_id:=odom``); remapping (``-r /map:=/site/map``) and ``ROS_DOMAIN_ID`` work as
-for any node. ``map/objects`` does not exist yet, so no objects are published.
+for any node. Objects (``map/objects``) are not published yet: no visualization_msgs/MarkerArray.
 """
 
 from __future__ import annotations
