@@ -258,9 +258,9 @@ def equiangular_fraction(raw_16: np.ndarray) -> F32:
     A table over the 16 fractions: one lookup per pixel.
     """
     offset = np.asarray(raw_16, np.int16) + np.int16(8)
-    whole = (offset >> 4).astype(np.float32)  # nearest whole pixel (halves up)
-    fraction = cv2.LUT((offset & 15).astype(np.uint8), _EQUIANGULAR_LUT)
-    disparity: F32 = np.asarray(cv2.add(whole, fraction), dtype=np.float32)
+    disparity: F32 = (offset >> 4).astype(np.float32)  # nearest whole pixel (halves up)
+    np.bitwise_and(offset, 15, out=offset)
+    cv2.add(disparity, cv2.LUT(offset.astype(np.uint8), _EQUIANGULAR_LUT), dst=disparity)
     return disparity
 
 
@@ -268,28 +268,34 @@ def neighbourhood_mean(disparity: F32, window_px: int, max_range_px: float) -> F
     """Each valid pixel replaced by the mean of the valid pixels of its ``window_px`` square, where
     that square spans at most ``max_range_px`` of disparity (elsewhere it keeps its own value, so
     no mean mixes the two sides of a depth edge)."""
-    invalid = np.isnan(disparity)
     window = (window_px, window_px)
-    highest, lowest = _window_range(disparity, invalid, np.ones(window, np.uint8))
-    zeroed = disparity.copy()
-    zeroed[invalid] = 0.0
-    total = cv2.boxFilter(zeroed, -1, window, normalize=False)
-    count = cv2.boxFilter((~invalid).astype(np.float32), -1, window, normalize=False)
-    with np.errstate(invalid="ignore", over="ignore"):  # all-invalid windows: -inf - inf
-        smooth = (highest - lowest <= max_range_px) & ~invalid
+    valid = disparity == disparity  # not NaN
+    smooth = (_window_range_px(disparity, np.ones(window, np.uint8)) <= max_range_px) & valid
+    # In place where OpenCV allows it: fresh frame-sized arrays cost page faults, not just copies.
+    total = _nan_filled(disparity, 0.0)
+    cv2.boxFilter(total, -1, window, dst=total, normalize=False)
+    count = valid.astype(np.float32)
+    cv2.boxFilter(count, -1, window, dst=count, normalize=False)
+    cv2.divide(total, count, dst=total)
     result = disparity.copy()
-    np.copyto(result, cv2.divide(total, count), where=smooth)
+    np.copyto(result, total, where=smooth)
     return result
 
 
-def _window_range(disparity: F32, invalid: npt.NDArray[np.bool_], kernel: U8) -> tuple[F32, F32]:
-    """Highest and lowest valid disparity in each pixel's window (−inf/inf where none)."""
+def _nan_filled(disparity: F32, value: float) -> F32:
     filled = disparity.copy()
-    filled[invalid] = -np.inf
-    highest = np.asarray(cv2.dilate(filled, kernel), dtype=np.float32)
-    filled[invalid] = np.inf
-    lowest = np.asarray(cv2.erode(filled, kernel), dtype=np.float32)
-    return highest, lowest
+    cv2.patchNaNs(filled, value)
+    return filled
+
+
+def _window_range_px(disparity: F32, kernel: U8) -> F32:
+    """Highest minus lowest valid (not NaN) disparity in each pixel's window; −inf where none."""
+    highest = _nan_filled(disparity, -np.inf)
+    cv2.dilate(highest, kernel, dst=highest)
+    lowest = _nan_filled(disparity, np.inf)
+    cv2.erode(lowest, kernel, dst=lowest)
+    cv2.subtract(highest, lowest, dst=highest)
+    return highest
 
 
 _NEIGHBOURHOOD = np.ones((3, 3), np.uint8)
@@ -305,10 +311,9 @@ def invalidate_depth_edges(disparity: F32, max_range_px: float) -> F32:
     """
     if max_range_px <= 0:
         return disparity
-    highest, lowest = _window_range(disparity, np.isnan(disparity), _NEIGHBOURHOOD)
+    spread = _window_range_px(disparity, _NEIGHBOURHOOD)
     filtered = disparity.copy()
-    with np.errstate(invalid="ignore", over="ignore"):  # all-invalid neighbourhoods: -inf - inf
-        filtered[highest - lowest > max_range_px] = np.nan
+    np.copyto(filtered, np.float32(np.nan), where=spread > max_range_px)
     return filtered
 
 
@@ -333,7 +338,7 @@ class DisparityChain:
             disparity = equiangular_fraction(raw)
         else:
             disparity = raw.astype(np.float32) * np.float32(1.0 / 16.0)
-        disparity[raw < self.min_disparity * 16] = np.nan
+        np.copyto(disparity, np.float32(np.nan), where=raw < self.min_disparity * 16)
         disparity = invalidate_depth_edges(disparity, self.config.edge_filter_px)
         if self.config.subpixel:
             disparity = neighbourhood_mean(disparity, SUBPIXEL_WINDOW_PX, SUBPIXEL_MEAN_RANGE_PX)
