@@ -196,6 +196,8 @@ def test_objects_are_read_from_json_or_msgpack_and_nothing_is_invented() -> None
         {"id": "3", "class": "box", "center_m": [1, 2], "velocity_mps": [0.5, 0]}
     ]
     assert objects_of(msgpack.packb(objects)) == [{"id": "3", "class": "box", "center_m": [1, 2]}]
+    enveloped = {"v": 1, "kind": "objects", "header": {"version": 1, "objects": objects}}
+    assert objects_of(msgpack.packb(enveloped))[0]["id"] == "3"
     assert objects_of(b"\xff\x00garbage") == [] and objects_of(b'{"no": "objects"}') == []
 
 
@@ -496,3 +498,56 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
     assert problems == []
     for queryable in queryables:
         queryable.undeclare()
+
+
+@pytest.mark.process
+def test_the_page_reconnects_to_a_restarted_viewer(
+    bus: Bus, tmp_path: Path, browser_page: Any
+) -> None:
+    page = browser_page
+    port = free_port()
+    viewer = bus.start("view", "--http-port", str(port), log_path=tmp_path / "view.log")
+    _wait_http(port)
+    page.goto(f"http://127.0.0.1:{port}/")
+    page.wait_for_selector('#banner[data-kind="stale"]')  # no fusion on this bus: never answered
+    assert "not answered yet" in page.inner_text("#banner")
+    bus.kill(viewer)
+    page.wait_for_selector('#banner[data-kind="disconnected"]', timeout=10_000)
+    assert "reconnecting" in page.inner_text("#banner")
+    bus.start("view", "--http-port", str(port), log_path=tmp_path / "view-again.log")
+    page.wait_for_selector('#banner[data-kind="stale"]', timeout=20_000)  # connected again
+
+
+@pytest.mark.process
+def test_a_fusion_that_lost_its_map_is_followed_anew(
+    bus: Bus, tmp_path: Path, browser_page: Any
+) -> None:
+    page = browser_page
+    tiles = bus.session.declare_publisher(
+        "depth/p0/tile", encoding=WIRE_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
+    )
+    seq = iter(range(10_000))
+
+    def fused(x0: float, y0: float, logodds: float, versions: int) -> bool:
+        for _ in range(versions):
+            window = _window_m(x0, y0, x0 + 0.5, y0 + 0.5)
+            tiles.put(tile_payload("p0", window, logodds, seq=next(seq)))
+            time.sleep(0.05)
+        return latest(bus.session).value_at(x0 + 0.25, y0 + 0.25) > 65
+
+    first = bus.start("fusion", "--state-dir", str(tmp_path / "a"), log_path=tmp_path / "a.log")
+    port = free_port()
+    bus.start("view", "--http-port", str(port), log_path=tmp_path / "view.log")
+    wait_for(lambda: fused(1.0, 1.0, 3.0, 30), 30, "the first fusion's map")
+    page.goto(f"http://127.0.0.1:{port}/")
+    page.wait_for_function(_drawn_as(page, 1.25, 1.25, "occupied"))
+    first.send_signal(signal.SIGINT)
+    first.wait(15)
+    page.wait_for_selector('#banner[data-kind="stale"]', timeout=10_000)
+    # A fusion with no saved map starts again at version 0, below what the page has seen.
+    bus.start("fusion", "--state-dir", str(tmp_path / "b"), log_path=tmp_path / "b.log")
+    wait_for(lambda: fused(2.0, 1.0, 3.0, 2), 30, "the second fusion's map")
+    page.wait_for_function(_drawn_as(page, 2.25, 1.25, "occupied"), timeout=10_000)
+    page.wait_for_selector("#banner", state="hidden")
+    assert page.evaluate("window.overgridView.state.map.version") < 30
+    assert _rgb(page, 1.25, 1.25) != PICTURE_COLORS["occupied"]  # the lost map is gone from view

@@ -29,8 +29,9 @@ from services.viewer.wire import MapLayers, height_mm
 
 log = logging.getLogger("view")
 DEPTH_HEALTH_TIMEOUT_S = 0.3
-MAP_OBJECTS = "map/objects"
-"""DESIGN.md's tracked obstacles; not served yet: the page shows objects once it answers."""
+MAP_OBJECTS = "map/objects?format=json"
+"""DESIGN.md's tracked obstacles, in the format meant for people; the page shows them once fusion
+answers this key."""
 
 
 @dataclass(frozen=True)

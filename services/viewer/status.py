@@ -101,8 +101,8 @@ def _finite_numbers(value: Any) -> bool:
 
 
 def objects_of(payload: bytes) -> list[dict[str, Any]]:
-    """The objects of a ``map/objects`` reply, JSON or msgpack, a list or ``{"objects": [...]}``:
-    the key is not served yet, so this reads the fields DESIGN.md names and drops the rest."""
+    """The objects of a ``map/objects`` reply, JSON or msgpack, a list or ``{"objects": [...]}``
+    (bare or in the codec's envelope): only the fields DESIGN.md names and the page draws."""
     try:
         answer = json.loads(payload)
     except (UnicodeDecodeError, json.JSONDecodeError):
@@ -111,7 +111,8 @@ def objects_of(payload: bytes) -> list[dict[str, Any]]:
         except (ValueError, msgpack.UnpackException):
             return []
     if isinstance(answer, dict):
-        answer = answer.get("objects", [])
+        answer = answer.get("header", answer)  # the codec's envelope around a header
+        answer = answer.get("objects", []) if isinstance(answer, dict) else []
     if not isinstance(answer, list):
         return []
     objects = []
