@@ -83,11 +83,15 @@ MAX_RESIDUAL_PX = 1.0
 """Scale of the robust weights in the calibration-residual fit."""
 MIN_FIT_PIXELS = 200
 """Fewer pixels than this fit no residual, and a share of fewer modelled pixels decides nothing."""
-SEED_PROBE_PX = (2.0, 3.5)
+SEED_PROBE_PX = 3.0
 """A smooth pixel is touched by a seed this far outward of it (away from the nadir)."""
+GAIN_SAMPLE_STEP = 6
+"""Gains are taken from every this-many-th pixel in each direction: a global figure."""
 LINE_ACROSS_PX = 3.0
 """Beyond an inward seed, the floor this much further on is compared with the pixel."""
 LINE_OF_SIGHT_MARGIN_PX = 1.5
+LINE_OF_SIGHT_BIN_PX = 2.0
+"""Polar bins of the line-of-sight test, in radius and in arc at the image's rim."""
 """An obstacle's foot within this of a pixel does not block it (the floor at an object's base)."""
 
 
@@ -123,7 +127,7 @@ class FloorModelConfig:
     match_relative: float = 0.05
     """A pixel matches its background within max(match_sigmas·σ, match_min_gray, match_relative·mean)."""
     learn_rate: float = 0.05
-    learn_every: int = 2
+    learn_every: int = 4
     """Learn (grow, line of sight, update) every this many frames; the floor changes slowly."""
     confirm_frames: int = 2
     ready_share: float = 0.3
@@ -192,35 +196,33 @@ def floor_test(left: F32, warped: F32, inside: Mask, config: FloorModelConfig) -
     at the floor's disparity) over a small window, and the residual shift between them.
 
     The shift is one Lucas–Kanade step along x: where the surface has disparity d = d_floor + δ,
-    left(u) = warped(u − δ) ≈ warped(u) − δ·∂warped/∂u, so δ = ⟨(warped − left)·g⟩ / ⟨g²⟩ with g
-    the x-gradient, after removing each window's mean and the cameras' gain ratio.
+    left(u) = warped(u − δ) ≈ warped(u) − δ·∂warped/∂u, so δ = ⟨(warped − left)·g⟩ / ⟨g²⟩ over the
+    window with g the x-gradient, means removed, after one global gain between the cameras.
     """
     k = (config.window_px, config.window_px)
+    step = GAIN_SAMPLE_STEP
+    left_sample, right_sample = left[::step, ::step], warped[::step, ::step]
+    seen = right_sample >= 0
+    ratio = float(left_sample[seen].mean()) / max(float(right_sample[seen].mean()), 1.0)
+    warped = warped * np.float32(ratio)
     gradient = cv2.Sobel(left + warped, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 16.0)
-    products = [left * left, warped * warped, left * warped]
-    products += [gradient * gradient, warped * gradient, left * gradient]
-    stack = cv2.merge([left, warped, gradient, *products])
-    means = cv2.split(cv2.blur(stack, k))
-    mean_l, mean_r, mean_g, mean_ll, mean_rr, mean_lr, mean_gg, mean_rg, mean_lg = means
-    var_l = mean_ll - mean_l * mean_l
-    var_r = mean_rr - mean_r * mean_r
-    texture = config.texture_gray**2
+    mean_l, mean_r, mean_g = cv2.blur(left, k), cv2.blur(warped, k), cv2.blur(gradient, k)
+    var_l = cv2.blur(left * left, k) - mean_l * mean_l
+    var_r = cv2.blur(warped * warped, k) - mean_r * mean_r
+    texture = np.float32(config.texture_gray**2)
     textured: Mask = (var_l > texture) & (var_r > texture) & inside
-    zncc = (mean_lr - mean_l * mean_r) / np.sqrt(np.maximum(var_l * var_r, 1e-6))
-    gain = np.sqrt(np.maximum(var_l, 1e-6) / np.maximum(var_r, 1e-6))
-    energy = mean_gg - mean_g * mean_g
-    along = gain * (mean_rg - mean_r * mean_g) - (mean_lg - mean_l * mean_g)
-    shift = along / np.maximum(energy, 1e-6)
-    measured = (
-        textured
-        & (zncc >= config.measure_zncc)
-        & (energy > texture / 2)
-        & (np.abs(shift) < config.max_shift_px)
-    )
-    shift_px: F32 = np.where(measured, shift, np.float32(np.nan)).astype(np.float32)
-    agree: Mask = measured & (zncc >= config.agree_zncc) & (np.abs(shift) <= config.floor_shift_px)
+    covariance = cv2.blur(left * warped, k) - mean_l * mean_r
+    zncc = covariance / np.sqrt(np.maximum(var_l * var_r, np.float32(1e-6)))
+    energy = cv2.blur(gradient * gradient, k) - mean_g * mean_g
+    along = cv2.blur((warped - left) * gradient, k) - (mean_r - mean_l) * mean_g
+    shift = along / np.maximum(energy, np.float32(1e-6))
+    size = np.abs(shift)
+    measured = textured & (zncc >= config.measure_zncc) & (energy > texture / 2)
+    measured &= size < config.max_shift_px
+    shift_px: F32 = np.where(measured, shift, np.float32(np.nan))
+    agree: Mask = measured & (zncc >= config.agree_zncc) & (size <= config.floor_shift_px)
     contradict: Mask = textured & (
-        (zncc < config.contradict_zncc) | (measured & (np.abs(shift) >= config.raised_shift_px))
+        (zncc < config.contradict_zncc) | (measured & (size >= config.raised_shift_px))
     )
     return FloorTest(textured, shift_px, agree, contradict)
 
@@ -272,7 +274,7 @@ class LineOfSight:
     A vertical segment (an obstacle point and the floor below it) images as a segment toward the
     nadir: from the point's pixel inward to its foot, at a radius (1 − h/C_z) times the point's
     from the nadir. In polar coordinates about the nadir that is a run along the radius, so "is any
-    column over me" is a reverse cumulative minimum of the feet's radii along each ray.
+    column over me" is a cumulative minimum of the feet's radii from the rim inward.
     """
 
     def __init__(self, shape: tuple[int, int], nadir_px: tuple[float, float]) -> None:
@@ -280,27 +282,34 @@ class LineOfSight:
         cx, cy = nadir_px
         corners = np.array([[0, 0], [width, 0], [0, height], [width, height]], np.float64)
         max_radius = float(np.max(np.hypot(corners[:, 0] - cx, corners[:, 1] - cy)))
-        radii = max(2, math.ceil(max_radius))
-        angles = max(8, math.ceil(2 * math.pi * max_radius / 1.5))
-        theta = np.linspace(0, 2 * math.pi, angles, endpoint=False, dtype=np.float64)[:, None]
-        radius = np.arange(radii, dtype=np.float64)[None, :]
+        step = LINE_OF_SIGHT_BIN_PX
+        radii = max(2, math.ceil(max_radius / step))
+        angles = max(8, math.ceil(2 * math.pi * max_radius / step))
+        # Rows run from the rim inward, so the cumulative minimum runs down the rows.
+        radius = (np.arange(radii, dtype=np.float64)[::-1] * step)[:, None]
+        theta = np.linspace(0, 2 * math.pi, angles, endpoint=False, dtype=np.float64)[None, :]
         self._to_polar = (
             (cx + radius * np.cos(theta)).astype(np.float32),
             (cy + radius * np.sin(theta)).astype(np.float32),
         )
-        self.radius_px = np.broadcast_to(radius.astype(np.float32), (angles, radii))
+        self._inner_radius = np.ascontiguousarray(
+            np.broadcast_to((radius - LINE_OF_SIGHT_MARGIN_PX).astype(np.float32), (radii, angles))
+        )
         v, u = np.mgrid[0:height, 0:width].astype(np.float64)
         self.pixel_radius_px = np.hypot(u - cx, v - cy).astype(np.float32)
         back_theta = np.mod(np.arctan2(v - cy, u - cx), 2 * math.pi)
         self._from_polar = (
-            np.minimum(np.round(self.pixel_radius_px), radii - 1).astype(np.float32),
             np.mod(np.round(back_theta * angles / (2 * math.pi)), angles).astype(np.float32),
+            (radii - 1 - np.minimum(np.round(self.pixel_radius_px / step), radii - 1)).astype(
+                np.float32
+            ),
         )
+        self._spread = np.ones((2 * math.ceil(step) + 1,) * 2, np.uint8)
 
     def blocked(self, foot_radius_px: F32) -> Mask:
         """``foot_radius_px``: per pixel, the radius of its obstacle point's foot (inf: none)."""
-        # A 3×3 minimum first, so the polar rays (1.5 px apart at the rim) miss no column.
-        feet = cv2.erode(foot_radius_px, np.ones((3, 3), np.uint8))
+        # A minimum over the polar bins' spacing first, so no column falls between two rays.
+        feet = cv2.erode(foot_radius_px, self._spread)
         polar = cv2.remap(
             feet,
             *self._to_polar,
@@ -308,10 +317,9 @@ class LineOfSight:
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=np.inf,
         )
-        inward = np.minimum.accumulate(polar[:, ::-1], axis=1)[:, ::-1]
-        under = (inward < self.radius_px - LINE_OF_SIGHT_MARGIN_PX).astype(np.uint8)
-        back = cv2.remap(under, *self._from_polar, cv2.INTER_NEAREST)
-        blocked: Mask = back > 0
+        inward = np.minimum.accumulate(polar, axis=0)
+        under = (inward < self._inner_radius).view(np.uint8)
+        blocked: Mask = cv2.remap(under, *self._from_polar, cv2.INTER_NEAREST) > 0
         return blocked
 
 
@@ -342,6 +350,9 @@ class FloorModel:
         self.line_of_sight = LineOfSight(self.shape, geometry.nadir_px)
         self.mean = np.zeros((2, height, width), np.float32)
         self.var = np.zeros((2, height, width), np.float32)
+        self.tolerance = np.zeros((2, height, width), np.float32)
+        """max(match_sigmas·σ, match_min_gray, match_relative·mean), kept with the model."""
+        self._modelled = np.zeros((height, width), np.bool_)
         self.confirmed = np.zeros((height, width), np.uint8)
         self.frames = 0
         self.relearned = 0
@@ -356,10 +367,9 @@ class FloorModel:
             )
             return maps
 
-        self._outward_probes = [probe(step) for step in SEED_PROBE_PX]
-        self._inward_probes = [
-            (probe(-step), probe(-step - LINE_ACROSS_PX)) for step in SEED_PROBE_PX
-        ]
+        self._outward_probe = probe(SEED_PROBE_PX)
+        self._inward_probe = probe(-SEED_PROBE_PX)
+        self._beyond_probe = probe(-SEED_PROBE_PX - LINE_ACROSS_PX)
         self._gain = (1.0, 1.0)
         self._set_floor(self.geometry.floor_disparity_px)
 
@@ -368,8 +378,9 @@ class FloorModel:
     def _set_floor(self, floor_px: F32, row_offset_px: F32 | float = 0.0) -> None:
         self.floor_now = floor_px.astype(np.float32)
         """The floor's disparity with the fitted calibration residual."""
-        self._warp_maps = cv2.convertMaps(
-            self._u - self.floor_now, self._v + row_offset_px, cv2.CV_16SC2
+        self._warp_maps = (
+            (self._u - self.floor_now).astype(np.float32),
+            (self._v + row_offset_px).astype(np.float32),
         )
 
     def _fit_residual(self, left: F32, warped: F32, test: FloorTest) -> None:
@@ -400,11 +411,11 @@ class FloorModel:
 
     @property
     def modelled(self) -> Mask:
-        modelled: Mask = self.confirmed >= self.config.confirm_frames
-        return modelled
+        """Pixels whose background is known (both cameras)."""
+        return self._modelled
 
     def modelled_share(self) -> float:
-        return float(np.count_nonzero(self.modelled)) / float(self.confirmed.size)
+        return float(np.count_nonzero(self._modelled)) / float(self._modelled.size)
 
     def state(self) -> str:
         return "ready" if self.modelled_share() >= self.config.ready_share else "learning"
@@ -442,8 +453,8 @@ class FloorModel:
             at_floor = valid & (np.abs(disparity - floor_now) <= cfg.floor_tolerance_px)
         measured = np.where(refined, near_floor, disparity).astype(np.float32)
 
-        match_left, match_right, departed = self._match(left, warped, inside)
-        matches = self.modelled & inside & match_left & match_right & ~test.contradict
+        both_match, departed = self._match(left, warped, inside)
+        matches = both_match & ~test.contradict
         # Rule 1 (fattening on untextured pixels) and rule 2 (no disparity): floor observations.
         observed = matches & ((valid & ~at_floor & ~test.textured) | (~valid & ~refined))
         # Floor observations sit at height 0: the calibration's floor, not the fitted one.
@@ -452,7 +463,7 @@ class FloorModel:
         relearn = departed > cfg.relearn_share
         if relearn or self.frames % cfg.learn_every == 0:
             self._learn(left, warped, inside, test, measured, at_floor, matches, relearn)
-        if self.frames % cfg.offset_every == 0:
+        if self.frames % cfg.offset_every == cfg.offset_every // 2:  # not in a learning frame
             self._fit_residual(left, warped, test)
         self.frames += 1
         return out
@@ -460,7 +471,7 @@ class FloorModel:
     def _gains(self, left: F32, warped: F32, modelled: Mask) -> tuple[float, float]:
         """Global gain of each camera against its background (median ratio over modelled pixels):
         exposure, gain and a uniform lighting change scale every floor pixel alike."""
-        step = 4
+        step = GAIN_SAMPLE_STEP
         sample = modelled[::step, ::step]
         if int(sample.sum()) < MIN_FIT_PIXELS // (step * step):
             return 1.0, 1.0
@@ -471,25 +482,19 @@ class FloorModel:
             gains.append(float(np.median(ratio)))
         return gains[0], gains[1]
 
-    def _match(self, left: F32, warped: F32, inside: Mask) -> tuple[Mask, Mask, float]:
-        """Per camera, whether each pixel matches its background after gain normalisation; and
-        the share of modelled pixels that departs (for the re-learn decision)."""
-        cfg = self.config
-        modelled = self.modelled & inside
+    def _match(self, left: F32, warped: F32, inside: Mask) -> tuple[Mask, float]:
+        """Whether both cameras match their backgrounds at each pixel after gain normalisation;
+        and the share of modelled pixels that departs (for the re-learn decision)."""
+        modelled = self._modelled & inside
         self._gain = self._gains(left, warped, modelled)
-        matches = []
+        both = modelled.copy()
         for side, image in ((0, left), (1, warped)):
-            mean = self.mean[side] * np.float32(self._gain[side])
-            tolerance = np.maximum(
-                np.maximum(cfg.match_sigmas * np.sqrt(self.var[side]), cfg.match_min_gray),
-                cfg.match_relative * mean,
-            )
-            matches.append(np.abs(image - mean) <= tolerance)
+            normalised = image * np.float32(1.0 / max(self._gain[side], 1e-3))
+            both &= np.abs(normalised - self.mean[side]) <= self.tolerance[side]
         count = int(np.count_nonzero(modelled))
         if count < MIN_FIT_PIXELS:
-            return matches[0], matches[1], 0.0
-        departed = 1.0 - float(np.count_nonzero(matches[0] & matches[1] & modelled)) / count
-        return matches[0], matches[1], departed
+            return both, 0.0
+        return both, 1.0 - float(np.count_nonzero(both)) / count
 
     def _seeds(self, test: FloorTest, at_floor: Mask, inside: Mask) -> Mask:
         # A disparity on an untextured pixel is the matcher's interpolation, not a measurement; and
@@ -513,16 +518,13 @@ class FloorModel:
         # Seeds sit on floor-level edges, next to the smooth floor rather than inside it. An edge
         # at floor level vouches only for its side toward the nadir: there lies the floor, while on
         # the other side of a box's base rises its face (a marking has floor on both sides).
-        seeds_u8 = seeds.astype(np.uint8)
-        touching = np.zeros(self.shape, np.bool_)
-        for probe in self._outward_probes:
-            touching |= cv2.remap(seeds_u8, *probe, cv2.INTER_NEAREST) > 0
+        seeds_u8 = seeds.view(np.uint8)
+        touching = cv2.remap(seeds_u8, *self._outward_probe, cv2.INTER_NEAREST) > 0
         # A line at floor level (a marking) vouches for both sides: inward of it as well, where
         # the floor beyond it looks the same as here (a box's base has its face beyond).
-        for probe, beyond in self._inward_probes:
-            seed_inward = cv2.remap(seeds_u8, *probe, cv2.INTER_NEAREST) > 0
-            across = cv2.remap(left, *beyond, cv2.INTER_NEAREST)
-            touching |= seed_inward & (np.abs(across - left) < 2 * cfg.texture_gray)
+        seed_inward = cv2.remap(seeds_u8, *self._inward_probe, cv2.INTER_NEAREST) > 0
+        across = cv2.remap(left, *self._beyond_probe, cv2.INTER_NEAREST)
+        touching |= seed_inward & (np.abs(across - left) < 2 * cfg.texture_gray)
         seeded = np.bincount(labels[touching & smooth], minlength=count)
         enough = (seeded >= cfg.min_seeds) & (seeded >= cfg.seed_share * sizes)
         enough[0] = False  # label 0: the pixels that are not smooth
@@ -566,8 +568,8 @@ class FloorModel:
             fresh = confirmed & (self.confirmed == 0)
             gains = self._gain
         # Modelled pixels learn only while they still match: a pixel under something never does.
-        rate = np.where(confirmed & ~fresh & (matches | ~modelled), np.float32(cfg.learn_rate), 0)
-        rate = rate.astype(np.float32)
+        learning = confirmed & ~fresh & (matches | ~modelled)
+        rate = learning.astype(np.float32) * np.float32(cfg.learn_rate)
         var_start = np.float32(cfg.match_min_gray**2 / cfg.match_sigmas**2)
         for side, image in ((0, left), (1, warped)):
             normalised = image * np.float32(1.0 / max(gains[side], 1e-3))
@@ -577,4 +579,10 @@ class FloorModel:
             var += rate * (delta * delta - var)
             np.copyto(mean, normalised, where=fresh)
             np.copyto(var, var_start, where=fresh)
+            np.maximum(
+                np.maximum(np.sqrt(var) * np.float32(cfg.match_sigmas), cfg.match_min_gray),
+                mean * np.float32(cfg.match_relative),
+                out=self.tolerance[side],
+            )
         self.confirmed += (confirmed & (self.confirmed < 255)).view(np.uint8)
+        self._modelled = self.confirmed >= cfg.confirm_frames
