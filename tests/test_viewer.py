@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import http.client
 import io
-import json
 import os
 import shutil
 import signal
@@ -17,7 +16,6 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import msgpack
 import numpy as np
 import pytest
 import zenoh
@@ -26,14 +24,14 @@ from common.client import latest
 from common.codec import WIRE_ENCODING, encode
 from common.lattice import Window
 from common.mapfiles import PGM_FREE, PGM_OCCUPIED, PICTURE_COLORS
-from common.messages import CALIB_KIND
+from common.messages import CALIB_KIND, OBJECTS_KIND, ObjectsHeader, TrackedObject
 from common.occupancy_map import OccupancyMap
 from common.png import decode_png
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.evaluation.metrics import seen_by_cameras
 from services.viewer.address import available_port, page_url
 from services.viewer.footprints import clip_convex, pair_footprint
-from services.viewer.status import TileRates, objects_of, pair_states
+from services.viewer.status import TileRates, objects_for_page, pair_states
 from services.viewer.wire import (
     CHUNK_CELLS,
     NO_HEIGHT_MM,
@@ -190,15 +188,38 @@ def test_pair_states_from_health_calibrations_and_depth_health() -> None:
     assert not rows[1]["alive"] and not rows[1]["known_to_fusion"] and rows[1]["footprint_m"]
 
 
-def test_objects_are_read_from_json_or_msgpack_and_nothing_is_invented() -> None:
-    objects = [{"id": 3, "class": "box", "center_m": [1, 2], "velocity_mps": [0.5, float("nan")]}]
-    assert objects_of(json.dumps({"objects": objects[:1]}).encode().replace(b"NaN", b"0")) == [
-        {"id": "3", "class": "box", "center_m": [1, 2], "velocity_mps": [0.5, 0]}
+def _tracked(id_: int, velocity_mps: tuple[float, float]) -> TrackedObject:
+    return TrackedObject(
+        id=id_,
+        object_class="moving" if any(velocity_mps) else "static",
+        center_m=(1.0, 2.0),
+        size_m=(0.8, 0.5),
+        yaw_rad=0.3,
+        top_m=1.1,
+        velocity_mps=velocity_mps,
+        velocity_cov_m2ps2=((0.01, 0.0), (0.0, 0.01)),
+        first_seen_ns=1,
+        last_seen_ns=2,
+        pairs=["p0"],
+        partial=False,
+        detections=5,
+    )
+
+
+def test_objects_reach_the_page_with_what_it_draws() -> None:
+    header = ObjectsHeader(version=1, stamp_ns=2, objects=[_tracked(7, (0.5, 0.0))])
+    assert objects_for_page(header) == [
+        {
+            "id": 7,
+            "class": "moving",
+            "center_m": [1.0, 2.0],
+            "size_m": [0.8, 0.5],
+            "yaw_rad": 0.3,
+            "top_m": 1.1,
+            "velocity_mps": [0.5, 0.0],
+            "partial": False,
+        }
     ]
-    assert objects_of(msgpack.packb(objects)) == [{"id": "3", "class": "box", "center_m": [1, 2]}]
-    enveloped = {"v": 1, "kind": "objects", "header": {"version": 1, "objects": objects}}
-    assert objects_of(msgpack.packb(enveloped))[0]["id"] == "3"
-    assert objects_of(b"\xff\x00garbage") == [] and objects_of(b'{"no": "objects"}') == []
 
 
 def test_address_helpers() -> None:
@@ -511,6 +532,17 @@ def test_the_page_reconnects_to_a_restarted_viewer(
     page.goto(f"http://127.0.0.1:{port}/")
     page.wait_for_selector('#banner[data-kind="stale"]')  # no fusion on this bus: never answered
     assert "not answered yet" in page.inner_text("#banner")
+    assert "not served" in page.inner_text("#objects")
+    # Objects appear once map/objects answers (here the test answers it, as fusion does).
+    tracked = ObjectsHeader(
+        version=1, stamp_ns=2, objects=[_tracked(7, (0.5, 0.0)), _tracked(8, (0.0, 0.0))]
+    )
+    payload = encode(OBJECTS_KIND, tracked)
+    queryable = bus.session.declare_queryable(
+        "map/objects", lambda query: query.reply("map/objects", payload)
+    )
+    page.wait_for_selector('#objects:has-text("2 tracked, 1 moving: 7 (0.5 m/s)")')
+    queryable.undeclare()
     bus.kill(viewer)
     page.wait_for_selector('#banner[data-kind="disconnected"]', timeout=10_000)
     assert "reconnecting" in page.inner_text("#banner")

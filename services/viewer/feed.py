@@ -19,19 +19,24 @@ from typing import Any
 import zenoh
 
 from common import keys
-from common.client import MapFollower, MapUnavailable, calibrations, health, latest, query_all
+from common.client import (
+    MapFollower,
+    MapUnavailable,
+    calibrations,
+    health,
+    latest,
+    objects,
+    query_all,
+)
 from common.codec import CodecError
 from common.logs import RateLimitedLog
 from common.occupancy_map import OccupancyMap
 from services.viewer.footprints import Polygon, pair_footprint
-from services.viewer.status import TileRates, objects_of, pair_states
+from services.viewer.status import TileRates, objects_for_page, pair_states
 from services.viewer.wire import MapLayers, height_mm
 
 log = logging.getLogger("view")
 DEPTH_HEALTH_TIMEOUT_S = 0.3
-MAP_OBJECTS = "map/objects?format=json"
-"""DESIGN.md's tracked obstacles, in the format meant for people; the page shows them once fusion
-answers this key."""
 
 
 @dataclass(frozen=True)
@@ -244,12 +249,11 @@ class MapFeed:
             self._depth_health = rows
 
     def _poll_objects(self) -> None:
-        objects: list[dict[str, Any]] | None = None
         try:
-            replies = query_all(self._session, MAP_OBJECTS, self.periods.query_timeout_s)
+            found: list[dict[str, Any]] | None = objects_for_page(
+                objects(self._session, self.periods.query_timeout_s)
+            )
         except MapUnavailable:
-            replies = []
-        for payload in replies:
-            objects = (objects or []) + objects_of(payload)
-        if objects != self._state.objects:
-            self._update(objects=objects)
+            found = None  # a fusion without objects: the page says they are not served
+        if found != self._state.objects:
+            self._update(objects=found)

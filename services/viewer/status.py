@@ -4,28 +4,18 @@ of ``map/health``, ``depth/*/health``, the calibrations and ``map/objects``. Pur
 from __future__ import annotations
 
 import json
-import math
 from collections import deque
 from typing import Any
 
-import msgpack
-
+from common.messages import ObjectsHeader
 from services.viewer.footprints import Polygon
 
 RATE_WINDOW_S = 3.0
 """Frame rates are averaged over this long: steady to read, still quick to show a stall."""
-OBJECT_FIELDS = (
-    "id",
-    "class",
-    "footprint_m",
-    "center_m",
-    "size_m",
-    "yaw_rad",
-    "top_m",
-    "velocity_mps",
+OBJECT_FIELDS = frozenset(
+    {"id", "class", "center_m", "size_m", "yaw_rad", "top_m", "velocity_mps", "partial"}
 )
-"""What the page draws of an object (DESIGN.md's map/objects: id, class, oriented footprint, top
-height, velocity); anything else a reply carries is left out."""
+"""What the page shows of a tracked object; the rest (covariance, stamps, pairs) stays out."""
 
 
 class TileRates:
@@ -90,40 +80,9 @@ def pair_states(
     return rows
 
 
-def _finite_numbers(value: Any) -> bool:
-    if isinstance(value, bool):
-        return False
-    if isinstance(value, int | float):
-        return math.isfinite(value)
-    if isinstance(value, list | tuple):
-        return all(_finite_numbers(v) for v in value)
-    return False
-
-
-def objects_of(payload: bytes) -> list[dict[str, Any]]:
-    """The objects of a ``map/objects`` reply, JSON or msgpack, a list or ``{"objects": [...]}``
-    (bare or in the codec's envelope): only the fields DESIGN.md names and the page draws."""
-    try:
-        answer = json.loads(payload)
-    except (UnicodeDecodeError, json.JSONDecodeError):
-        try:
-            answer = msgpack.unpackb(payload, raw=False)
-        except (ValueError, msgpack.UnpackException):
-            return []
-    if isinstance(answer, dict):
-        answer = answer.get("header", answer)  # the codec's envelope around a header
-        answer = answer.get("objects", []) if isinstance(answer, dict) else []
-    if not isinstance(answer, list):
-        return []
-    objects = []
-    for item in answer:
-        if not isinstance(item, dict) or "id" not in item:
-            continue
-        kept: dict[str, Any] = {"id": str(item["id"])}
-        if isinstance(item.get("class"), str):
-            kept["class"] = item["class"]
-        for name in OBJECT_FIELDS[2:]:
-            if name in item and _finite_numbers(item[name]):
-                kept[name] = item[name]
-        objects.append(kept)
-    return objects
+def objects_for_page(header: ObjectsHeader) -> list[dict[str, Any]]:
+    """The tracked objects of ``map/objects`` with what the page draws: outline, label, arrow."""
+    return [
+        {k: v for k, v in o.model_dump(mode="json", by_alias=True).items() if k in OBJECT_FIELDS}
+        for o in header.objects
+    ]

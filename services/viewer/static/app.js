@@ -15,6 +15,7 @@
   const heightMode = document.getElementById("height-mode");
 
   const COLORS = { alive: "#1f9d45", dead: "#d32f2f", unknown: "#e0a100", object: "#1565c0", axisX: "#d32f2f", axisY: "#1f9d45" };
+  const MIN_SPEED_MPS = 0.05; // slower is drawn as standing still: no arrow
   const SERVER_SILENT_S = 3.5; // the server sends status every second: silence means a lost link
   const HEIGHT_RAMP = [[48, 18, 59], [70, 134, 251], [27, 229, 181], [164, 252, 60], [251, 185, 56], [228, 70, 10], [122, 4, 3]];
 
@@ -235,7 +236,6 @@
   }
 
   function objectOutline(o) {
-    if (o.footprint_m) return o.footprint_m;
     if (!o.center_m || !o.size_m) return null;
     const [cx, cy] = o.center_m;
     const [l, w] = o.size_m;
@@ -255,12 +255,12 @@
       ctx.stroke();
       const cx = outline.reduce((a, p) => a + p[0], 0) / outline.length;
       const cy = outline.reduce((a, p) => a + p[1], 0) / outline.length;
-      if (o.velocity_mps) {
+      if (o.velocity_mps && Math.hypot(o.velocity_mps[0], o.velocity_mps[1]) > MIN_SPEED_MPS) {
         const [ax, ay] = worldToScreen(cx, cy);
         const [bx, by] = worldToScreen(cx + o.velocity_mps[0], cy + o.velocity_mps[1]); // 1 s ahead
         arrow(ax, ay, bx, by, COLORS.object);
       }
-      const size = o.size_m ? ` ${o.size_m[0].toFixed(2)}×${o.size_m[1].toFixed(2)} m` : "";
+      const size = o.size_m ? ` ${o.partial ? "≥" : ""}${o.size_m[0].toFixed(2)}×${o.size_m[1].toFixed(2)} m` : "";
       const [sx, sy] = worldToScreen(cx, cy);
       label(`${o.id}${o.class ? " " + o.class : ""}${size}`, sx + 6, sy - 20, COLORS.object);
     }
@@ -367,8 +367,10 @@
       objectsBox.textContent = "map/objects not served";
     } else {
       objectsBox.className = "";
+      const moving = status.objects.filter((o) => o.velocity_mps && Math.hypot(...o.velocity_mps) > MIN_SPEED_MPS);
       objectsBox.textContent = status.objects.length
-        ? status.objects.map((o) => `${o.id}${o.class ? " " + o.class : ""}`).join(", ")
+        ? `${status.objects.length} tracked, ${moving.length} moving` +
+          (moving.length ? `: ${moving.map((o) => `${o.id} (${Math.hypot(...o.velocity_mps).toFixed(1)} m/s)`).join(", ")}` : "")
         : "none tracked";
     }
   }
