@@ -19,6 +19,7 @@ from services.fusion.objects import ObjectTracker, merge_capture
 PITCH_M = 0.02
 """Floor spacing of the synthetic pixels (about a half-resolution pixel at an object's top)."""
 CAMERA_HEIGHT_M = 6.0
+LEFT_MARGIN_PX = 0
 FRAME_NS = 500_000_000  # 2 Hz
 T0_NS = 1_700_000_000 * 10**9
 
@@ -56,7 +57,9 @@ def test_size_of_a_rotated_box_from_its_points_is_below_the_cell_size(yaw: float
     size = (0.83, 0.47)
     points, pixels = _scene_points((5.0, 4.0), size, yaw, 1.1, rng)
     pixel_angle = PITCH_M / (CAMERA_HEIGHT_M - 1.1)  # one pixel spans PITCH_M at the top
-    found = detect_objects(points, pixels, CAMERA_HEIGHT_M, pixel_angle, SensorModelParams())
+    found = detect_objects(
+        points, pixels, CAMERA_HEIGHT_M, pixel_angle, LEFT_MARGIN_PX, SensorModelParams()
+    )
     assert len(found) == 1
     d = found[0]
     # Within the lattice sampling of the edges (under a pixel): a third of a 5 cm cell.
@@ -77,8 +80,11 @@ def test_an_object_cut_by_the_image_border_is_partial() -> None:
     cut = WorldPoints(
         *(getattr(points, f)[keep] for f in ("x_m", "y_m", "height_m", "height_sigma_m"))
     )
-    cut_pixels = PixelGrid(pixels.rows[keep], pixels.cols[keep], pixels.shape)
-    found = detect_objects(cut, cut_pixels, CAMERA_HEIGHT_M, 0.004, SensorModelParams())
+    cols = pixels.cols[keep]  # the image ends there
+    cut_pixels = PixelGrid(pixels.rows[keep], cols, (pixels.shape[0], int(cols.max()) + 1))
+    found = detect_objects(
+        cut, cut_pixels, CAMERA_HEIGHT_M, 0.004, LEFT_MARGIN_PX, SensorModelParams()
+    )
     assert len(found) == 1 and found[0].partial
 
 

@@ -34,6 +34,8 @@ from services.depth.projection import WorldPoints
 class DetectionConfig:
     grid_m: float = 0.025
     """Segmentation grid: half a map cell, so objects 0.5 m apart never touch."""
+    close_cells: int = 5
+    """Gaps up to this many grid cells are closed before labelling (a plain top matches little)."""
     min_points: int = 40
     min_area_m2: float = 0.03
     min_width_m: float = 0.12
@@ -50,7 +52,10 @@ class DetectionConfig:
     """Top-face points trimmed at each end of each axis (stray matches): a few, not a share, since
     pixel centres on a grid are not spread uniformly enough near an edge to undo a share's cut."""
     border_px: int = 2
-    """A detection within this many pixels of the matchable image area's edge is partial."""
+    """A detection within this many pixels of the image border is partial."""
+    margin_slack_px: int = 8
+    """…or within this many pixels of the left margin stereo cannot match: measured on the
+    simulated site, a top face next to it stays unmatched up to 7 pixels further in."""
 
 
 @dataclass(frozen=True)
@@ -93,14 +98,23 @@ def edge_deficit_m(edge_m: float, yaw_rad: float, pixel_m: float) -> float:
     return pixel_m / (1.0 + crossings)
 
 
-def _matchable_box(pixels: PixelGrid, border_px: int) -> tuple[int, int, int, int]:
-    """Rows and columns inside the area where the pair matched anything, shrunk by ``border_px``:
-    the image border, and the left margin the disparity search cannot reach."""
-    return (
-        int(pixels.rows.min()) + border_px,
-        int(pixels.rows.max()) - border_px,
-        int(pixels.cols.min()) + border_px,
-        int(pixels.cols.max()) - border_px,
+def _cut_by_view(
+    rows: npt.NDArray[np.intp],
+    cols: npt.NDArray[np.intp],
+    shape: tuple[int, int],
+    left_margin_px: float,
+    config: DetectionConfig,
+) -> bool:
+    """Whether an object's pixels reach the edge of what the pair can match: the image border, or
+    the left image's first ``left_margin_px`` columns, whose match would lie left of the right
+    image (the floor model may still fill them with floor, so valid pixels do not show it)."""
+    height, width = shape
+    border = config.border_px
+    return bool(
+        rows.min() <= border
+        or rows.max() >= height - 1 - border
+        or cols.min() <= left_margin_px + config.margin_slack_px
+        or cols.max() >= width - 1 - border
     )
 
 
@@ -109,11 +123,14 @@ def detect_objects(
     pixels: PixelGrid,
     camera_height_m: float,
     pixel_angle_rad: float,
+    left_margin_px: float,
     params: SensorModelParams,
     config: DetectionConfig = DetectionConfig(),
 ) -> list[Detection]:
     """Objects of one frame. ``pixel_angle_rad``: the angle one processed pixel subtends (its
-    footprint at distance d is d·angle); ``camera_height_m``: the pair's height above the floor."""
+    footprint at distance d is d·angle, the focal length is its inverse); ``camera_height_m``: the
+    pair's height above the floor; ``left_margin_px``: the left image's columns the disparity
+    search cannot match (its highest disparity)."""
     band_floor = params.obstacle_min_m
     band = (points.height_m >= band_floor) & (points.height_m <= params.obstacle_max_m)
     if np.count_nonzero(band) < config.min_points:
@@ -126,11 +143,11 @@ def detect_objects(
     i0, j0 = int(i.min()), int(j.min())
     occupied = np.zeros((int(j.max()) - j0 + 1, int(i.max()) - i0 + 1), np.uint8)
     occupied[j - j0, i - i0] = 1
-    # Close one-cell gaps (a row of unmatched pixels across a box top) before labelling.
-    closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))
+    # Close gaps (unmatched pixels across a plain top) before labelling.
+    kernel = np.ones((config.close_cells, config.close_cells), np.uint8)
+    closed = cv2.morphologyEx(occupied, cv2.MORPH_CLOSE, kernel)
     _, labels = cv2.connectedComponents(closed, connectivity=8)
     label_of_point = labels[j - j0, i - i0]
-    r0, r1, c0, c1 = _matchable_box(pixels, config.border_px)
     detections = []
     order = np.argsort(label_of_point, kind="stable")
     bounds = np.searchsorted(label_of_point[order], np.arange(1, labels.max() + 2))
@@ -159,12 +176,7 @@ def detect_objects(
             top_m < config.low_strip_top_m and length > config.low_strip_aspect * width
         ):
             continue
-        partial = bool(
-            rows[members].min() <= r0
-            or rows[members].max() >= r1
-            or cols[members].min() <= c0
-            or cols[members].max() >= c1
-        )
+        partial = _cut_by_view(rows[members], cols[members], pixels.shape, left_margin_px, config)
         detections.append(
             Detection(
                 center_xy_m=(cx, cy),

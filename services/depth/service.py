@@ -222,6 +222,7 @@ class TilePublisher:
             PixelGrid.from_valid(np.isfinite(result.evidence_disparity_px)),
             camera_height_m=float(rectifier.C_world[2]),
             pixel_angle_rad=1.0 / float(rectifier.focal_px),
+            left_margin_px=pipeline.min_disparity + pipeline.num_disparities,
             params=pipeline.config.model,
         )
         header = detections_header(detections, self.pair, seq, stamp_ns)

@@ -8,7 +8,10 @@ Rules that shape the tracks:
 - a static object never turns into a moving track: once a track has stood still for
   ``static_after_s`` it is locked static (velocity held at zero); if the object is moved, its
   detections leave the static gate, the track ends and a new one begins;
-- a track is ``moving`` once its speed exceeds ``moving_speed_mps`` and three standard deviations;
+- a track is ``moving`` once its speed exceeds ``moving_speed_mps`` and ``moving_sigmas`` standard
+  deviations;
+- a detection overlapping a track's footprint that the track did not take is a piece of it (a
+  plain top matches in fragments): joined to it, never a track of its own;
 - a partial detection (at an image border) updates the position loosely and never the size, unless
   no pair has ever seen all of the object; then the object says ``partial``.
 """
@@ -42,7 +45,7 @@ class TrackerConfig:
     merge_gap_m: float = 0.1
     """Footprints of different pairs closer than this in one capture are one object."""
     measurement_sigma_m: float = 0.05
-    partial_sigma_m: float = 0.3
+    partial_sigma_m: float = 0.15
     """A partial detection's centre is off by up to half the unseen part."""
     accel_sigma_mps2: float = 2.0
     """Constant-velocity model's white acceleration: a forklift braking or turning."""
@@ -55,6 +58,7 @@ class TrackerConfig:
     confirm_detections: int = 2
     """Tracks seen fewer times are not reported (one-frame ghosts)."""
     moving_speed_mps: float = 0.3
+    moving_sigmas: float = 2.5
     static_after_s: float = 3.0
     static_travel_m: float = 0.2
     """A track that stayed within this of where it began for ``static_after_s`` is static for good."""
@@ -118,6 +122,15 @@ def merge_capture(detections: list[tuple[str, DetectionRecord]], gap_m: float) -
     return out
 
 
+def _join(pieces: list[Observation]) -> Observation:
+    """Pieces of one object in one capture → one partial observation around them all."""
+    if len(pieces) == 1:
+        return pieces[0]
+    cx, cy, length, width, yaw = fit_rectangle(np.vstack([_polygon(p) for p in pieces]))
+    pairs = tuple(sorted({pair for p in pieces for pair in p.pairs}))
+    return Observation((cx, cy), (length, width), yaw, max(p.top_m for p in pieces), True, pairs)
+
+
 @dataclass
 class Track:
     id: int
@@ -158,7 +171,7 @@ class Track:
     def speed_test(self, config: TrackerConfig) -> bool:
         speed = math.hypot(float(self.state[2]), float(self.state[3]))
         sigma = math.sqrt(max(float(self.covariance[2, 2] + self.covariance[3, 3]), 0.0))
-        return speed > max(config.moving_speed_mps, 3.0 * sigma)
+        return speed > max(config.moving_speed_mps, config.moving_sigmas * sigma)
 
 
 def _transition(dt_s: float) -> F64:
@@ -252,20 +265,42 @@ class ObjectTracker:
                 if distance <= gate:
                     cost[row, col] = distance
         rows, cols = linear_sum_assignment(cost) if cost.size else ([], [])
-        matched_obs: set[int] = set()
-        for row, col in zip(rows, cols, strict=True):
-            if cost[row, col] >= NOT_ALLOWED:
-                continue
-            state, covariance = predicted[row]
-            self._correct(self.tracks[row], state, covariance, stamp_ns, observations[col])
-            matched_obs.add(int(col))
+        matches = {
+            int(row): [int(col)]
+            for row, col in zip(rows, cols, strict=True)
+            if cost[row, col] < NOT_ALLOWED
+        }
+        footprints = [
+            corners((float(state[0]), float(state[1])), *self._footprint(track))
+            for track, (state, _) in zip(self.tracks, predicted, strict=True)
+        ]
+        matched = {col for cols_of in matches.values() for col in cols_of}
         for col, obs in enumerate(observations):
-            if col not in matched_obs:
+            if col in matched:
+                continue
+            # A piece of a tracked object (a plain top matches in fragments) joins it; it never
+            # starts a track of its own.
+            on = [
+                row
+                for row, polygon in enumerate(footprints)
+                if polygons_overlap(polygon, _polygon(obs), self.config.merge_gap_m)
+            ]
+            if not on:
                 self._start(stamp_ns, obs)
+            elif on[0] in matches:
+                matches[on[0]].append(col)
+        for row, cols_of in matches.items():
+            state, covariance = predicted[row]
+            obs = _join([observations[col] for col in cols_of])
+            self._correct(self.tracks[row], state, covariance, stamp_ns, obs)
         lost_ns = self.config.lost_after_s * 1e9
         self.tracks = [t for t in self.tracks if stamp_ns - t.stamp_ns <= lost_ns]
         self.stamp_ns = stamp_ns
         self.version += 1
+
+    def _footprint(self, track: Track) -> tuple[tuple[float, float], float]:
+        length, width, yaw, _, _ = track.size()
+        return (length, width), yaw
 
     def _start(self, stamp_ns: int, obs: Observation) -> None:
         sigma = self.config.partial_sigma_m if obs.partial else self.config.measurement_sigma_m

@@ -88,6 +88,10 @@ class FusionSettings(ZenohSettings):
         default_factory=default_state_dir, description="where the map is saved and loaded"
     )
     save_interval_s: float = Field(10.0, gt=0.0, description="period of state saves")
+    predict_movers: bool = Field(
+        True,
+        description="serve the cells moving objects' paths cover up to the next frame as occupied",
+    )
     summary_s: float = Field(10.0, gt=0.0, description="period of the summary log line")
 
     @field_validator("bounds")
@@ -186,8 +190,11 @@ class FusionState:
         with self.lock:
             changed = self.tracker.flush(now_ns / 1e9, self.alive)
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
-            swept = self.tracker.sweep(self.grid.params.resolution_m, self.grid.stamp_ns, until_ns)
-            self.grid.set_predicted(swept)
+            if self.settings.predict_movers:
+                swept = self.tracker.sweep(
+                    self.grid.params.resolution_m, self.grid.stamp_ns, until_ns
+                )
+                self.grid.set_predicted(swept)
             if not changed:
                 return None
             self.objects_header = ObjectsHeader(
