@@ -293,11 +293,14 @@ class Evaluator:
             return {"length_error_mean_pct": math.nan, "length_error_max_pct": math.nan}
         static = [t for t in tracks if t.object_class == "static"]
         matches = object_scores.match_static(static, self.static_objects(truth))
-        once = [m for m in matches if m.tracks >= 1]
-        errors = [e for m in once for e in m.errors_pct]
+        found = [m for m in matches if m.tracks >= 1]
+        errors = [e for m in found for e in m.errors_pct]
+        complete = [e for m in found if not m.partial for e in m.errors_pct]
         return {
             "length_error_mean_pct": _mean(errors),
             "length_error_max_pct": max(errors, default=math.nan),
+            "length_error_mean_pct_complete": _mean(complete),
+            "length_error_max_pct_complete": max(complete, default=math.nan),
             "tracked_objects": [
                 {
                     "name": m.name,
@@ -496,16 +499,30 @@ def table(result: dict[str, Any]) -> str:
     lines.append(f"{'precision':<28}{result['precision']:>12.4g}")
     lines.append(f"{'recall':<28}{result['recall']:>12.4g}")
     lines.append(f"{'false_free_rate_static':<28}{result['false_free_rate_static']:>12.4g}")
-    lines += ["", f"{'object':<16}{'length m':>18}{'width m':>18}{'err %':>14}"]
-    for row in result["objects"]:
-        if row["length_error_pct"] is None:
-            lines.append(f"{row['name']:<16}  not found in the map")
-            continue
-        lines.append(
-            f"{row['name']:<16}{row['true_length_m']:>9.3f}→{row['length_m']:<8.3f}"
-            f"{row['true_width_m']:>9.3f}→{row['width_m']:<8.3f}"
-            f"{row['length_error_pct']:>6.1f} {row['width_error_pct']:>6.1f}"
-        )
+    for name in ("raster_length_error_mean_pct", "raster_length_error_max_pct"):
+        lines.append(f"{name:<28}{result[name]:>12.4g}")
+    if "velocity_error_mps" in result:
+        v = result["velocity_error_mps"]
+        switches = ", ".join(f"{k} {n:.1f}" for k, n in result["id_switches"].items())
+        lines.append(f"{'velocity_error_mps p50/p99':<28}{v['p50']:>6.2f}/{v['p99']:<5.2f}")
+        lines.append(f"{'id_switches per minute':<28}  {switches}")
+    for title, key, where in (
+        ("object (map/objects)", "tracked_objects", "not tracked"),
+        ("object (raster)", "objects", "not found in the map"),
+    ):
+        lines += ["", f"{title:<22}{'length m':>18}{'width m':>18}{'err %':>14}"]
+        for row in result.get(key, []):
+            if row["length_error_pct"] is None:
+                lines.append(f"{row['name']:<22}  {where}")
+                continue
+            notes = ("  partial" if row.get("partial") else "") + (
+                f"  {row['tracks']} tracks" if row.get("tracks", 1) > 1 else ""
+            )
+            lines.append(
+                f"{row['name']:<22}{row['true_length_m']:>9.3f}→{row['length_m']:<8.3f}"
+                f"{row['true_width_m']:>9.3f}→{row['width_m']:<8.3f}"
+                f"{row['length_error_pct']:>6.1f} {row['width_error_pct']:>6.1f}{notes}"
+            )
     if "stage_ms" in result:
         lines += ["", f"{'stage (ms)':<16}{'p50':>8}{'p99':>8}"]
         for name, row in result["stage_ms"].items():
