@@ -1,4 +1,5 @@
-"""The map as ROS 2 message fields (services/ros2/grid_message.py) and their CDR (rosbags)."""
+"""The map and its objects as ROS 2 message fields (services/ros2/grid_message.py,
+object_markers.py) and their CDR (rosbags)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import numpy as np
 import pytest
 
 from common.lattice import Window
+from common.messages import ObjectsHeader, TrackedObject
 from common.occupancy_map import UNKNOWN, OccupancyMap
 from services.ros2 import cdr
 from services.ros2.grid_message import (
@@ -18,6 +20,7 @@ from services.ros2.grid_message import (
     height_image,
     stamp_parts,
 )
+from services.ros2.object_markers import COLOR_RGBA, NAMESPACE, object_markers
 
 STAMP_NS = 1_700_000_000_123_456_789
 
@@ -107,3 +110,48 @@ def test_cdr_round_trips_through_rosbags(distro: cdr.Distro) -> None:
     assert (image.encoding, image.step, image.is_bigendian) == ("32FC1", 20, 0)
     metres = np.frombuffer(bytes(image.data), "<f4").reshape(3, 5)
     assert metres[0, 1] == pytest.approx(0.7) and np.isnan(metres[0, 0])
+
+
+def tracked_objects(version: int = 1) -> ObjectsHeader:
+    """A map/objects message with one moving box, 0.8 × 0.4 m, 1.2 m tall, at (1, 2)."""
+    box = TrackedObject(
+        center_m=(1.0, 2.0),
+        size_m=(0.8, 0.4),
+        yaw_rad=0.3,
+        id=5,
+        object_class="moving",
+        top_m=1.2,
+        velocity_mps=(0.5, 0.0),
+        velocity_cov_m2ps2=((0.01, 0.0), (0.0, 0.01)),
+        first_seen_ns=STAMP_NS - 10**9,
+        last_seen_ns=STAMP_NS,
+        pairs=["p0"],
+        partial=False,
+        detections=3,
+    )
+    return ObjectsHeader(version=version, stamp_ns=STAMP_NS, objects=[box])
+
+
+def test_objects_are_boxes_from_the_floor_to_their_top_in_the_map_frame() -> None:
+    markers = object_markers(tracked_objects(), "site", PlanarPose(10.0, 0.0, math.pi / 2))
+    (box,) = markers.boxes
+    assert (markers.frame_id, markers.stamp_ns, box.id) == ("site", STAMP_NS, 5)
+    assert box.center_xyz_m == pytest.approx((8.0, 1.0, 0.6))
+    assert box.size_xyz_m == pytest.approx((0.8, 0.4, 1.2))
+    yaw = 0.3 + math.pi / 2
+    assert box.orientation_xyzw == pytest.approx((0, 0, math.sin(yaw / 2), math.cos(yaw / 2)))
+    assert box.color_rgba == COLOR_RGBA["moving"]
+
+
+@pytest.mark.parametrize("distro", ["humble", "kilted"])
+def test_marker_array_clears_then_adds_one_cube_per_object(distro: cdr.Distro) -> None:
+    markers = object_markers(tracked_objects(), "map", PlanarPose())
+    array = cdr.decode(distro, cdr.marker_array_cdr(distro, markers), cdr.MARKER_ARRAY)
+    clear, cube = array.markers
+    assert (clear.ns, clear.action) == (NAMESPACE, cdr.MARKER_DELETEALL)
+    assert (cube.ns, cube.id, cube.type, cube.action) == (NAMESPACE, 5, cdr.MARKER_CUBE, 0)
+    assert (cube.pose.position.x, cube.pose.position.y, cube.pose.position.z) == pytest.approx(
+        (1.0, 2.0, 0.6)
+    )
+    assert (cube.scale.x, cube.scale.y, cube.scale.z) == pytest.approx((0.8, 0.4, 1.2))
+    assert cube.header.frame_id == "map" and len(cube.points) == 0

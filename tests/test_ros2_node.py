@@ -1,6 +1,6 @@
 """``overgrid ros2`` as a real rclpy node beside a real fusion process: a real rclpy subscriber
 started after the map exists gets /map (transient_local) equal to map/latest cell for cell, then a
-newer /map after tiles change it, and the height layer.
+newer /map after tiles change it, the height layer, and the objects as markers.
 
 DDS isolation: rmw_fastrtps_cpp on a random domain id, discovery kept to this host, and topic names
 of this run only, so concurrent runs never cross."""
@@ -16,9 +16,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from common import keys
 from common.client import latest
+from common.codec import encode
 from common.lattice import Window
+from common.messages import OBJECTS_KIND
 from tests.conftest import REPO, Bus, wait_for
+from tests.test_ros2_messages import tracked_objects
 from tests.test_ros2_native import start_fusion_with_a_tile
 from tests.tiles import tile_payload
 
@@ -32,11 +36,12 @@ import rclpy
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from nav_msgs.msg import OccupancyGrid
 from sensor_msgs.msg import Image
+from visualization_msgs.msg import Marker, MarkerArray
 
 deadline, prefix = time.monotonic() + float(sys.argv[1]), sys.argv[2]
 rclpy.init()
 node = rclpy.create_node("overgrid_test_subscriber")
-maps, heights = [], []
+maps, heights, cubes = [], [], []
 qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                  durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
@@ -53,10 +58,15 @@ def on_height(msg):
     print(json.dumps({"height": {"encoding": msg.encoding, "width": msg.width,
                                  "height": msg.height, "step": msg.step}}), flush=True)
 
+def on_objects(msg):
+    cubes.extend(m.id for m in msg.markers if m.type == Marker.CUBE)
+    print(json.dumps({"cubes": cubes}), flush=True)
+
 node.create_subscription(OccupancyGrid, prefix + "/map", on_map, qos)
+node.create_subscription(MarkerArray, prefix + "/map_objects", on_objects, 1)
 node.create_subscription(Image, prefix + "/map_height", on_height, 1)
-def done():  # a /map that differs from the first one, and a height image
-    return bool(heights) and any(m["data"] != maps[0]["data"] for m in maps[1:])
+def done():  # a /map that differs from the first one, a height image, a cube
+    return bool(heights and cubes) and any(m["data"] != maps[0]["data"] for m in maps[1:])
 
 while time.monotonic() < deadline and not done():
     rclpy.spin_once(node, timeout_sec=0.1)
@@ -90,6 +100,8 @@ def test_rclpy_subscriber_gets_map_then_newer_map(
         prefix + "/map",
         "--height-topic",
         prefix + "/map_height",
+        "--objects-topic",
+        prefix + "/map_objects",
         "--frame-id",
         "site",
         "--world-in-map",
@@ -122,8 +134,10 @@ def test_rclpy_subscriber_gets_map_then_newer_map(
         assert first["origin"] == pytest.approx([x0 + 1, y0 + 2, 0.0, 1.0])
         assert np.array_equal(np.array(first["data"], np.int8).reshape(rows, cols), fused.occupancy)
 
-        # A tile changes the map: a newer /map follows, equal to the newer map/latest.
+        # A tile changes the map: a newer /map follows, equal to the newer map/latest. A
+        # map/objects put: a MarkerArray with its box.
         tiles.put(tile_payload("p0", SECOND, -2.0, seq=10**12))
+        bus.session.put(keys.MAP_OBJECTS, encode(OBJECTS_KIND, tracked_objects(version=10**6)))
         output, errors = subscriber.communicate(timeout=SUBSCRIBER_LIFETIME_S)
     finally:
         if subscriber.poll() is None:
@@ -137,3 +151,4 @@ def test_rclpy_subscriber_gets_map_then_newer_map(
     )
     height = next(line["height"] for line in lines if "height" in line)
     assert height == {"encoding": "32FC1", "width": cols, "height": rows, "step": cols * 4}
+    assert next(line["cubes"] for line in lines if line.get("cubes")) == [5]

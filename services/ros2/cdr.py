@@ -12,6 +12,7 @@ from functools import cache
 from typing import Any, Literal
 
 import numpy as np
+from rosbags.interfaces import Nodetype
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
@@ -22,6 +23,7 @@ from services.ros2.grid_message import (
     HeightImage,
     stamp_parts,
 )
+from services.ros2.object_markers import NAMESPACE, ObjectMarkers
 from services.ros2.rmw_zenoh import NO_TYPE_HASH
 
 Distro = Literal["humble", "jazzy", "kilted"]
@@ -33,6 +35,11 @@ STORES: dict[str, Stores] = {
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 OCCUPANCY_GRID_UPDATE = "map_msgs/msg/OccupancyGridUpdate"
 IMAGE = "sensor_msgs/msg/Image"
+MARKER = "visualization_msgs/msg/Marker"
+MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
+MARKER_CUBE, MARKER_ADD, MARKER_DELETEALL = 1, 0, 3
+"""visualization_msgs/Marker's constants."""
+NUMPY_TYPES = {"bool": np.bool_, "byte": np.uint8, "char": np.uint8}
 OCCUPANCY_GRID_UPDATE_MSG = """\
 std_msgs/Header header
 int32 x
@@ -118,6 +125,62 @@ def height_image_cdr(distro: Distro, image: HeightImage) -> bytes:
         data=np.frombuffer(image.data.astype("<f4").tobytes(), np.uint8),
     )
     return bytes(store.serialize_cdr(message, IMAGE))
+
+
+def default_message(store: Typestore, ros_type: str, **values: Any) -> Any:
+    """A message with ``values`` and every other field at ROS's default (0, "", false, empty):
+    rosbags' message classes have no defaults, and a Marker has a dozen fields a box never uses."""
+    fields = store.fielddefs[ros_type][1]
+    return store.types[ros_type](
+        **{
+            name: values[name] if name in values else _default(store, node, detail)
+            for name, (node, detail) in fields
+        }
+    )
+
+
+def _default(store: Typestore, node: Nodetype, detail: Any) -> Any:
+    if node == Nodetype.BASE:
+        base = detail[0]
+        return "" if base == "string" else False if base == "bool" else 0
+    if node == Nodetype.NAME:
+        return default_message(store, detail)
+    (item_node, item_detail), count = detail
+    if item_node == Nodetype.BASE and item_detail[0] != "string":
+        dtype = NUMPY_TYPES.get(item_detail[0], item_detail[0])
+        return np.zeros(count if node == Nodetype.ARRAY else 0, dtype)
+    return [_default(store, item_node, item_detail) for _ in range(count)]
+
+
+def marker_array_cdr(distro: Distro, markers: ObjectMarkers) -> bytes:
+    store = typestore(distro)
+    types = store.types
+    header = _header(store, markers.stamp_ns, markers.frame_id)
+    clear = default_message(store, MARKER, header=header, ns=NAMESPACE, action=MARKER_DELETEALL)
+    boxes = []
+    for box in markers.boxes:
+        (x, y, z), (qx, qy, qz, qw) = box.center_xyz_m, box.orientation_xyzw
+        (sx, sy, sz), (r, g, b, a) = box.size_xyz_m, box.color_rgba
+        pose = types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+            orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+        )
+        boxes.append(
+            default_message(
+                store,
+                MARKER,
+                header=header,
+                ns=NAMESPACE,
+                id=box.id,
+                type=MARKER_CUBE,
+                action=MARKER_ADD,
+                pose=pose,
+                scale=types["geometry_msgs/msg/Vector3"](x=sx, y=sy, z=sz),
+                color=types["std_msgs/msg/ColorRGBA"](r=r, g=g, b=b, a=a),
+            )
+        )
+    message = types[MARKER_ARRAY](markers=[clear, *boxes])
+    return bytes(store.serialize_cdr(message, MARKER_ARRAY))
 
 
 def decode(distro: Distro, raw: bytes, ros_type: str) -> Any:

@@ -23,6 +23,7 @@ from common.settings import parse_settings
 from common.zenoh_session import open_session
 from services.ros2 import cdr
 from services.ros2.grid_message import GridMessage, GridUpdate, HeightImage
+from services.ros2.object_markers import ObjectMarkers
 from services.ros2.relay import MapRelay
 from services.ros2.rmw_zenoh import (
     FIRST_SEQUENCE_NUMBER,
@@ -98,7 +99,7 @@ class NativeSink:
         domain_id = s.domain_id if s.domain_id is not None else ros_domain_id()
         self.node = NodeIdentity(domain_id, str(session.info.zid()), NODE_ID, s.node_name)
         self._node_token = session.liveliness().declare_token(self.node.node_token())
-        volatile = TopicQos(depth=1)
+        latest_only = TopicQos(depth=1)  # reliable, volatile: each message replaces the last
         self.map = NativePublisher(
             session, self.node, 1, s.map_topic, cdr.OCCUPANCY_GRID, s.distro, s.map_qos
         )
@@ -112,7 +113,10 @@ class NativeSink:
             s.updates_qos,
         )
         self.height = NativePublisher(
-            session, self.node, 3, s.height_topic, cdr.IMAGE, s.distro, volatile
+            session, self.node, 3, s.height_topic, cdr.IMAGE, s.distro, latest_only
+        )
+        self.objects = NativePublisher(
+            session, self.node, 4, s.objects_topic, cdr.MARKER_ARRAY, s.distro, latest_only
         )
 
     def publish_map(self, message: GridMessage) -> None:
@@ -124,8 +128,11 @@ class NativeSink:
     def publish_height(self, image: HeightImage) -> None:
         self.height.put(cdr.height_image_cdr(self._distro, image))
 
+    def publish_objects(self, markers: ObjectMarkers) -> None:
+        self.objects.put(cdr.marker_array_cdr(self._distro, markers))
+
     def close(self) -> None:
-        for publisher in (self.height, self.updates, self.map):
+        for publisher in (self.objects, self.height, self.updates, self.map):
             publisher.close()
         self._node_token.undeclare()  # type: ignore[no-untyped-call]
 

@@ -2,7 +2,8 @@
 publishes /map (nav_msgs/OccupancyGrid, reliable + transient_local, depth 1 by default: a robot
 that starts later still gets it, as from nav2's map_server), /map_updates
 (map_msgs/OccupancyGridUpdate, when map_msgs is importable: no wheel ships it, every system ROS 2
-has it) and the height layer.
+has it), the height layer, and the tracked objects of ``map/objects`` as a
+visualization_msgs/MarkerArray (services/ros2/object_markers.py says why markers).
 
 The height layer is a sensor_msgs/Image 32FC1 on /map's cells, not a second OccupancyGrid: it
 carries metres as float32 with NaN for "never seen", which an int8 0..100 grid could only carry
@@ -11,7 +12,7 @@ quantised and with an invented scale; width, height, row order and frame are /ma
 
 Settings are overgrid's flags and ``OVERGRID_*`` variables, and also this node's ROS parameters
 (``--ros-args -p frame_id:=odom``); remapping (``-r /map:=/site/map``) and ``ROS_DOMAIN_ID`` work as
-for any node. Objects (``map/objects``) are not published yet: no visualization_msgs/MarkerArray.
+for any node.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from common.settings import parse_settings
 from common.zenoh_session import open_session
 from services.ros2.environment import ensure_ros_environment
 from services.ros2.grid_message import GridMessage, GridUpdate, HeightImage, stamp_parts
+from services.ros2.object_markers import NAMESPACE, ObjectMarkers
 from services.ros2.relay import MapRelay
 from services.ros2.settings import Ros2Settings
 
@@ -39,6 +41,7 @@ ROS_PARAMETERS = (
     "map_topic",
     "updates_topic",
     "height_topic",
+    "objects_topic",
     "map_depth",
     "updates_depth",
     "map_durability",
@@ -72,6 +75,14 @@ class RclpySink:
         )
         self._map = node.create_publisher(OccupancyGrid, settings.map_topic, map_qos)
         self._height = node.create_publisher(Image, settings.height_topic, 1)
+        try:
+            from visualization_msgs.msg import Marker, MarkerArray
+        except ImportError:
+            self._objects: Any = None
+            log.warning(f"visualization_msgs is not importable: {settings.objects_topic} is off")
+        else:
+            self._marker_types: Any = (Marker, MarkerArray)
+            self._objects = node.create_publisher(MarkerArray, settings.objects_topic, 1)
         try:
             from map_msgs.msg import OccupancyGridUpdate
         except ImportError:
@@ -123,6 +134,25 @@ class RclpySink:
         message.step = image.step_bytes
         message.data = array.array("B", image.data.tobytes())
         self._height.publish(message)
+
+    def publish_objects(self, markers: ObjectMarkers) -> None:
+        if self._objects is None:
+            return
+        marker_type, array_type = self._marker_types
+        clear = marker_type(ns=NAMESPACE, action=marker_type.DELETEALL)
+        _set_header(clear.header, markers.stamp_ns, markers.frame_id)
+        array = array_type(markers=[clear])
+        for box in markers.boxes:
+            marker = marker_type(ns=NAMESPACE, id=box.id, type=marker_type.CUBE)
+            marker.action = marker_type.ADD
+            _set_header(marker.header, markers.stamp_ns, markers.frame_id)
+            position, orientation = marker.pose.position, marker.pose.orientation
+            position.x, position.y, position.z = box.center_xyz_m
+            orientation.x, orientation.y, orientation.z, orientation.w = box.orientation_xyzw
+            marker.scale.x, marker.scale.y, marker.scale.z = box.size_xyz_m
+            marker.color.r, marker.color.g, marker.color.b, marker.color.a = box.color_rgba
+            array.markers.append(marker)
+        self._objects.publish(array)
 
 
 def with_ros_parameters(node: Any, settings: Ros2Settings) -> Ros2Settings:

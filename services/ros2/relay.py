@@ -17,8 +17,11 @@ from typing import Protocol
 
 import zenoh
 
-from common.client import MapFollower, MapUnavailable, latest
+from common import keys
+from common.client import MapFollower, MapUnavailable, latest, objects
+from common.codec import CodecError, decode
 from common.logs import RateLimitedLog
+from common.messages import OBJECTS_KIND, ObjectsHeader
 from common.occupancy_map import OccupancyMap
 from services.ros2.grid_message import (
     GridMessage,
@@ -29,6 +32,7 @@ from services.ros2.grid_message import (
     grid_update,
     height_image,
 )
+from services.ros2.object_markers import ObjectMarkers, object_markers
 from services.ros2.settings import Ros2Settings
 
 log = logging.getLogger("ros2")
@@ -42,6 +46,8 @@ class MapSink(Protocol):
 
     def publish_height(self, image: HeightImage) -> None: ...
 
+    def publish_objects(self, markers: ObjectMarkers) -> None: ...
+
 
 class MapRelay:
     def __init__(self, session: zenoh.Session, settings: Ros2Settings, sink: MapSink) -> None:
@@ -50,19 +56,24 @@ class MapRelay:
         self._sink = sink
         self.wake = threading.Event()
         """Set by each new map version, and by a stop."""
-        self.counts = {"map": 0, "update": 0, "height": 0}
+        self.counts = {"map": 0, "update": 0, "height": 0, "objects": 0}
         self._warn = RateLimitedLog(log)
+        self._objects: ObjectsHeader | None = None
+        """The newest map/objects put, handed over by the Zenoh callback."""
+        self._objects_lock = threading.Lock()
 
     def run(self, stop: threading.Event) -> None:
         s = self._settings
         follower = self._follow(stop)
         if follower is None:
             return
+        objects_subscriber = self._session.declare_subscriber(keys.MAP_OBJECTS, self._on_objects)
         try:
             sent = follower.map
             self._publish_map(sent)
             log.info("first map published", extra={"version": sent.version})
             self._publish_height()
+            objects_version = self._publish_first_objects()
             map_due = False
             last_map_s = last_height_s = time.monotonic()
             height_version = sent.version
@@ -88,7 +99,13 @@ class MapRelay:
                 if now - last_height_s >= s.height_interval_s and height_version != sent.version:
                     self._publish_height()
                     last_height_s, height_version = now, sent.version
+                with self._objects_lock:
+                    tracked, self._objects = self._objects, None
+                if tracked is not None and tracked.version != objects_version:
+                    self._publish_objects(tracked)
+                    objects_version = tracked.version
         finally:
+            objects_subscriber.undeclare()  # type: ignore[no-untyped-call]
             follower.close()
 
     def _follow(self, stop: threading.Event) -> MapFollower | None:
@@ -107,6 +124,30 @@ class MapRelay:
                 )
                 stop.wait(FOLLOW_RETRY_S)
         return None
+
+    def _on_objects(self, sample: zenoh.Sample) -> None:
+        try:
+            tracked = decode(sample.payload.to_bytes(), OBJECTS_KIND, ObjectsHeader).header
+        except CodecError:
+            return
+        with self._objects_lock:
+            self._objects = tracked
+        self.wake.set()
+
+    def _publish_first_objects(self) -> int | None:
+        """The current objects once at start (later ones arrive as puts); ``None`` when the
+        fusion service serves none (an older one, or not yet)."""
+        try:
+            tracked = objects(self._session, timeout_s=self._settings.timeout_s)
+        except MapUnavailable:
+            return None
+        self._publish_objects(tracked)
+        return tracked.version
+
+    def _publish_objects(self, tracked: ObjectsHeader) -> None:
+        s = self._settings
+        self._sink.publish_objects(object_markers(tracked, s.frame_id, s.pose))
+        self.counts["objects"] += 1
 
     def _publish_map(self, occupancy_map: OccupancyMap) -> None:
         s = self._settings

@@ -25,6 +25,10 @@ class Ros2Settings(ZenohSettings):
     height_topic: str = Field(
         "/map_height", description="sensor_msgs/Image 32FC1 topic: top height in m per /map cell"
     )
+    objects_topic: str = Field(
+        "/map_objects",
+        description="visualization_msgs/MarkerArray topic: a box per tracked object",
+    )
     map_durability: DurabilityName = Field(
         "transient_local", description="/map durability (transient_local: late joiners get it)"
     )

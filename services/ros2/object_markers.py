@@ -1,0 +1,56 @@
+"""``map/objects`` as the fields of a visualization_msgs/MarkerArray, independent of any ROS
+library: one CUBE per tracked object (its oriented footprint, from the floor to its top), after a
+DELETEALL, so a track that ended disappears from RViz without bookkeeping of ids.
+
+Markers rather than a typed message: vision_msgs has no wheel and is not in rosbags' stores, and a
+MarkerArray is what every ROS 2 robot can show and read (id, pose, size) with no extra package.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from common.messages import ObjectsHeader
+from services.ros2.grid_message import PlanarPose
+
+NAMESPACE = "overgrid_objects"
+"""Marker ``ns``: the ids are the tracks' ids within it."""
+MIN_HEIGHT_M = 0.01
+"""A box needs some height to be drawn; a flat object's top can read 0."""
+COLOR_RGBA = {"static": (0.55, 0.55, 0.6, 0.8), "moving": (1.0, 0.45, 0.0, 0.9)}
+
+
+@dataclass(frozen=True)
+class BoxMarker:
+    """One CUBE marker: centre and size in metres, orientation as a quaternion (x, y, z, w)."""
+
+    id: int
+    center_xyz_m: tuple[float, float, float]
+    orientation_xyzw: tuple[float, float, float, float]
+    size_xyz_m: tuple[float, float, float]
+    color_rgba: tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class ObjectMarkers:
+    stamp_ns: int
+    frame_id: str
+    boxes: tuple[BoxMarker, ...]
+
+
+def object_markers(header: ObjectsHeader, frame_id: str, world_in_map: PlanarPose) -> ObjectMarkers:
+    boxes = []
+    for tracked in header.objects:
+        x_m, y_m = world_in_map.apply(tracked.center_m)
+        height_m = max(tracked.top_m, MIN_HEIGHT_M)
+        yaw = PlanarPose(yaw_rad=tracked.yaw_rad + world_in_map.yaw_rad)
+        boxes.append(
+            BoxMarker(
+                id=tracked.id,
+                center_xyz_m=(x_m, y_m, height_m / 2),
+                orientation_xyzw=yaw.quaternion_xyzw,
+                size_xyz_m=(tracked.size_m[0], tracked.size_m[1], height_m),
+                color_rgba=COLOR_RGBA[tracked.object_class],
+            )
+        )
+    return ObjectMarkers(header.stamp_ns, frame_id, tuple(boxes))
