@@ -8,11 +8,12 @@ import pytest
 
 from common.footprints import corners, fit_rectangle, polygon_cells
 from common.lattice import Window
-from common.messages import DetectionRecord, TrackedObject
+from common.messages import DetectionRecord, TrackedObject, TruthObject
 from common.occupancy_map import OCCUPIED
 from common.sensor_model import SensorModelParams
 from services.depth.objects import PixelGrid, detect_objects
 from services.depth.projection import WorldPoints
+from services.evaluation.objects import match_static, score_movers
 from services.fusion.grid import FusedGrid, GridParams
 from services.fusion.objects import ObjectTracker, merge_capture
 
@@ -271,3 +272,50 @@ def test_partial_flag_reaches_the_object(partial: bool) -> None:
         tracker.flush(0.0, {"p0"})
     (obj,) = tracker.objects()
     assert obj.partial is partial
+
+
+def _truth(name: str, center: tuple[float, float], moving: bool, v=(0.0, 0.0)) -> TruthObject:
+    return TruthObject(
+        name=name,
+        shape="box",
+        moving=moving,
+        center_m=(center[0], center[1], 0.5),
+        yaw_rad=0.0,
+        size_m=(0.8, 0.5, 1.0),
+        velocity_mps=v,
+    )
+
+
+def _track(id_: int, center: tuple[float, float], moving: bool, v=(0.0, 0.0)) -> TrackedObject:
+    return TrackedObject(
+        id=id_,
+        object_class="moving" if moving else "static",
+        center_m=center,
+        size_m=(0.82, 0.5),
+        yaw_rad=0.0,
+        top_m=1.0,
+        velocity_mps=v,
+        velocity_cov_m2ps2=((0.0, 0.0), (0.0, 0.0)),
+        first_seen_ns=0,
+        last_seen_ns=0,
+        pairs=["p0"],
+        partial=False,
+        detections=5,
+    )
+
+
+def test_eval_matches_static_objects_and_counts_splits_and_id_switches() -> None:
+    truth = [_truth("a", (1.0, 1.0), False), _truth("b", (4.0, 1.0), False)]
+    matches = match_static(
+        [_track(1, (1.0, 1.0), False), _track(2, (4.1, 1.0), False), _track(3, (3.8, 1.1), False)],
+        truth,
+    )
+    assert [m.tracks for m in matches] == [1, 2]
+    assert abs(matches[0].errors_pct[0] - 2.5) < 1e-9
+
+    mover = [_truth("m", (2.0, 2.0), True, (1.0, 0.0))]
+    history = [([_track(7, (2.1, 2.0), True, (1.1, 0.0))], mover) for _ in range(3)]
+    history.append(([_track(8, (2.0, 2.1), True, (1.0, 0.0))], mover))
+    scores = score_movers(history)
+    assert scores.id_switches == {"m": 1} and scores.tracked_share == {"m": 1.0}
+    assert max(scores.velocity_error_mps) < 0.11

@@ -8,8 +8,8 @@ Rules that shape the tracks:
 - a static object never turns into a moving track: once a track has stood still for
   ``static_after_s`` it is locked static (velocity held at zero); if the object is moved, its
   detections leave the static gate, the track ends and a new one begins;
-- a track is ``moving`` once its speed exceeds ``moving_speed_mps`` and ``moving_sigmas`` standard
-  deviations;
+- a track is ``moving`` once it has gone ``moving_travel_m`` from where it began and its speed
+  exceeds ``moving_speed_mps`` and ``moving_sigmas`` standard deviations;
 - a detection overlapping a track's footprint that the track did not take is a piece of it (a
   plain top matches in fragments): joined to it, never a track of its own;
 - a partial detection (at an image border) updates the position loosely and never the size, unless
@@ -59,6 +59,13 @@ class TrackerConfig:
     """Tracks seen fewer times are not reported (one-frame ghosts)."""
     moving_speed_mps: float = 0.3
     moving_sigmas: float = 2.5
+    moving_travel_m: float = 0.5
+    moving_detections: int = 3
+    """A track is moving once it has also gone this far from where it began, over this many frames."""
+    sweep_max_speed_mps: float = 4.0
+    """Faster than this is a wrong association, not a mover on a warehouse floor: not swept."""
+    sweep_max_s: float = 1.5
+    """A sweep reaches at most this far past the track's last capture."""
     static_after_s: float = 3.0
     static_travel_m: float = 0.2
     """A track that stayed within this of where it began for ``static_after_s`` is static for good."""
@@ -141,8 +148,8 @@ class Track:
     first_seen_ns: int
     sizes: deque[tuple[float, float, float, float]]
     """Complete views: length, width, yaw, top."""
-    partial_size: tuple[float, float, float, float]
-    """Largest partial view, used while no complete one exists."""
+    partial_sizes: deque[tuple[float, float, float, float]]
+    """Partial views, used while no complete one exists."""
     pairs: tuple[str, ...]
     origin_m: tuple[float, float]
     detections: int = 1
@@ -155,9 +162,8 @@ class Track:
 
     def size(self) -> tuple[float, float, float, float, bool]:
         """Length, width, yaw, top and whether the size is a partial view's lower bound."""
-        if not self.sizes:
-            return (*self.partial_size, True)
-        array = np.asarray(self.sizes)
+        complete = bool(self.sizes)
+        array = np.asarray(self.sizes if complete else self.partial_sizes)
         doubled = 2 * array[:, 2]  # yaw is modulo π: average on the doubled circle
         yaw = math.atan2(float(np.sin(doubled).mean()), float(np.cos(doubled).mean())) / 2
         return (
@@ -165,7 +171,7 @@ class Track:
             float(np.median(array[:, 1])),
             yaw % math.pi,
             float(np.median(array[:, 3])),
-            False,
+            not complete,
         )
 
     def speed_test(self, config: TrackerConfig) -> bool:
@@ -312,12 +318,13 @@ class ObjectTracker:
             stamp_ns=stamp_ns,
             first_seen_ns=stamp_ns,
             sizes=deque(maxlen=self.config.size_history),
-            partial_size=(*obs.size_m, obs.yaw_rad, obs.top_m),
+            partial_sizes=deque(maxlen=self.config.size_history),
             pairs=obs.pairs,
             origin_m=obs.center_m,
         )
-        if not obs.partial:
-            track.sizes.append((*obs.size_m, obs.yaw_rad, obs.top_m))
+        (track.partial_sizes if obs.partial else track.sizes).append(
+            (*obs.size_m, obs.yaw_rad, obs.top_m)
+        )
         self.tracks.append(track)
         self.next_id += 1
 
@@ -336,20 +343,24 @@ class ObjectTracker:
         track.stamp_ns = stamp_ns
         track.pairs = obs.pairs
         track.detections += 1
-        if obs.partial:
-            if obs.size_m[0] * obs.size_m[1] > track.partial_size[0] * track.partial_size[1]:
-                track.partial_size = (*obs.size_m, obs.yaw_rad, obs.top_m)
-        else:
-            track.sizes.append((*obs.size_m, obs.yaw_rad, obs.top_m))
+        (track.partial_sizes if obs.partial else track.sizes).append(
+            (*obs.size_m, obs.yaw_rad, obs.top_m)
+        )
         self._classify(track)
 
     def _classify(self, track: Track) -> None:
         if track.static:
             return
-        if not track.moving and track.speed_test(self.config):
-            track.moving = True
         age_s = (track.stamp_ns - track.first_seen_ns) / 1e9
         travel = math.hypot(track.state[0] - track.origin_m[0], track.state[1] - track.origin_m[1])
+        # Speed alone is not enough: a static object seen partly, then whole, jumps its centre.
+        if (
+            not track.moving
+            and track.detections >= self.config.moving_detections
+            and travel >= self.config.moving_travel_m
+            and track.speed_test(self.config)
+        ):
+            track.moving = True
         if (
             not track.moving
             and age_s >= self.config.static_after_s
@@ -398,12 +409,13 @@ class ObjectTracker:
         until ``until_ns`` along its velocity: where it is while the map that shows it is read."""
         out = []
         for t in self.tracks:
-            if not t.moving or t.detections < self.config.confirm_detections:
+            velocity = t.state[2:4]
+            if not t.moving or math.hypot(*velocity) > self.config.sweep_max_speed_mps:
                 continue
             length, width, yaw, _, _ = t.size()
             start_s = (max(t.stamp_ns, from_ns) - t.stamp_ns) / 1e9
-            end_s = max((until_ns - t.stamp_ns) / 1e9, start_s)
-            velocity = t.state[2:4]
+            end_s = min(max((until_ns - t.stamp_ns) / 1e9, start_s), self.config.sweep_max_s)
+            start_s = min(start_s, end_s)
             a = corners(tuple(t.state[:2] + velocity * start_s), (length, width), yaw)
             b = corners(tuple(t.state[:2] + velocity * end_s), (length, width), yaw)
             out.append(polygon_cells(convex_hull(np.vstack([a, b])), resolution_m))
