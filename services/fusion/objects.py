@@ -8,8 +8,8 @@ Rules that shape the tracks:
 - a static object never turns into a moving track: once a track has stood still for
   ``static_after_s`` it is locked static (velocity held at zero); if the object is moved, its
   detections leave the static gate, the track ends and a new one begins;
-- a track is ``moving`` once it has gone ``moving_travel_m`` from where it began and its speed
-  exceeds ``moving_speed_mps`` and ``moving_sigmas`` standard deviations;
+- a track is ``moving`` once its recent centres lie along a line covering ``moving_travel_m``
+  (three times their scatter about it) at ``moving_speed_mps`` or more;
 - a detection overlapping a track's footprint that the track did not take is a piece of it (a
   plain top matches in fragments): joined to it, never a track of its own;
 - a partial detection (at an image border) updates the position loosely and never the size, unless
@@ -47,7 +47,7 @@ class TrackerConfig:
     measurement_sigma_m: float = 0.05
     partial_sigma_m: float = 0.15
     """A partial detection's centre is off by up to half the unseen part."""
-    accel_sigma_mps2: float = 2.0
+    accel_sigma_mps2: float = 1.0
     """Constant-velocity model's white acceleration: a forklift braking or turning."""
     initial_speed_sigma_mps: float = 2.5
     gate_sigmas: float = 3.5
@@ -58,10 +58,11 @@ class TrackerConfig:
     confirm_detections: int = 2
     """Tracks seen fewer times are not reported (one-frame ghosts)."""
     moving_speed_mps: float = 0.3
-    moving_sigmas: float = 2.5
     moving_travel_m: float = 0.5
-    moving_detections: int = 3
-    """A track is moving once it has also gone this far from where it began, over this many frames."""
+    moving_detections: int = 4
+    moving_span_s: float = 0.75
+    """A track is moving once its last ``moving_detections`` centres, over ``moving_span_s`` or
+    more, lie along a line covering ``moving_travel_m``: see ``_moves_steadily``."""
     sweep_max_speed_mps: float = 4.0
     """Faster than this is a wrong association, not a mover on a warehouse floor: not swept."""
     sweep_max_s: float = 1.5
@@ -152,6 +153,8 @@ class Track:
     """Partial views, used while no complete one exists."""
     pairs: tuple[str, ...]
     origin_m: tuple[float, float]
+    centres: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=6))
+    """Recent observed centres: capture time (s) and x, y."""
     detections: int = 1
     static: bool = False
     moving: bool = False
@@ -173,11 +176,6 @@ class Track:
             float(np.median(array[:, 3])),
             not complete,
         )
-
-    def speed_test(self, config: TrackerConfig) -> bool:
-        speed = math.hypot(float(self.state[2]), float(self.state[3]))
-        sigma = math.sqrt(max(float(self.covariance[2, 2] + self.covariance[3, 3]), 0.0))
-        return speed > max(config.moving_speed_mps, config.moving_sigmas * sigma)
 
 
 def _transition(dt_s: float) -> F64:
@@ -325,6 +323,7 @@ class ObjectTracker:
         (track.partial_sizes if obs.partial else track.sizes).append(
             (*obs.size_m, obs.yaw_rad, obs.top_m)
         )
+        track.centres.append((stamp_ns / 1e9, *obs.center_m))
         self.tracks.append(track)
         self.next_id += 1
 
@@ -341,6 +340,7 @@ class ObjectTracker:
             track.state[2:] = 0.0
             track.covariance[2:, :] = track.covariance[:, 2:] = 0.0
         track.stamp_ns = stamp_ns
+        track.centres.append((stamp_ns / 1e9, *obs.center_m))
         track.pairs = obs.pairs
         track.detections += 1
         (track.partial_sizes if obs.partial else track.sizes).append(
@@ -348,18 +348,36 @@ class ObjectTracker:
         )
         self._classify(track)
 
+    def _moves_steadily(self, track: Track) -> bool:
+        """A straight line fitted to the track's recent centres: it moves if the line covers
+        ``moving_travel_m`` at ``moving_speed_mps`` or more, three times what the centres scatter
+        about it. The filter's speed alone is not enough: a static object seen in pieces, or
+        partly then whole, jumps its centre back and forth."""
+        history = track.centres
+        if len(history) < self.config.moving_detections:
+            return False
+        t = np.array([h[0] for h in history])
+        span_s = float(t[-1] - t[0])
+        if span_s < self.config.moving_span_s:
+            return False
+        xy = np.array([h[1:] for h in history])
+        design = np.column_stack([np.ones_like(t), t - t.mean()])
+        fit, *_ = np.linalg.lstsq(design, xy, rcond=None)
+        speed = float(np.hypot(*fit[1]))
+        scatter = float(np.sqrt(np.mean(np.sum((xy - design @ fit) ** 2, axis=1))))
+        travel = speed * span_s
+        return (
+            speed >= self.config.moving_speed_mps
+            and travel >= self.config.moving_travel_m
+            and travel >= 3.0 * scatter
+        )
+
     def _classify(self, track: Track) -> None:
         if track.static:
             return
         age_s = (track.stamp_ns - track.first_seen_ns) / 1e9
         travel = math.hypot(track.state[0] - track.origin_m[0], track.state[1] - track.origin_m[1])
-        # Speed alone is not enough: a static object seen partly, then whole, jumps its centre.
-        if (
-            not track.moving
-            and track.detections >= self.config.moving_detections
-            and travel >= self.config.moving_travel_m
-            and track.speed_test(self.config)
-        ):
+        if not track.moving and self._moves_steadily(track):
             track.moving = True
         if (
             not track.moving
