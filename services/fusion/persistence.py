@@ -68,6 +68,7 @@ def load_grid(params: GridParams, state_dir: Path) -> FusedGrid | None:
                 for name, array in layers.items():
                     getattr(grid, name)[part.slices_in(grid.window)] = array[part.slices_in(saved)]
             grid.occupancy = occupancy_from_logodds(grid.logodds, grid.known)
+            grid.predicted = np.zeros(grid.window.shape, np.bool_)  # predictions are not saved
             grid.version = int(data["version"])
             grid.stamp_ns = int(data["stamp_ns"])
     except Exception as error:  # any unreadable file: keep it for inspection, start empty
