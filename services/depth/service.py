@@ -347,7 +347,10 @@ def main(settings: DepthSettings) -> None:
         token = session.liveliness().declare_token(keys.depth_alive(settings.pair))
         health_queryable = session.declare_queryable(
             keys.depth_health(settings.pair),
-            lambda q: q.reply(q.key_expr, json.dumps(health()), encoding="application/json"),
+            # On its own key: a wildcard query (depth/*/health) gets one answer per pair.
+            lambda q: q.reply(
+                keys.depth_health(settings.pair), json.dumps(health()), encoding="application/json"
+            ),
         )
         log.info(
             "started",
