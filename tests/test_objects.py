@@ -319,3 +319,14 @@ def test_eval_matches_static_objects_and_counts_splits_and_id_switches() -> None
     scores = score_movers(history)
     assert scores.id_switches == {"m": 1} and scores.tracked_share == {"m": 1.0}
     assert max(scores.velocity_error_mps) < 0.11
+
+
+def test_a_mover_missed_by_the_last_frames_is_not_swept() -> None:
+    tracker = ObjectTracker()
+    _run_mover(tracker, (2.0, 2.0), (2.0, 0.0), 6, np.random.default_rng(8))
+    seen_ns = tracker.stamp_ns
+    assert tracker.sweep(0.05, seen_ns, seen_ns + FRAME_NS)
+    for k in range(1, 3):  # two captures without it
+        tracker.add("p0", seen_ns + k * FRAME_NS, [], 0.0)
+        tracker.flush(0.0, {"p0"})
+    assert tracker.sweep(0.05, tracker.stamp_ns, tracker.stamp_ns + FRAME_NS) == []

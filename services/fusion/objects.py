@@ -67,6 +67,8 @@ class TrackerConfig:
     """Faster than this is a wrong association, not a mover on a warehouse floor: not swept."""
     sweep_max_s: float = 1.5
     """A sweep reaches at most this far past the track's last capture."""
+    sweep_missed_frames: float = 1.5
+    """A moving track missed for more than this many frame intervals is not swept."""
     static_after_s: float = 3.0
     static_travel_m: float = 0.2
     """A track that stayed within this of where it began for ``static_after_s`` is static for good."""
@@ -430,6 +432,8 @@ class ObjectTracker:
             velocity = t.state[2:4]
             if not t.moving or math.hypot(*velocity) > self.config.sweep_max_speed_mps:
                 continue
+            if self.stamp_ns - t.stamp_ns > self.config.sweep_missed_frames * self.ahead_s() * 1e9:
+                continue  # missed by the last frames: where it went is a guess, not a prediction
             length, width, yaw, _, _ = t.size()
             start_s = (max(t.stamp_ns, from_ns) - t.stamp_ns) / 1e9
             end_s = min(max((until_ns - t.stamp_ns) / 1e9, start_s), self.config.sweep_max_s)
