@@ -8,7 +8,7 @@ Rules that shape the tracks:
 - a static object never turns into a moving track: once a track has stood still for
   ``static_after_s`` it is locked static (velocity held at zero); if the object is moved, its
   detections leave the static gate, the track ends and a new one begins;
-- a track is ``moving`` once its recent centres lie along a line covering ``moving_travel_m``
+- a track is ``moving`` while its recent centres lie along a line covering ``moving_travel_m``
   (three times their scatter about it) at ``moving_speed_mps`` or more;
 - a detection overlapping a track's footprint that the track did not take is a piece of it (a
   plain top matches in fragments): joined to it, never a track of its own;
@@ -379,8 +379,10 @@ class ObjectTracker:
             return
         age_s = (track.stamp_ns - track.first_seen_ns) / 1e9
         travel = math.hypot(track.state[0] - track.origin_m[0], track.state[1] - track.origin_m[1])
-        if not track.moving and self._moves_steadily(track):
-            track.moving = True
+        # Judged anew at every frame: a wrong "moving" (pieces of a static object lining up once)
+        # does not stick, and a mover turning a corner, which the model cannot predict, is not
+        # swept until it runs straight again.
+        track.moving = self._moves_steadily(track)
         if (
             not track.moving
             and age_s >= self.config.static_after_s
