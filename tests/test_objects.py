@@ -256,6 +256,9 @@ def test_the_predicted_layer_covers_a_mover_ahead_and_clears_behind() -> None:
     left = cell(x_now - 0.3, 2.0)
     assert not grid.predicted[left] and grid.served_occupancy()[left] == 0
     assert grid.version > version and not grid.take_dirty().empty
+    # The mover gone: the layer empties once, then costs nothing.
+    assert grid.set_predicted([]) and not grid.predicted.any()
+    assert not grid.set_predicted([])
 
 
 def test_polygon_cells_are_the_cells_whose_centres_it_holds() -> None:

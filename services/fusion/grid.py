@@ -78,6 +78,7 @@ class FusedGrid:
         """nav_msgs view of ``logodds``/``known``, kept current cell by cell as they change."""
         self.predicted = np.zeros(self.window.shape, np.bool_)
         """Cells a moving object's path covers (its own layer, not evidence: never saved)."""
+        self.predicted_any = False
         self.version = 0
         self.stamp_ns = 0
         self.dirty = Window(0, 0, 0, 0)
@@ -166,6 +167,8 @@ class FusedGrid:
     def set_predicted(self, swept: list[tuple[Window, npt.NDArray[np.bool_]]]) -> bool:
         """Replace the predicted layer by these swept cells (those outside the map are dropped);
         True if it changed. The cells it no longer covers show the frames' evidence again."""
+        if not swept and not self.predicted_any:
+            return False  # the usual case without movers: no pass over the whole map
         predicted = np.zeros(self.window.shape, np.bool_)
         for window, mask in swept:
             part = window.intersect(self.window)
@@ -184,6 +187,7 @@ class FusedGrid:
             )
         )
         self.predicted = predicted
+        self.predicted_any = bool(swept) and bool(predicted.any())
         self.version += 1
         return True
 
