@@ -2,6 +2,8 @@
 ``map/objects``: queryable (msgpack and JSON) and a put per change."""
 
 import json
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -17,7 +19,7 @@ from common.messages import (
     DetectionsHeader,
     ObjectsHeader,
 )
-from tests.conftest import Bus, wait_for
+from tests.conftest import REPO, Bus, wait_for
 
 pytestmark = pytest.mark.process
 
@@ -60,3 +62,14 @@ def test_fusion_serves_tracked_objects(bus: Bus, tmp_path: Path) -> None:
     assert people["objects"][0]["id"] == obj.id
     wait_for(lambda: any(p.objects for p in puts), 5, "a put on map/objects")
     subscriber.undeclare()
+
+    table = subprocess.run(
+        [sys.executable, "-m", "services.cli", "objects", *bus.flags()],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert table.returncode == 0, table.stderr
+    row = next(line for line in table.stdout.splitlines() if line.split()[:1] == [str(obj.id)])
+    assert "static" in row and "0.800" in row and "p0" in row
