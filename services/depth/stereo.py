@@ -192,8 +192,8 @@ def make_matcher(
 ) -> cv2.StereoMatcher:
     """SGBM 3WAY with preFilterCap=63 and P1/P2 ∝ blockSize²: the default preFilterCap=0 locks
     disparities to whole pixels. P1 = 2·bs², P2 = 8·bs² gave the lowest error on object tops at half
-    resolution among the settings tried (bench/depth_pipeline.py), at the same speed. 3WAY ignores
-    disp12MaxDiff (no left-right check), so it is left at OpenCV's "off"."""
+    resolution among the settings tried (bench/depth_pipeline.py), at the same speed.
+    disp12MaxDiff is left off: 1 gave results identical to off on Middlebury Motorcycle."""
     bs = config.block_size
     if config.algorithm == "bm":
         matcher = cv2.StereoBM.create(numDisparities=num_disparities, blockSize=max(5, bs | 1))
