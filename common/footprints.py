@@ -14,6 +14,7 @@ from common.lattice import Window
 F64 = npt.NDArray[np.float64]
 ANGLE_STEP_RAD = math.radians(1.0)
 ANGLE_REFINE_RAD = math.radians(0.1)
+COARSE_POINTS = 400
 
 Rectangle = tuple[float, float, float, float, float]
 """(centre x, centre y, length, width, yaw of the long side in [0, π)), metres and radians."""
@@ -25,18 +26,23 @@ def fit_rectangle(xy_m: F64, trim: float = 0.0) -> Rectangle:
     mean = xy_m.mean(axis=0)
     centred = xy_m - mean
 
-    def extents(angles: F64) -> tuple[F64, F64, F64, F64, F64]:
+    def extents(points: F64, angles: F64) -> tuple[F64, F64, F64, F64, F64]:
+        n = len(points)
+        k = round(trim * (n - 1))  # order statistics by partition: a sort per angle is 4× slower
         c, s = np.cos(angles), np.sin(angles)
-        along = centred[:, :1] * c + centred[:, 1:] * s
-        across = -centred[:, :1] * s + centred[:, 1:] * c
-        lo_a, hi_a = np.quantile(along, [trim, 1 - trim], axis=0)
-        lo_b, hi_b = np.quantile(across, [trim, 1 - trim], axis=0)
+        along = points[:, :1] * c + points[:, 1:] * s
+        across = -points[:, :1] * s + points[:, 1:] * c
+        lo_a, hi_a = np.partition(along, (k, n - 1 - k), axis=0)[[k, n - 1 - k]]
+        lo_b, hi_b = np.partition(across, (k, n - 1 - k), axis=0)[[k, n - 1 - k]]
         return lo_a, hi_a, lo_b, hi_b, (hi_a - lo_a) * (hi_b - lo_b)
 
+    # The orientation from a subsample (every point is not needed to find it), the extents at the
+    # refined angles from all points.
+    sample = centred[:: max(1, len(centred) // COARSE_POINTS)]
     coarse = np.arange(0.0, np.pi / 2, ANGLE_STEP_RAD)
-    best = float(coarse[int(np.argmin(extents(coarse)[4]))])
+    best = float(coarse[int(np.argmin(extents(sample, coarse)[4]))])
     fine = best + np.arange(-ANGLE_STEP_RAD, ANGLE_STEP_RAD, ANGLE_REFINE_RAD)
-    lo_a, hi_a, lo_b, hi_b, area = extents(fine)
+    lo_a, hi_a, lo_b, hi_b, area = extents(centred, fine)
     k = int(np.argmin(area))
     angle = float(fine[k])
     scale = 1.0 / (1.0 - 2.0 * trim)
