@@ -175,6 +175,19 @@ def score_cells(occupancy: npt.NDArray[np.int8], truth: Mask, seen: Mask) -> Cel
     )
 
 
+def cell_shares(occupancy: npt.NDArray[np.int8], cells: Mask) -> dict[str, float]:
+    """Share of ``cells`` the map calls occupied, free and unknown (e.g. static objects' seen
+    cells: on uniform objects over a uniform floor, unknown is the honest answer, free is not)."""
+    total = int(np.count_nonzero(cells))
+    values = occupancy[cells]
+    return {
+        "occupied": _ratio(int(np.count_nonzero(values >= OCCUPIED_MIN)), total),
+        "free": _ratio(int(np.count_nonzero((values >= 0) & (values <= FREE_MAX))), total),
+        "unknown": _ratio(int(np.count_nonzero(values == UNKNOWN)), total),
+        "cells": total,
+    }
+
+
 ANGLE_STEPS = np.deg2rad(np.arange(0.0, 90.0, 0.25))
 
 

@@ -248,6 +248,11 @@ class Evaluator:
         occupancy = metrics.occupancy_on(occupancy_map, self.window)
         return metrics.score_cells(occupancy, self.static_occupied, self.seen).false_free_rate
 
+    def static_cells(self, occupancy_map: OccupancyMap) -> dict[str, float]:
+        """How the map calls the seen cells of static objects: occupied, free or unknown."""
+        occupancy = metrics.occupancy_on(occupancy_map, self.window)
+        return metrics.cell_shares(occupancy, self.static_occupied & self.seen)
+
     def timeline_scores(
         self, timeline: list[tuple[int, npt.NDArray[np.int8]]]
     ) -> list[TimelineScore]:
@@ -413,6 +418,7 @@ def report(
         "recall": scores.recall,
         "false_free_rate": scores.false_free_rate,
         "false_free_rate_static": evaluator.static_false_free_rate(occupancy_map),
+        "static_cells": evaluator.static_cells(occupancy_map),
         "unknown_fraction": scores.unknown_fraction,
         "seen_cells": int(evaluator.seen.sum()),
         "raster_length_error_mean_pct": _mean(errors_pct),
