@@ -241,8 +241,10 @@ def floor_test(left: F32, warped: F32, inside: Mask, config: FloorModelConfig) -
     measured &= size < config.max_shift_px
     shift_px: F32 = np.where(measured, shift, np.float32(np.nan))
     agree: Mask = measured & (zncc >= config.agree_zncc) & (size <= config.floor_shift_px)
+    # A shift too large for the linearisation to measure is still no floor.
+    strong = x_textured & (energy >= config.measure_energy) & (size >= config.max_shift_px)
     contradict: Mask = textured & (
-        (zncc < config.contradict_zncc) | (measured & (size >= config.raised_shift_px))
+        (zncc < config.contradict_zncc) | strong | (measured & (size >= config.raised_shift_px))
     )
     return FloorTest(textured, x_textured, along_baseline, shift_px, agree, contradict)
 
@@ -479,11 +481,13 @@ class FloorModel:
         # window dragging a nearby edge over smooth floor (rule 1, fattening).
         interpolated = valid & ~refined & ~test.x_textured
         observed = matches & ((interpolated & ~at_floor) | (~valid & ~refined))
-        # Texture only across the baseline (board gaps, grain along x: a pallet's deck) lets the
-        # matcher carry the floor's disparity in from around: that "floor" is not believed.
+        # No texture (a plain box top), or texture only across the baseline (board gaps, grain
+        # along x: a pallet's deck), lets the matcher carry the floor's disparity in from around:
+        # that "floor" is believed only where the background says floor too.
         with np.errstate(invalid="ignore"):
             low = self.geometry.height_m(measured) < self.obstacle_min_m
-        measured[interpolated & test.along_baseline & low & ~matches] = np.nan
+        carried = interpolated & low & ~matches & (test.along_baseline | ~test.textured)
+        measured[carried] = np.nan
         # Floor observations sit at height 0: the calibration's floor, not the fitted one.
         out = np.where(observed, self.geometry.floor_disparity_px, measured).astype(np.float32)
 

@@ -1,0 +1,224 @@
+"""The fixed-camera floor model on real renders (camera_sim's realistic cameras) and real OpenCV."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from common.mapfiles import read_map_server
+from services.camera_sim.capture import CameraModel, StereoCapture
+from services.camera_sim.render import SceneRenderer
+from services.camera_sim.rig import RigSpec, layout_pairs
+from services.camera_sim.scene import MarkingSpec, ObjectSpec, SceneSpec
+from services.camera_sim.truth import footprint_mask
+from services.depth import floor_model
+from services.depth.pipeline import DepthPipeline, PipelineConfig
+from services.depth.stereo import Rectifier
+from tests.conftest import REPO, Bus
+
+FLOOR_M = (12.0, 10.0)
+CALIB = layout_pairs(RigSpec(pair_count=1), FLOOR_M)[0]
+RAISED = ObjectSpec(
+    name="patch", shape="box", center_xy_m=(6.4, 4.6), yaw_rad=0.3, size_m=(1.0, 0.8, 0.5)
+)
+LANES = [
+    MarkingSpec(center_xy_m=(x, 5.0), size_m=(4.0, 0.08), yaw_rad=np.pi / 2) for x in (4.2, 7.8)
+]
+"""Paint lines across the baseline: all a plain floor gives stereo to measure at floor height."""
+PLAIN_BOX = ObjectSpec(
+    name="crate",
+    shape="box",
+    center_xy_m=(5.2, 5.6),
+    size_m=(0.9, 0.7, 0.8),
+    rgba=(0.8, 0.8, 0.78, 1.0),
+    plain=True,
+)
+
+
+class Pair:
+    """One pair of a scene through the realistic cameras, frame after frame."""
+
+    def __init__(self, scene: SceneSpec, shadows: bool = False) -> None:
+        self.renderer = SceneRenderer(scene, [CALIB], shadows=shadows)
+        self.capture = StereoCapture(self.renderer, CALIB, CameraModel(), seed=0)
+        self.t_s = 1000.0
+
+    def next(self) -> tuple[np.ndarray, np.ndarray]:
+        self.t_s += 0.5
+        self.renderer.set_time(self.t_s)
+        return self.capture.capture(int(self.t_s * 1e9))
+
+    def depth_small(self) -> np.ndarray:
+        """MuJoCo's depth of the left camera at the processing resolution (rectification is
+        close to the identity for these look-down cameras)."""
+        depth = self.renderer.render_depth(
+            f"{CALIB.pair}_left", CALIB.left.width, CALIB.left.height
+        )
+        return cv2.resize(depth, (320, 240), interpolation=cv2.INTER_NEAREST)
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+def _eroded(mask: np.ndarray, px: int = 4) -> np.ndarray:
+    return cv2.erode(mask.astype(np.uint8), np.ones((2 * px + 1, 2 * px + 1), np.uint8)) > 0
+
+
+def test_floor_test_flags_a_raised_textured_patch_and_not_the_floor() -> None:
+    """A rendered speckle floor (realistic cameras, published calibration), with a patch of its own
+    texture pasted 2 px of disparity above the floor (≈ 0.5 m) into both rectified images."""
+    pair = Pair(SceneSpec(floor="speckle"))
+    left, right = pair.next()
+    pair.close()
+    rectifier = Rectifier.from_calibration(pair.capture.calibration, 2)
+    geometry = floor_model.FloorGeometry.from_rectifier(rectifier, rectifier.pixel_rays_world())
+    model = floor_model.FloorModel(geometry, 0.1)
+    left_rect, right_rect = (np.array(image) for image in rectifier.rectify(left, right))
+    for _ in range(12):  # let it fit the published calibration's residual first
+        model.update(left_rect, right_rect, np.full(left_rect.shape, np.nan, np.float32))
+    rows, cols = slice(80, 160), slice(140, 220)
+    patch = left_rect[20:100, 20:100].copy()
+    shift = round(float(geometry.floor_disparity_px[120, 180])) + 2
+    left_rect[rows, cols] = patch
+    right_rect[rows, cols.start - shift : cols.stop - shift] = patch
+    config = model.config
+    blurred = floor_model._blur(left_rect, config.blur_sigma_px)
+    warped = cv2.remap(
+        floor_model._blur(right_rect, config.blur_sigma_px),
+        *model._warp_maps,
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=-1.0,
+    )
+    test = floor_model.floor_test(blurred, warped, warped >= 0, config)
+    raised = np.zeros(left_rect.shape, np.bool_)
+    raised[rows, cols] = True
+    inner, floor = _eroded(raised), ~cv2.dilate(raised.astype(np.uint8), np.ones((9, 9))) > 0
+    floor[:, :40] = False  # the right image's view ends there
+    floor[:10], floor[-10:], floor[:, -10:] = False, False, False  # rectification's borders
+    # Left of the patch the right image shows the patch where the left sees floor (occlusion).
+    floor[rows.start - 4 : rows.stop + 4, cols.start - shift - 4 : cols.start] = False
+    assert test.contradict[inner].mean() > 0.5
+    assert test.agree[inner].mean() < 0.01
+    assert test.contradict[floor].mean() < 0.1  # sensor noise: about 6 % here
+    assert test.agree[floor].mean() > 0.5
+    # On the floor it measures the residual shift to a fraction of a pixel.
+    assert np.nanmedian(np.abs(test.shift_px[floor])) < 0.1
+
+
+def _floor_height_share(pipeline: DepthPipeline, evidence: np.ndarray, where: np.ndarray) -> float:
+    """Share of ``where`` whose evidence is the floor (within 5 cm of height 0)."""
+    with np.errstate(invalid="ignore"):
+        height = pipeline.floor_model.geometry.height_m(evidence)[where]
+        return float(np.mean(np.abs(height) < 0.05))
+
+
+def test_background_flags_an_inserted_object_and_ignores_a_brightness_change() -> None:
+    empty, with_box = (
+        Pair(SceneSpec(floor="plain", objects=objects, markings=LANES))
+        for objects in ([], [PLAIN_BOX])
+    )
+    pipeline = DepthPipeline(empty.capture.calibration, PipelineConfig())
+    for _ in range(17):  # a few learning frames
+        result = pipeline.process(*empty.next())
+    assert pipeline.floor_health()["state"] == "ready"
+    floor = _eroded(empty.depth_small() > float(CALIB.left.position_world[2]) - 0.01, 8)
+    assert _floor_height_share(pipeline, result.evidence_disparity_px, floor) > 0.9
+
+    # A global step of the light (or exposure): the floor is still the floor.
+    left, right = empty.next()
+    darker = [(image.astype(np.float32) * 0.7).astype(np.uint8) for image in (left, right)]
+    result = pipeline.process(*darker)
+    assert _floor_height_share(pipeline, result.evidence_disparity_px, floor) > 0.9
+
+    # A uniform crate put down on the learned floor departs from the background: never floor.
+    with_box.t_s = empty.t_s
+    result = pipeline.process(*with_box.next())
+    crate = _eroded(with_box.depth_small() < float(CALIB.left.position_world[2]) - 0.3)
+    empty.close()
+    with_box.close()
+    assert crate.sum() > 300
+    assert _floor_height_share(pipeline, result.evidence_disparity_px, crate) < 0.02
+
+
+def test_a_textureless_box_standing_since_start_up_is_never_marked_free() -> None:
+    pair = Pair(SceneSpec(floor="plain", objects=[PLAIN_BOX], markings=LANES))
+    pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
+    truth = next(o for o in SceneSpec(objects=[PLAIN_BOX]).truth_objects(0) if o.name == "crate")
+    crate_px = _eroded(pair.depth_small() < float(CALIB.left.position_world[2]) - 0.3, 2)
+    for _ in range(16):
+        result = pipeline.process(*pair.next())
+        tile = result.tile
+        # Cells whose centre is inside by a cell or more (the edge cells are the cell rule's).
+        inside = _eroded(footprint_mask(truth, tile.window, tile.resolution_m), 2)
+        free = (tile.count > 0) & (tile.logodds < 0)
+        assert not (free & inside).any(), "a cell of the box was mapped free"
+        assert not pipeline.floor_model.modelled[crate_px].any()
+    pair.close()
+    assert pipeline.floor_model.modelled_share() > 0.5  # the floor around it was learned
+
+
+def test_shadows_on_a_textured_floor_do_not_flag() -> None:
+    scene = SceneSpec(
+        floor="speckle",
+        objects=[RAISED.model_copy(update={"center_xy_m": (4.8, 4.0), "size_m": (1.0, 0.8, 1.8)})],
+    )
+    lit, shaded = Pair(scene), Pair(scene, shadows=True)
+    pipeline = DepthPipeline(shaded.capture.calibration, PipelineConfig())
+    for _ in range(6):
+        result = pipeline.process(*shaded.next())
+    lit.next()
+    name, (width, height) = f"{CALIB.pair}_left", CALIB.image_size
+    ratio = (shaded.renderer.render_gray(name, width, height).astype(np.float32) + 1) / (
+        lit.renderer.render_gray(name, width, height).astype(np.float32) + 1
+    )
+    depth = shaded.depth_small()
+    lit.close()
+    shaded.close()
+    on_floor = depth > float(CALIB.left.position_world[2]) - 0.01
+    # Shadow mapping changes MuJoCo's light overall: a shadow is darker than the rest of the floor.
+    ratio = cv2.resize(ratio, (320, 240))
+    shadow = _eroded(on_floor & (ratio < 0.85 * np.median(ratio[on_floor])), 3)
+    assert shadow.sum() > 300, "the scene casts no shadow to test"
+    with np.errstate(invalid="ignore"):
+        heights = pipeline.floor_model.geometry.height_m(result.evidence_disparity_px)[shadow]
+    seen = np.isfinite(heights)
+    assert seen.mean() > 0.8
+    assert np.mean(heights[seen] >= 0.1) < 0.02  # the shadow is no obstacle
+
+
+@pytest.mark.process
+def test_up_on_a_plain_floor_maps_free_floor_around_the_objects(bus: Bus, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    up = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "up",
+            "--pairs",
+            "2",
+            "--floor",
+            "plain",
+            "--duration-s",
+            "20",
+            "--out",
+            str(out),
+            *bus.flags(),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert up.returncode == 0, up.stdout[-2000:] + up.stderr[-2000:]
+    report = json.loads((out / "report.json").read_text())
+    # Before the floor model 86 % of the seen plain floor stayed unknown.
+    assert report["unknown_fraction"] < 0.15, report["unknown_fraction"]
+    assert report["false_free_rate_static"] < 0.2, report["false_free_rate_static"]
+    _meta, image = read_map_server(out / "map.yaml")
+    assert (image == 254).mean() > 0.3  # nav2 trinary: free
