@@ -89,8 +89,9 @@ class FusionSettings(ZenohSettings):
     )
     save_interval_s: float = Field(10.0, gt=0.0, description="period of state saves")
     predict_movers: bool = Field(
-        True,
-        description="serve the cells moving objects' paths cover up to the next frame as occupied",
+        False,
+        description="serve the cells moving objects' paths cover up to the next frame as occupied "
+        "(off by default: with today's mover tracks it paints false streaks and lowers no false-free)",
     )
     summary_s: float = Field(10.0, gt=0.0, description="period of the summary log line")
 
