@@ -103,7 +103,7 @@ def objects(session: zenoh.Session, timeout_s: float = 5.0) -> ObjectsHeader:
 
 def calibrations(session: zenoh.Session, timeout_s: float = 5.0) -> list[StereoCalibration]:
     """Every pair's published calibration (``cam/*/calib``), sorted by pair; an answer that does
-    not decode is skipped. Raises MapUnavailable when no camera source answers."""
+    not decode is skipped; empty when no camera source answers."""
     found: dict[str, StereoCalibration] = {}
     for payload in query_all(session, keys.CALIB_ALL, timeout_s):
         try:

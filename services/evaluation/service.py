@@ -22,14 +22,12 @@ import zenoh
 from pydantic import Field
 
 from common import keys
-from common.camera import StereoCalibration
-from common.client import MapFollower, MapUnavailable, latest, query_all, query_first
+from common.client import MapFollower, MapUnavailable, calibrations, latest, query_first
 from common.client import objects as query_objects
 from common.codec import CodecError, decode
 from common.lattice import Window
 from common.lifecycle import stop_on_signals
 from common.messages import (
-    CALIB_KIND,
     OBJECTS_KIND,
     TILE_KIND,
     TRUTH_KIND,
@@ -99,18 +97,6 @@ def query_truth(
     )
     message = decode(query_first(session, selector, timeout_s), TRUTH_KIND, TruthHeader)
     return Truth(message.header, message.arrays["occupied"].astype(np.bool_))
-
-
-def query_calibrations(session: zenoh.Session, timeout_s: float = 5.0) -> list[StereoCalibration]:
-    """Every pair's calibration (an answer that does not decode is skipped)."""
-    found: dict[str, StereoCalibration] = {}
-    for payload in query_all(session, keys.CALIB_ALL, timeout_s):
-        try:
-            calib = decode(payload, CALIB_KIND, StereoCalibration).header
-        except CodecError:
-            continue
-        found[calib.pair] = calib
-    return [found[pair] for pair in sorted(found)]
 
 
 @dataclass
@@ -218,7 +204,7 @@ class Evaluator:
         first = query_truth(session, time.time_ns(), resolution_m, timeout_s)
         self.window = first.header.window
         self.floor_size_m = first.header.floor_size_m
-        self.calibrations = query_calibrations(session, timeout_s)
+        self.calibrations = calibrations(session, timeout_s)
         if not self.calibrations:
             raise MapUnavailable("no camera answered on cam/*/calib")
         static = [o for o in first.header.objects if not o.moving]

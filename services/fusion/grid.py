@@ -144,25 +144,22 @@ class FusedGrid:
         self.logodds[forgotten] = 0.0
         self.height_m[forgotten] = np.nan
         self.known[forgotten] = False
-        rows, cols = np.nonzero(stale)
-        changed = Window(
-            int(cols.min()),
-            int(rows.min()),
+        changed = self._bounds_of(stale)
+        box = changed.slices_in(self.window)
+        self.occupancy[box] = occupancy_from_logodds(self.logodds[box], self.known[box])
+        self.dirty = self.dirty.union(changed)
+        self.version += 1
+        return int(stale.sum())
+
+    def _bounds_of(self, cells: npt.NDArray[np.bool_]) -> Window:
+        """The lattice window bounding the true cells of a map-sized mask (at least one)."""
+        rows, cols = np.nonzero(cells)
+        return Window(
+            self.window.i0 + int(cols.min()),
+            self.window.j0 + int(rows.min()),
             int(cols.max() - cols.min()) + 1,
             int(rows.max() - rows.min()) + 1,
         )
-        box = changed.slices_in(Window(0, 0, self.window.cols, self.window.rows))
-        self.occupancy[box] = occupancy_from_logodds(self.logodds[box], self.known[box])
-        self.dirty = self.dirty.union(
-            Window(
-                self.window.i0 + int(cols.min()),
-                self.window.j0 + int(rows.min()),
-                int(cols.max() - cols.min()) + 1,
-                int(rows.max() - rows.min()) + 1,
-            )
-        )
-        self.version += 1
-        return int(stale.sum())
 
     def set_predicted(self, swept: list[tuple[Window, npt.NDArray[np.bool_]]]) -> bool:
         """Replace the predicted layer by these swept cells (those outside the map are dropped);
@@ -177,15 +174,7 @@ class FusedGrid:
         changed = predicted != self.predicted
         if not changed.any():
             return False
-        rows, cols = np.nonzero(changed)
-        self.dirty = self.dirty.union(
-            Window(
-                self.window.i0 + int(cols.min()),
-                self.window.j0 + int(rows.min()),
-                int(cols.max() - cols.min()) + 1,
-                int(rows.max() - rows.min()) + 1,
-            )
-        )
+        self.dirty = self.dirty.union(self._bounds_of(changed))
         self.predicted = predicted
         self.predicted_any = bool(swept) and bool(predicted.any())
         self.version += 1
