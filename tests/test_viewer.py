@@ -582,4 +582,6 @@ def test_a_fusion_that_lost_its_map_is_followed_anew(
     page.wait_for_function(_drawn_as(page, 2.25, 1.25, "occupied"), timeout=10_000)
     page.wait_for_selector("#banner", state="hidden")
     assert page.evaluate("window.overgridView.state.map.version") < 30
-    assert _rgb(page, 1.25, 1.25) != PICTURE_COLORS["occupied"]  # the lost map is gone from view
+    # The lost map is gone from view (once the page has drawn the new map: a frame may be pending).
+    page.wait_for_function(f"() => !({_drawn_as(page, 1.25, 1.25, 'occupied')})()", timeout=5_000)
+    assert _rgb(page, 1.25, 1.25) != PICTURE_COLORS["occupied"]

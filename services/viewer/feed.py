@@ -81,6 +81,9 @@ class MapFeed:
         self._lock = threading.Lock()
         self._state = FeedState()
         self._follower: MapFollower | None = None
+        self._generation = 0
+        """Which follower's maps count: a closed follower's callback still in flight is ignored
+        (it would bring back the lost map, and the new one's lower versions would be refused)."""
         self._rates = TileRates()
         self._footprints: dict[str, Polygon] = {}
         self._depth_health: dict[str, dict[str, Any]] = {}
@@ -144,8 +147,10 @@ class MapFeed:
         self.notify()
 
     # The map: MapFollower calls this from a Zenoh thread with each new version.
-    def _on_map(self, occupancy_map: OccupancyMap, arrival_s: float) -> None:
+    def _on_map(self, occupancy_map: OccupancyMap, generation: int) -> None:
         def changes(state: FeedState) -> dict[str, Any]:
+            if generation != self._generation:
+                return {}
             layers = state.layers
             if layers is not None and layers.version >= occupancy_map.version:
                 return {}
@@ -159,11 +164,15 @@ class MapFeed:
         self._change(changes)
 
     def _follow(self) -> None:
+        self._generation += 1
+        generation = self._generation
         follower = MapFollower(
-            self._session, timeout_s=self.periods.query_timeout_s, on_change=self._on_map
+            self._session,
+            timeout_s=self.periods.query_timeout_s,
+            on_change=lambda occupancy_map, _arrival_s: self._on_map(occupancy_map, generation),
         )
         self._follower = follower
-        self._on_map(follower.map, time.time())
+        self._on_map(follower.map, generation)
         log.info("following the map", extra={"version": follower.map.version})
 
     def _poll_health(self) -> None:
@@ -187,6 +196,7 @@ class MapFeed:
             )
             self._follower.close()
             self._follower = None
+            self._generation += 1
             self._update(layers=None, map=None)
         if self._follower is None:
             self._follow()
