@@ -164,3 +164,15 @@ def test_recorded_images_and_calibration_file_go_through_the_same_pipeline(
     wait_for(lambda: sink.count() >= 3, 60, "three tiles from recorded images")
     assert [t.seq for t in sink.tiles[:3]] == [0, 1, 2]
     assert all(t.cols * t.rows > 10_000 for t in sink.tiles[:3])
+
+
+def test_one_wildcard_health_query_gets_every_pair(bus: Bus) -> None:
+    bus.start("camera-sim", "--pair-count", "2", "--rate-hz", "1", "--frames", "200")
+    bus.start("depth", "--pair", "p0")
+    bus.start("depth", "--pair", "p1")
+
+    def pairs_answering() -> set[str]:
+        replies = bus.session.get(keys.DEPTH_HEALTH_ALL, timeout=3.0)
+        return {json.loads(r.ok.payload.to_string())["pair"] for r in replies if r.ok is not None}
+
+    wait_for(lambda: pairs_answering() == {"p0", "p1"}, 60, "health answers of p0 and p1")

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import zlib
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 
 import numpy as np
 import numpy.typing as npt
@@ -30,25 +30,13 @@ class CalibrationError:
     principal_point_sigma_px: float = 0.1
 
     def __post_init__(self) -> None:
-        values = (
-            self.rotation_sigma_deg,
-            self.position_sigma_mm,
-            self.focal_sigma_pct,
-            self.principal_point_sigma_px,
-        )
+        values = astuple(self)
         if min(values) < 0 or not all(math.isfinite(v) for v in values):
             raise ValueError(f"calibration error sizes must be finite and ≥ 0, got {values}")
 
     @property
     def exact(self) -> bool:
-        return not any(
-            (
-                self.rotation_sigma_deg,
-                self.position_sigma_mm,
-                self.focal_sigma_pct,
-                self.principal_point_sigma_px,
-            )
-        )
+        return not any(astuple(self))
 
 
 def rotation_from_vector(rotation_rad: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:

@@ -241,20 +241,19 @@ class MapFeed:
             self._update(pairs=self._pairs(self._state.map_health))
 
     def _poll_depth_health(self) -> None:
-        """Each known pair's own ``depth/{pair}/health``: asked one by one, since a depth process
-        answers on the query's key and a wildcard query keeps only one of the answers."""
+        """Every depth process's ``depth/{pair}/health`` in one query (each answers on its own key)."""
         rows: dict[str, dict[str, Any]] = {}
-        for pair in sorted({row["pair"] for row in self._state.pairs}):
+        try:
+            payloads = query_all(self._session, keys.DEPTH_HEALTH_ALL, DEPTH_HEALTH_TIMEOUT_S)
+        except MapUnavailable:
+            payloads = []  # none running: fusion's liveliness says so already
+        for payload in payloads:
             try:
-                payloads = query_all(self._session, keys.depth_health(pair), DEPTH_HEALTH_TIMEOUT_S)
-            except MapUnavailable:
-                continue  # not running: fusion's liveliness says so already
-            try:
-                row = json.loads(payloads[0])
+                row = json.loads(payload)
             except json.JSONDecodeError:
                 continue
-            if isinstance(row, dict):
-                rows[pair] = row
+            if isinstance(row, dict) and isinstance(row.get("pair"), str):
+                rows[row["pair"]] = row
         with self._lock:
             self._depth_health = rows
 
