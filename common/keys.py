@@ -10,7 +10,8 @@ STEREO_ALL = "cam/*/stereo"
 CALIB_ALL = "cam/*/calib"
 SIM_TRUTH = "sim/truth"
 TILES_ALL = "depth/*/tile"
-DEPTH_ALIVE_ALL = "depth/*/alive"
+DEPTH_ALIVE_ALL = "depth/*/alive/*"
+"""One token per depth process: two processes claiming one pair show as two tokens."""
 DEPTH_HEALTH_ALL = "depth/*/health"
 """Every depth process answers on its own key: one query, one answer per pair."""
 MAP_LATEST = "map/latest"
@@ -44,9 +45,10 @@ def objects(pair: str) -> str:
     return f"depth/{check_pair_id(pair)}/objects"
 
 
-def depth_alive(pair: str) -> str:
-    """Liveliness token a depth process holds while it runs (DESIGN.md, Presence)."""
-    return f"depth/{check_pair_id(pair)}/alive"
+def depth_alive(pair: str, instance: str) -> str:
+    """Liveliness token a depth process holds while it runs (DESIGN.md, Presence); ``instance``
+    (its Zenoh session id) tells two processes that claim the same pair apart."""
+    return f"depth/{check_pair_id(pair)}/alive/{check_pair_id(instance)}"
 
 
 def depth_health(pair: str) -> str:
@@ -57,6 +59,14 @@ def depth_health(pair: str) -> str:
 def pair_of(key: str) -> str:
     """The pair chunk of ``cam/{pair}/…`` or ``depth/{pair}/…``, namespace already stripped."""
     parts = str(key).split("/")
-    if len(parts) < 3:
+    if len(parts) < 3 or parts[0] not in ("cam", "depth"):
         raise ValueError(f"key {key!r} has no pair chunk")
-    return check_pair_id(parts[-2])
+    return check_pair_id(parts[1])
+
+
+def instance_of(alive_key: str) -> str:
+    """The process chunk of a ``depth/{pair}/alive/{instance}`` token."""
+    parts = str(alive_key).split("/")
+    if len(parts) != 4 or parts[2] != "alive":
+        raise ValueError(f"key {alive_key!r} is not a depth liveliness token")
+    return check_pair_id(parts[3])

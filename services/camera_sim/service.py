@@ -6,13 +6,10 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 import zenoh
-from pydantic import Field, model_validator
 
 from common import keys
 from common.codec import WIRE_ENCODING, encode
@@ -20,133 +17,16 @@ from common.lattice import Window, check_resolution
 from common.lifecycle import stop_on_signals
 from common.logs import setup_logging
 from common.messages import CALIB_KIND, STEREO_KIND, TRUTH_KIND, StereoFrameHeader, TruthHeader
-from common.settings import CommaList, ZenohSettings, parse_settings, startup_error
+from common.settings import parse_settings, startup_error
 from common.zenoh_session import open_session
 from services.camera_sim import truth
-from services.camera_sim.calibration_error import CalibrationError
-from services.camera_sim.capture import CameraModel, StereoCapture
+from services.camera_sim.capture import StereoCapture
 from services.camera_sim.lighting import Lighting
-from services.camera_sim.rig import RigSpec, layout_pairs, pair_name
-from services.camera_sim.scene import FloorKind, SceneSpec, generate_scene, load_scene
-from services.camera_sim.sensor import SensorParams
+from services.camera_sim.rig import layout_pairs
+from services.camera_sim.scene import SceneSpec
+from services.camera_sim.settings import CameraSimSettings
 
 log = logging.getLogger("camera_sim")
-_SENSOR = SensorParams()
-_CALIB_ERROR = CalibrationError()
-
-
-class CameraSimSettings(ZenohSettings):
-    seed: int = Field(0, description="seed of the generated scene and its texture")
-    scene: Path | None = Field(
-        None, description="scene file (JSON/YAML SceneSpec) instead of a generated one"
-    )
-    floor: FloorKind = Field(
-        "concrete",
-        description="floor: concrete (weak texture, stains, markings), speckle (ideal), plain",
-    )
-    plain_objects: bool = Field(False, description="every static object one uniform colour")
-    floor_x_m: float = Field(12.0, gt=1.0, le=500.0, description="floor length along x")
-    floor_y_m: float = Field(10.0, gt=1.0, le=500.0, description="floor length along y")
-    pair_count: int = Field(4, ge=1, le=256, description="stereo pairs on the ceiling grid")
-    pairs: CommaList = Field(
-        default_factory=list, description="render only these pairs (e.g. p0,p2)"
-    )
-    camera_height_m: float = Field(
-        6.0, gt=0.5, le=50.0, description="ceiling height of the cameras"
-    )
-    baseline_m: float = Field(0.5, gt=0.0, le=5.0, description="stereo baseline")
-    width_px: int = Field(640, ge=64, le=4096, description="image width")
-    height_px: int = Field(480, ge=48, le=4096, description="image height")
-    hfov_deg: float = Field(60.0, gt=5.0, lt=170.0, description="horizontal field of view")
-    rate_hz: float = Field(2.0, gt=0.0, le=60.0, description="frames per second per pair")
-    vary_lighting: bool = Field(False, description="slowly vary the lighting over time")
-    light_step_period_s: float = Field(
-        0.0, ge=0.0, description="half the lights off in the second half of every period (0: never)"
-    )
-    ideal_cameras: bool = Field(
-        False, description="noise-free renders and the exact calibration (the ideal world)"
-    )
-    read_noise_e: float = Field(_SENSOR.read_noise_e, ge=0.0, description="sensor read noise, e-")
-    full_well_e: float = Field(_SENSOR.full_well_e, gt=0.0, description="sensor full well, e-")
-    blur_sigma_px: float = Field(_SENSOR.blur_sigma_px, ge=0.0, le=10.0, description="lens blur σ")
-    vignetting: float = Field(
-        _SENSOR.vignetting, ge=0.0, le=1.0, description="share of the cos⁴ fall-off left"
-    )
-    jpeg_quality: int = Field(
-        0, ge=0, le=100, description="stream JPEG at this quality, as IP cameras do (0: raw)"
-    )
-    calib_rotation_sigma_deg: float = Field(
-        _CALIB_ERROR.rotation_sigma_deg, ge=0.0, le=5.0, description="published calib error"
-    )
-    calib_position_sigma_mm: float = Field(
-        _CALIB_ERROR.position_sigma_mm, ge=0.0, le=100.0, description="published calib error"
-    )
-    calib_focal_sigma_pct: float = Field(
-        _CALIB_ERROR.focal_sigma_pct, ge=0.0, le=10.0, description="published calib error"
-    )
-    calib_principal_point_sigma_px: float = Field(
-        _CALIB_ERROR.principal_point_sigma_px, ge=0.0, le=50.0, description="published calib error"
-    )
-    shadows: bool = Field(False, description="render shadows (slower)")
-    serve_truth: bool = Field(True, description="answer sim/truth queries")
-    frames: int = Field(
-        0, ge=0, description="stop after this many frames per pair (0: run until stopped)"
-    )
-
-    @model_validator(mode="after")
-    def _pairs_exist(self) -> CameraSimSettings:
-        known = {pair_name(k) for k in range(self.pair_count)}
-        unknown = sorted(set(self.pairs) - known)
-        if unknown:
-            raise ValueError(
-                f"--pairs names {unknown}, but --pair-count {self.pair_count} has only p0…p{self.pair_count - 1}"
-            )
-        return self
-
-    def rig(self) -> RigSpec:
-        return RigSpec(
-            pair_count=self.pair_count,
-            height_m=self.camera_height_m,
-            baseline_m=self.baseline_m,
-            width_px=self.width_px,
-            height_px=self.height_px,
-            hfov_deg=self.hfov_deg,
-        )
-
-    def scene_spec(self) -> SceneSpec:
-        if self.scene is not None:
-            try:
-                return load_scene(self.scene)
-            except (OSError, ValueError, yaml.YAMLError) as error:  # ValidationError: ValueError
-                reason = " ".join(str(error).split())
-                startup_error(f"--scene {self.scene}: {reason}")
-        return generate_scene(
-            self.seed,
-            (self.floor_x_m, self.floor_y_m),
-            self.floor,
-            plain_objects=self.plain_objects,
-        )
-
-    def camera_model(self) -> CameraModel:
-        if self.ideal_cameras:
-            return CameraModel.ideal()
-        return CameraModel(
-            sensor=SensorParams(
-                full_well_e=self.full_well_e,
-                read_noise_e=self.read_noise_e,
-                blur_sigma_px=self.blur_sigma_px,
-                vignetting=self.vignetting,
-            ),
-            calibration_error=CalibrationError(
-                rotation_sigma_deg=self.calib_rotation_sigma_deg,
-                position_sigma_mm=self.calib_position_sigma_mm,
-                focal_sigma_pct=self.calib_focal_sigma_pct,
-                principal_point_sigma_px=self.calib_principal_point_sigma_px,
-            ),
-        )
-
-    def lighting(self) -> Lighting:
-        return Lighting(drift=self.vary_lighting, step_period_s=self.light_step_period_s)
 
 
 def jpeg_encoder(quality: int) -> Callable[[np.ndarray], bytes] | None:
