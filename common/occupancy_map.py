@@ -51,6 +51,15 @@ def occupancy_from_logodds(
     return occupancy
 
 
+OPTIONAL_LAYER_DTYPES = {
+    "logodds": np.dtype(np.float32),
+    "height_m": np.dtype(np.float32),
+    "predicted": np.dtype(np.bool_),
+    "last_seen_s": np.dtype(np.float64),
+}
+"""The layers a map message may carry beside ``occupancy``, each on the occupancy's cells."""
+
+
 @dataclass(frozen=True)
 class OccupancyMap:
     occupancy: npt.NDArray[np.int8]
@@ -65,6 +74,9 @@ class OccupancyMap:
     height_m: npt.NDArray[np.float32] | None = None
     predicted: npt.NDArray[np.bool_] | None = None
     """Cells occupied because a moving object's path covers them, not because a frame saw it."""
+    last_seen_s: npt.NDArray[np.float64] | None = None
+    """Capture time (Unix seconds) of each cell's newest observation, 0 where never observed: what
+    decay and a person judging a cell's age go by."""
 
     @property
     def window(self) -> Window:
@@ -90,6 +102,7 @@ class OccupancyMap:
             logodds=None if self.logodds is None else self.logodds[rows, cols],
             height_m=None if self.height_m is None else self.height_m[rows, cols],
             predicted=None if self.predicted is None else self.predicted[rows, cols],
+            last_seen_s=None if self.last_seen_s is None else self.last_seen_s[rows, cols],
         )
 
     def value_at(self, x_m: float, y_m: float) -> int:
@@ -118,6 +131,8 @@ class OccupancyMap:
             arrays["height_m"] = self.height_m
         if self.predicted is not None:
             arrays["predicted"] = self.predicted
+        if self.last_seen_s is not None:
+            arrays["last_seen_s"] = self.last_seen_s
         return encode(MAP_KIND, header, arrays, compress=True)
 
     @staticmethod
@@ -127,6 +142,10 @@ class OccupancyMap:
         occupancy = message.arrays.get("occupancy")
         if occupancy is None or occupancy.dtype != np.int8 or occupancy.shape != (h.rows, h.cols):
             raise ValueError("map message lacks an int8 occupancy array of the header's shape")
+        for name, dtype in OPTIONAL_LAYER_DTYPES.items():
+            layer = message.arrays.get(name)
+            if layer is not None and (layer.dtype != dtype or layer.shape != occupancy.shape):
+                raise ValueError(f"map layer {name!r} is not {dtype} of the occupancy's shape")
         return OccupancyMap(
             occupancy=occupancy,
             resolution_m=h.resolution_m,
@@ -138,4 +157,5 @@ class OccupancyMap:
             logodds=message.arrays.get("logodds"),
             height_m=message.arrays.get("height_m"),
             predicted=message.arrays.get("predicted"),
+            last_seen_s=message.arrays.get("last_seen_s"),
         )

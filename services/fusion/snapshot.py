@@ -11,7 +11,7 @@ from common.mapfiles import map_yaml, pgm_bytes, png_bytes
 from common.occupancy_map import OccupancyMap
 
 FORMATS = ("msgpack", "png", "pgm", "yaml")
-LAYERS = ("logodds", "height", "predicted")
+LAYERS = ("logodds", "height", "predicted", "last_seen")
 CONTENT_TYPES = {
     "msgpack": WIRE_ENCODING,
     "png": "image/png",
@@ -85,6 +85,7 @@ class MapSnapshot:
                 logodds=view.logodds if "logodds" in query.layers else None,
                 height_m=view.height_m if "height" in query.layers else None,
                 predicted=view.predicted if "predicted" in query.layers else None,
+                last_seen_s=view.last_seen_s if "last_seen" in query.layers else None,
             ).to_msgpack()
         if query.format == "png":
             return png_bytes(view)
