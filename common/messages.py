@@ -118,13 +118,19 @@ class TruthHeader(_OnLattice):
 
 MAP_KIND = "map"
 MAP_UPDATE_KIND = "map_update"
+EPOCH_DESCRIPTION = (
+    "start time (ns since the Unix epoch) of the fusion run that counted the version: the map's "
+    "version is (epoch, version), compared in that order, so it never goes backwards even when a "
+    "restarted fusion restores a counter lower than one it served before a crash"
+)
 
 
 class MapHeader(_OnLattice):
     """``map/latest`` reply: array ``occupancy`` (i1, nav_msgs/OccupancyGrid: -1 unknown, 0..100),
     row-major from the origin cell; optional ``logodds`` (f4) and ``height_m`` (f4) layers."""
 
-    version: int = Field(ge=0)
+    version: int = Field(ge=0, description="change counter within the epoch")
+    epoch: int = Field(0, ge=0, description=EPOCH_DESCRIPTION)
     stamp_ns: int = Field(ge=0, description="newest capture stamp fused into the map")
     pairs: list[str] = Field(default_factory=list, description="pairs whose tiles built the map")
 
@@ -133,8 +139,9 @@ class MapUpdateHeader(_OnLattice):
     """``map/updates``: the changed rectangle (i0, j0, cols, rows) of the map (like nav2's
     OccupancyGridUpdate), plus the whole map's window so a follower can grow its copy."""
 
-    version: int = Field(ge=0)
-    previous_version: int = Field(ge=0)
+    version: int = Field(ge=0, description="change counter within the epoch")
+    previous_version: int = Field(ge=0, description="the version this update applies to")
+    epoch: int = Field(0, ge=0, description=EPOCH_DESCRIPTION)
     stamp_ns: int = Field(ge=0)
     map_i0: int
     map_j0: int
