@@ -70,6 +70,9 @@ class OccupancyMap:
     version: int
     stamp_ns: int
     pairs: list[str] = field(default_factory=list)
+    epoch: int = 0
+    """Start (ns since the Unix epoch) of the fusion run that counted ``version``: the map's
+    version is (epoch, version), compared in that order (common.messages.MapHeader)."""
     logodds: npt.NDArray[np.float32] | None = None
     height_m: npt.NDArray[np.float32] | None = None
     predicted: npt.NDArray[np.bool_] | None = None
@@ -77,6 +80,11 @@ class OccupancyMap:
     last_seen_s: npt.NDArray[np.float64] | None = None
     """Capture time (Unix seconds) of each cell's newest observation, 0 where never observed: what
     decay and a person judging a cell's age go by."""
+
+    @property
+    def revision(self) -> tuple[int, int]:
+        """(epoch, version): what tells a newer map from an older one, across fusion restarts."""
+        return (self.epoch, self.version)
 
     @property
     def window(self) -> Window:
@@ -116,6 +124,7 @@ class OccupancyMap:
     def to_msgpack(self) -> bytes:
         header = MapHeader(
             version=self.version,
+            epoch=self.epoch,
             stamp_ns=self.stamp_ns,
             resolution_m=self.resolution_m,
             i0=self.i0,
@@ -154,6 +163,7 @@ class OccupancyMap:
             version=h.version,
             stamp_ns=h.stamp_ns,
             pairs=list(h.pairs),
+            epoch=h.epoch,
             logodds=message.arrays.get("logodds"),
             height_m=message.arrays.get("height_m"),
             predicted=message.arrays.get("predicted"),
