@@ -76,12 +76,12 @@ class MapRelay:
             objects_version = self._publish_first_objects()
             map_due = False
             last_map_s = last_height_s = time.monotonic()
-            height_version = sent.version
+            height_revision = sent.revision
             while not stop.is_set():
                 self.wake.wait(min(s.map_interval_s, s.height_interval_s))
                 self.wake.clear()
                 current = follower.map
-                if current.version > sent.version:
+                if current.revision > sent.revision:
                     changed = changed_window(sent, current)
                     if changed is None:  # moved or grew: only a whole map says that
                         self._publish_map(current)
@@ -96,9 +96,9 @@ class MapRelay:
                 if map_due and now - last_map_s >= s.map_interval_s:
                     self._publish_map(sent)
                     last_map_s, map_due = now, False
-                if now - last_height_s >= s.height_interval_s and height_version != sent.version:
+                if now - last_height_s >= s.height_interval_s and height_revision != sent.revision:
                     self._publish_height()
-                    last_height_s, height_version = now, sent.version
+                    last_height_s, height_revision = now, sent.revision
                 with self._objects_lock:
                     tracked, self._objects = self._objects, None
                 if tracked is not None and tracked.version != objects_version:

@@ -87,7 +87,7 @@ class MapFeed:
         self._rates = TileRates()
         self._footprints: dict[str, Polygon] = {}
         self._depth_health: dict[str, dict[str, Any]] = {}
-        self._height_version = -1
+        self._height_revision = (-1, -1)
         self._threads: list[threading.Thread] = []
         self._warn = RateLimitedLog(log)
 
@@ -152,7 +152,7 @@ class MapFeed:
             if generation != self._generation:
                 return {}
             layers = state.layers
-            if layers is not None and layers.version >= occupancy_map.version:
+            if layers is not None and layers.revision >= occupancy_map.revision:
                 return {}
             return {
                 "layers": MapLayers.of(occupancy_map)
@@ -187,9 +187,11 @@ class MapFeed:
         if (
             self._follower is not None
             and layers is not None
-            and answer["map"]["version"] < layers.version
+            and (answer["map"].get("epoch", layers.epoch), answer["map"]["version"])
+            < layers.revision
         ):
-            # A fusion that came back without its saved map counts from zero: follow it anew.
+            # A fusion that came back without its saved map counts from zero: follow it anew
+            # (a health answer without an epoch is taken to be of the map's own epoch).
             log.warning(
                 "map version went back: following again",
                 extra={"version": answer["map"]["version"]},
@@ -214,10 +216,10 @@ class MapFeed:
 
     def _poll_height(self) -> None:
         layers = self._state.layers
-        if layers is None or layers.version == self._height_version:
+        if layers is None or layers.revision == self._height_revision:
             return
         layered = latest(self._session, layers=("height",), timeout_s=self.periods.query_timeout_s)
-        self._height_version = layered.version
+        self._height_revision = layered.revision
         heights = height_mm(layered.height_m, layered.occupancy.shape)
 
         def changes(state: FeedState) -> dict[str, Any]:

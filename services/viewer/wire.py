@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -51,6 +51,12 @@ class MapLayers:
     stamp_ns: int
     occupancy: npt.NDArray[np.int8]
     height_mm: npt.NDArray[np.uint16]
+    epoch: int = 0
+
+    @property
+    def revision(self) -> tuple[int, int]:
+        """As ``OccupancyMap.revision``: (epoch, version), newer maps compare greater."""
+        return (self.epoch, self.version)
 
     @staticmethod
     def of(occupancy_map: OccupancyMap) -> MapLayers:
@@ -61,6 +67,7 @@ class MapLayers:
             stamp_ns=occupancy_map.stamp_ns,
             occupancy=occupancy_map.occupancy,
             height_mm=height_mm(occupancy_map.height_m, occupancy_map.occupancy.shape),
+            epoch=occupancy_map.epoch,
         )
 
     def with_occupancy(self, occupancy_map: OccupancyMap) -> MapLayers:
@@ -74,13 +81,14 @@ class MapLayers:
             if window == self.window
             else reframe(self.height_mm, self.window, window, NO_HEIGHT_MM)
         )
-        return MapLayers(
-            window,
-            self.resolution_m,
-            occupancy_map.version,
-            occupancy_map.stamp_ns,
-            occupancy_map.occupancy,
-            kept,
+        return replace(
+            self,
+            window=window,
+            version=occupancy_map.version,
+            stamp_ns=occupancy_map.stamp_ns,
+            occupancy=occupancy_map.occupancy,
+            height_mm=kept,
+            epoch=occupancy_map.epoch,
         )
 
     def with_height(
@@ -92,9 +100,7 @@ class MapLayers:
             return self
         if window != self.window:
             heights_mm = reframe(heights_mm, window, self.window, NO_HEIGHT_MM)
-        return MapLayers(
-            self.window, self.resolution_m, self.version, self.stamp_ns, self.occupancy, heights_mm
-        )
+        return replace(self, height_mm=heights_mm)
 
 
 def changed_windows(
