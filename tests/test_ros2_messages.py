@@ -19,6 +19,7 @@ from services.ros2.grid_message import (
     grid_update,
     height_image,
     stamp_parts,
+    world_transform,
 )
 from services.ros2.object_markers import COLOR_RGBA, NAMESPACE, object_markers
 
@@ -155,3 +156,28 @@ def test_marker_array_clears_then_adds_one_cube_per_object(distro: cdr.Distro) -
     )
     assert (cube.scale.x, cube.scale.y, cube.scale.z) == pytest.approx((0.8, 0.4, 1.2))
     assert cube.header.frame_id == "map" and len(cube.points) == 0
+
+
+TF_MESSAGE_HASH = "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
+"""tf2_msgs/msg/TFMessage's type hash as ZettaScale's rmw_zenoh examples spell it in their /tf and
+/tf_static graph tokens (no tf2_msgs wheel ships its .json here to read it from)."""
+
+
+@pytest.mark.parametrize("distro", ["humble", "jazzy", "kilted"])
+def test_tf_static_carries_the_world_in_the_map_frame(distro: cdr.Distro) -> None:
+    pose = PlanarPose(10.0, -1.0, math.pi / 2)
+    transform = world_transform(pose, "map", "overgrid_world", STAMP_NS)
+    raw = cdr.tf_message_cdr(distro, transform)
+    assert raw[:4] == b"\x00\x01\x00\x00"
+    (stamped,) = cdr.decode(distro, raw, cdr.TF_MESSAGE).transforms
+    assert (stamped.header.frame_id, stamped.child_frame_id) == ("map", "overgrid_world")
+    assert (stamped.header.stamp.sec, stamped.header.stamp.nanosec) == stamp_parts(STAMP_NS)
+    moved = stamped.transform.translation
+    assert (moved.x, moved.y, moved.z) == (10.0, -1.0, 0.0)
+    turned = stamped.transform.rotation
+    assert (turned.x, turned.y, turned.z, turned.w) == pytest.approx(pose.quaternion_xyzw)
+    # The same pose moves /map's origin: the world's origin cell lands where tf2 puts it.
+    origin = grid_message(a_map(i0=0, j0=0), "map", pose).info.origin_xyz_m
+    assert origin == pytest.approx((10.0, -1.0, 0.0))
+    if distro != "humble":
+        assert cdr.type_hash(distro, cdr.TF_MESSAGE) == TF_MESSAGE_HASH

@@ -1,7 +1,7 @@
 """``overgrid rmw-zenoh`` beside a real fusion process, checked against rmw_zenoh's conventions
 (no rmw_zenoh_cpp exists here): keys, liveliness graph tokens, attachment, CDR that rosbags and
-rclpy read back, the cached /map for a late joiner, /map_updates keeping its copy equal, the
-objects as markers."""
+rclpy read back, the cached /map and /tf_static for a late joiner, /map_updates keeping its copy
+equal, the objects as markers."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from common.messages import OBJECTS_KIND
 from services.ros2 import cdr
 from services.ros2.rmw_zenoh import gid_of, parse_attachment
 from tests.conftest import REPO, Bus, wait_for
-from tests.test_ros2_messages import tracked_objects
+from tests.test_ros2_messages import TF_MESSAGE_HASH, tracked_objects
 from tests.tiles import tile_payload
 
 pytestmark = pytest.mark.process
@@ -86,6 +86,14 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
         f"map_msgs::msg::dds_::OccupancyGridUpdate_/{updates_hash}/::,10:,:,:,,"
     ) in tokens
 
+    tf_hash = cdr.type_hash("jazzy", cdr.TF_MESSAGE)
+    assert tf_hash == TF_MESSAGE_HASH
+    tf_token = (
+        f"@ros2_lv/{DOMAIN}/{zid}/0/5/MP/%/%/overgrid_map/%tf_static/"
+        f"tf2_msgs::msg::dds_::TFMessage_/{tf_hash}/:1:,1:,:,:,,"
+    )
+    assert tf_token in tokens  # as tf2_ros's static broadcaster: transient_local, depth 1
+
     # A late joiner, subscribed as rmw_zenoh subscribes a reliable transient_local reader
     # (rmw_subscription_data.cpp, SubscriptionData::init): an advanced subscriber on the exact key
     # that detects late publishers, queries their cache and recovers by heartbeat.
@@ -100,6 +108,24 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
     )
     updates: queue.Queue[zenoh.Sample] = queue.Queue()
     updates_subscriber = bus.session.declare_subscriber(UPDATES_KEY + updates_hash, updates.put)
+    transforms: queue.Queue[zenoh.Sample] = queue.Queue()
+    late_tf = zenoh.ext.declare_advanced_subscriber(
+        bus.session,
+        f"{DOMAIN}/tf_static/tf2_msgs::msg::dds_::TFMessage_/{tf_hash}",
+        transforms.put,
+        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+        recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+        subscriber_detection=True,
+    )
+    tf_sample = transforms.get(timeout=10)
+    assert tf_sample.attachment is not None
+    assert parse_attachment(bytes(tf_sample.attachment.to_bytes()))[2] == gid_of(tf_token)
+    (stamped,) = cdr.decode("jazzy", bytes(tf_sample.payload.to_bytes()), cdr.TF_MESSAGE).transforms
+    assert (stamped.header.frame_id, stamped.child_frame_id) == ("map", "overgrid_world")
+    moved = stamped.transform.translation
+    assert (moved.x, moved.y, moved.z) == (1.5, -2.0, 0.0)
+    late_tf.undeclare()
+
     sample = maps.get(timeout=10)
     assert str(sample.key_expr) == MAP_KEY + map_hash
     assert sample.attachment is not None

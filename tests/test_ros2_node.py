@@ -113,6 +113,10 @@ def test_rclpy_subscriber_gets_map_then_newer_map(
         log_path=node_log,
     )
     wait_for(lambda: b"first map published" in node_log.read_bytes(), 60, "the node's first /map")
+    # No wheel ships map_msgs or tf2_msgs: the node says at start what it does not publish.
+    said = node_log.read_text()
+    assert "map_msgs is not importable" in said and "/map_updates is not published" in said
+    assert "tf2_msgs is not importable" in said and "/tf_static is not published" in said
     subscriber = subprocess.Popen(
         [
             *("timeout", "-s", "INT", "-k", "5", str(SUBSCRIBER_LIFETIME_S)),

@@ -21,6 +21,7 @@ from services.ros2.grid_message import (
     GridMessage,
     GridUpdate,
     HeightImage,
+    StaticTransform,
     stamp_parts,
 )
 from services.ros2.object_markers import NAMESPACE, ObjectMarkers
@@ -37,6 +38,7 @@ OCCUPANCY_GRID_UPDATE = "map_msgs/msg/OccupancyGridUpdate"
 IMAGE = "sensor_msgs/msg/Image"
 MARKER = "visualization_msgs/msg/Marker"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 MARKER_CUBE, MARKER_ADD, MARKER_DELETEALL = 1, 0, 3
 """visualization_msgs/Marker's constants."""
 NUMPY_TYPES = {"bool": np.bool_, "byte": np.uint8, "char": np.uint8}
@@ -125,6 +127,21 @@ def height_image_cdr(distro: Distro, image: HeightImage) -> bytes:
         data=np.frombuffer(image.data.astype("<f4").tobytes(), np.uint8),
     )
     return bytes(store.serialize_cdr(message, IMAGE))
+
+
+def tf_message_cdr(distro: Distro, transform: StaticTransform) -> bytes:
+    store = typestore(distro)
+    types = store.types
+    (x, y, z), (qx, qy, qz, qw) = transform.translation_xyz_m, transform.rotation_xyzw
+    stamped = types["geometry_msgs/msg/TransformStamped"](
+        header=_header(store, transform.stamp_ns, transform.frame_id),
+        child_frame_id=transform.child_frame_id,
+        transform=types["geometry_msgs/msg/Transform"](
+            translation=types["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
+            rotation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
+        ),
+    )
+    return bytes(store.serialize_cdr(types[TF_MESSAGE](transforms=[stamped]), TF_MESSAGE))
 
 
 def default_message(store: Typestore, ros_type: str, **values: Any) -> Any:

@@ -1,5 +1,5 @@
 """An ``OccupancyMap`` as the fields of nav_msgs/OccupancyGrid, map_msgs/OccupancyGridUpdate and a
-height image, independent of any ROS library: the rclpy node and the rosbags CDR writer build their
+height image, and the world → map pose as a static transform, independent of any ROS library: the rclpy node and the rosbags CDR writer build their
 own message objects from these, so the geometry is worked out once.
 
 nav_msgs/OccupancyGrid stores cells row-major from the origin cell, rows along +y: exactly the
@@ -92,6 +92,31 @@ class HeightImage:
     @property
     def step_bytes(self) -> int:
         return self.width * 4
+
+
+@dataclass(frozen=True)
+class StaticTransform:
+    """geometry_msgs/TransformStamped: the pose of ``child_frame_id`` in ``frame_id``, as
+    /tf_static carries it (tf2_msgs/TFMessage), so tf2 relates overgrid's world to the map."""
+
+    stamp_ns: int
+    frame_id: str
+    child_frame_id: str
+    translation_xyz_m: tuple[float, float, float]
+    rotation_xyzw: tuple[float, float, float, float]
+
+
+def world_transform(
+    world_in_map: PlanarPose, frame_id: str, world_frame_id: str, stamp_ns: int
+) -> StaticTransform:
+    """T_map_world as a static transform: the same pose the grid's origin is moved by."""
+    return StaticTransform(
+        stamp_ns=stamp_ns,
+        frame_id=frame_id,
+        child_frame_id=world_frame_id,
+        translation_xyz_m=(world_in_map.x_m, world_in_map.y_m, 0.0),
+        rotation_xyzw=world_in_map.quaternion_xyzw,
+    )
 
 
 def stamp_parts(stamp_ns: int) -> tuple[int, int]:

@@ -1,8 +1,9 @@
-"""``overgrid rmw-zenoh``: /map, /map_updates and the height layer straight onto rmw_zenoh's
-Zenoh keys, so a robot with ``RMW_IMPLEMENTATION=rmw_zenoh_cpp`` on the same Zenoh network gets
-the map from ``ros2 topic echo /map`` with no ROS node or bridge here (base install + rosbags).
+"""``overgrid rmw-zenoh``: /map, /map_updates, the height layer, the objects and /tf_static straight
+onto rmw_zenoh's Zenoh keys, so a robot with ``RMW_IMPLEMENTATION=rmw_zenoh_cpp`` on the same Zenoh
+network gets the map from ``ros2 topic echo /map`` with no ROS node or bridge here (base install +
+rosbags).
 
-The process shows up in the robot's ROS graph as node ``overgrid_map`` with three publishers,
+The process shows up in the robot's ROS graph as node ``overgrid_map`` with five publishers,
 because it declares the same liveliness tokens an rmw_zenoh node would (services/ros2/rmw_zenoh.py
 says which source each convention comes from).
 """
@@ -22,7 +23,7 @@ from common.logs import setup_logging
 from common.settings import parse_settings
 from common.zenoh_session import open_session
 from services.ros2 import cdr
-from services.ros2.grid_message import GridMessage, GridUpdate, HeightImage
+from services.ros2.grid_message import GridMessage, GridUpdate, HeightImage, StaticTransform
 from services.ros2.object_markers import ObjectMarkers
 from services.ros2.relay import MapRelay
 from services.ros2.rmw_zenoh import (
@@ -118,6 +119,9 @@ class NativeSink:
         self.objects = NativePublisher(
             session, self.node, 4, s.objects_topic, cdr.MARKER_ARRAY, s.distro, latest_only
         )
+        self.tf_static = NativePublisher(
+            session, self.node, 5, s.tf_static_topic, cdr.TF_MESSAGE, s.distro, s.tf_static_qos
+        )
 
     def publish_map(self, message: GridMessage) -> None:
         self.map.put(cdr.occupancy_grid_cdr(self._distro, message))
@@ -131,8 +135,11 @@ class NativeSink:
     def publish_objects(self, markers: ObjectMarkers) -> None:
         self.objects.put(cdr.marker_array_cdr(self._distro, markers))
 
+    def publish_static_transform(self, transform: StaticTransform) -> None:
+        self.tf_static.put(cdr.tf_message_cdr(self._distro, transform))
+
     def close(self) -> None:
-        for publisher in (self.objects, self.height, self.updates, self.map):
+        for publisher in (self.tf_static, self.objects, self.height, self.updates, self.map):
             publisher.close()
         self._node_token.undeclare()  # type: ignore[no-untyped-call]
 

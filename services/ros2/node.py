@@ -1,9 +1,11 @@
 """``overgrid ros2``: a real ROS 2 node (rclpy) that follows the fusion service over Zenoh and
 publishes /map (nav_msgs/OccupancyGrid, reliable + transient_local, depth 1 by default: a robot
 that starts later still gets it, as from nav2's map_server), /map_updates
-(map_msgs/OccupancyGridUpdate, when map_msgs is importable: no wheel ships it, every system ROS 2
-has it), the height layer, and the tracked objects of ``map/objects`` as a
-visualization_msgs/MarkerArray (services/ros2/object_markers.py says why markers).
+(map_msgs/OccupancyGridUpdate), /tf_static (tf2_msgs/TFMessage: overgrid's world frame in the
+robots' map frame, transient_local) — these two when map_msgs and tf2_msgs are importable: no wheel
+ships them, every system ROS 2 has them, and the node says at start which it lacks — the height
+layer, and the tracked objects of ``map/objects`` as a visualization_msgs/MarkerArray
+(services/ros2/object_markers.py says why markers).
 
 The height layer is a sensor_msgs/Image 32FC1 on /map's cells, not a second OccupancyGrid: it
 carries metres as float32 with NaN for "never seen", which an int8 0..100 grid could only carry
@@ -18,6 +20,7 @@ for any node.
 from __future__ import annotations
 
 import array
+import importlib
 import logging
 import sys
 import threading
@@ -29,9 +32,16 @@ from common.logs import setup_logging
 from common.settings import parse_settings
 from common.zenoh_session import open_session
 from services.ros2.environment import ensure_ros_environment
-from services.ros2.grid_message import GridMessage, GridUpdate, HeightImage, stamp_parts
+from services.ros2.grid_message import (
+    GridMessage,
+    GridUpdate,
+    HeightImage,
+    StaticTransform,
+    stamp_parts,
+)
 from services.ros2.object_markers import NAMESPACE, ObjectMarkers
 from services.ros2.relay import MapRelay
+from services.ros2.rmw_zenoh import TopicQos
 from services.ros2.settings import Ros2Settings
 
 log = logging.getLogger("ros2")
@@ -42,6 +52,8 @@ ROS_PARAMETERS = (
     "updates_topic",
     "height_topic",
     "objects_topic",
+    "tf_static_topic",
+    "world_frame_id",
     "map_depth",
     "updates_depth",
     "map_durability",
@@ -62,21 +74,16 @@ class RclpySink:
     """The relay's messages as rclpy messages on three publishers of ``node``."""
 
     def __init__(self, node: Any, settings: Ros2Settings) -> None:
-        from nav_msgs.msg import OccupancyGrid
-        from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-        from sensor_msgs.msg import Image
-
+        OccupancyGrid = ros_messages("nav_msgs").OccupancyGrid
+        Image = ros_messages("sensor_msgs").Image
         self._grid_type, self._image_type = OccupancyGrid, Image
-        map_qos = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST,
-            depth=settings.map_depth,
-            reliability=ReliabilityPolicy[settings.map_reliability.upper()],
-            durability=DurabilityPolicy[settings.map_durability.upper()],
+        self._map = node.create_publisher(
+            OccupancyGrid, settings.map_topic, rclpy_qos(settings.map_qos)
         )
-        self._map = node.create_publisher(OccupancyGrid, settings.map_topic, map_qos)
         self._height = node.create_publisher(Image, settings.height_topic, 1)
         try:
-            from visualization_msgs.msg import Marker, MarkerArray
+            visualization = ros_messages("visualization_msgs")
+            Marker, MarkerArray = visualization.Marker, visualization.MarkerArray
         except ImportError:
             self._objects: Any = None
             log.warning(f"visualization_msgs is not importable: {settings.objects_topic} is off")
@@ -84,19 +91,26 @@ class RclpySink:
             self._marker_types: Any = (Marker, MarkerArray)
             self._objects = node.create_publisher(MarkerArray, settings.objects_topic, 1)
         try:
-            from map_msgs.msg import OccupancyGridUpdate
+            OccupancyGridUpdate = ros_messages("map_msgs").OccupancyGridUpdate
         except ImportError:
             self._update_type: Any = None
             self._updates = None
-            log.warning(
-                "map_msgs is not importable (no wheel ships it; a system ROS 2 has it): "
-                f"{settings.updates_topic} is not published by this node; "
-                "`overgrid rmw-zenoh` always carries it"
-            )
+            _say_not_published("map_msgs", settings.updates_topic)
         else:
             self._update_type = OccupancyGridUpdate
             self._updates = node.create_publisher(
                 OccupancyGridUpdate, settings.updates_topic, settings.updates_depth
+            )
+        try:
+            TransformStamped = ros_messages("geometry_msgs").TransformStamped
+            TFMessage = ros_messages("tf2_msgs").TFMessage
+        except ImportError:
+            self._tf_static = None
+            _say_not_published("tf2_msgs", settings.tf_static_topic)
+        else:
+            self._tf_types: Any = (TransformStamped, TFMessage)
+            self._tf_static = node.create_publisher(
+                TFMessage, settings.tf_static_topic, rclpy_qos(settings.tf_static_qos)
             )
 
     def publish_map(self, message: GridMessage) -> None:
@@ -153,6 +167,41 @@ class RclpySink:
             marker.color.r, marker.color.g, marker.color.b, marker.color.a = box.color_rgba
             array.markers.append(marker)
         self._objects.publish(array)
+
+    def publish_static_transform(self, transform: StaticTransform) -> None:
+        if self._tf_static is None:
+            return
+        stamped_type, message_type = self._tf_types
+        stamped = stamped_type(child_frame_id=transform.child_frame_id)
+        _set_header(stamped.header, transform.stamp_ns, transform.frame_id)
+        translation, rotation = stamped.transform.translation, stamped.transform.rotation
+        translation.x, translation.y, translation.z = transform.translation_xyz_m
+        rotation.x, rotation.y, rotation.z, rotation.w = transform.rotation_xyzw
+        self._tf_static.publish(message_type(transforms=[stamped]))
+
+
+def ros_messages(package: str) -> Any:
+    """``package.msg``, untyped: ROS message modules ship no type information."""
+    return importlib.import_module(f"{package}.msg")
+
+
+def _say_not_published(package: str, topic: str) -> None:
+    log.warning(
+        f"{package} is not importable (no wheel ships it; a system ROS 2 has it): "
+        f"{topic} is not published by this node; `overgrid rmw-zenoh` always carries it"
+    )
+
+
+def rclpy_qos(qos: TopicQos) -> Any:
+    """rclpy's QoSProfile of the QoS both outputs declare (rmw's enum names are rclpy's)."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(
+        history=HistoryPolicy[qos.history.name],
+        depth=qos.depth,
+        reliability=ReliabilityPolicy[qos.reliability.name],
+        durability=DurabilityPolicy[qos.durability.name],
+    )
 
 
 def with_ros_parameters(node: Any, settings: Ros2Settings) -> Ros2Settings:

@@ -27,10 +27,12 @@ from services.ros2.grid_message import (
     GridMessage,
     GridUpdate,
     HeightImage,
+    StaticTransform,
     changed_window,
     grid_message,
     grid_update,
     height_image,
+    world_transform,
 )
 from services.ros2.object_markers import ObjectMarkers, object_markers
 from services.ros2.settings import Ros2Settings
@@ -48,6 +50,8 @@ class MapSink(Protocol):
 
     def publish_objects(self, markers: ObjectMarkers) -> None: ...
 
+    def publish_static_transform(self, transform: StaticTransform) -> None: ...
+
 
 class MapRelay:
     def __init__(self, session: zenoh.Session, settings: Ros2Settings, sink: MapSink) -> None:
@@ -56,7 +60,7 @@ class MapRelay:
         self._sink = sink
         self.wake = threading.Event()
         """Set by each new map version, and by a stop."""
-        self.counts = {"map": 0, "update": 0, "height": 0, "objects": 0}
+        self.counts = {"map": 0, "update": 0, "height": 0, "objects": 0, "tf_static": 0}
         self._warn = RateLimitedLog(log)
         self._objects: ObjectsHeader | None = None
         """The newest map/objects put, handed over by the Zenoh callback."""
@@ -64,6 +68,10 @@ class MapRelay:
 
     def run(self, stop: threading.Event) -> None:
         s = self._settings
+        # The world → map pose needs no map: robots' tf2 has it before the first /map.
+        transform = world_transform(s.pose, s.frame_id, s.world_frame_id, time.time_ns())
+        self._sink.publish_static_transform(transform)
+        self.counts["tf_static"] += 1
         follower = self._follow(stop)
         if follower is None:
             return

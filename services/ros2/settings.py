@@ -29,6 +29,12 @@ class Ros2Settings(ZenohSettings):
         "/map_objects",
         description="visualization_msgs/MarkerArray topic: a box per tracked object",
     )
+    tf_static_topic: str = Field(
+        "/tf_static", description="tf2_msgs/TFMessage topic of the world → map static transform"
+    )
+    world_frame_id: str = Field(
+        "overgrid_world", description="frame_id of overgrid's world frame on /tf_static"
+    )
     map_durability: DurabilityName = Field(
         "transient_local", description="/map durability (transient_local: late joiners get it)"
     )
@@ -72,6 +78,11 @@ class Ros2Settings(ZenohSettings):
             History.KEEP_LAST,
             self.map_depth,
         )
+
+    @property
+    def tf_static_qos(self) -> TopicQos:
+        """tf2_ros's StaticBroadcasterQoS: reliable, transient_local, depth 1."""
+        return TopicQos(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, History.KEEP_LAST, 1)
 
     @property
     def updates_qos(self) -> TopicQos:
