@@ -19,6 +19,9 @@ PGM_UNKNOWN = 205
 OCCUPIED_THRESH = 0.65
 FREE_THRESH = 0.25
 
+MAP_FILE_SUFFIXES = (".yaml", ".yml", ".pgm", ".png", ".npz")
+"""What :func:`write_map` writes, by the file's suffix."""
+
 PICTURE_COLORS = {
     "free": (255, 255, 255),
     "occupied": (20, 20, 20),
@@ -137,18 +140,26 @@ def write_npz(occupancy_map: OccupancyMap, path: Path) -> None:
     np.savez_compressed(path, **arrays)
 
 
+def map_file_suffix(path: Path) -> str:
+    """The suffix that says how ``path`` is written; a ValueError names the ones there are."""
+    suffix = path.suffix.lower()
+    if suffix not in MAP_FILE_SUFFIXES:
+        raise ValueError(f"unknown map file type {suffix!r}: use {', '.join(MAP_FILE_SUFFIXES)}")
+    return suffix
+
+
 def write_map(
     occupancy_map: OccupancyMap, path: Path, truth: npt.NDArray[np.bool_] | None = None
 ) -> list[Path]:
     """Write by suffix: .yaml (+ .pgm), .pgm (+ .yaml), .png (with ``truth`` outlined) or .npz."""
-    suffix = path.suffix.lower()
+    suffix = map_file_suffix(path)
+    if occupancy_map.occupancy.size == 0:
+        raise ValueError("the map has no cells yet (no tile fused): nothing to write")
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix in (".yaml", ".yml", ".pgm"):
         return list(write_map_server(occupancy_map, path.with_suffix(".yaml")))
     if suffix == ".png":
         path.write_bytes(png_bytes(occupancy_map, truth))
         return [path]
-    if suffix == ".npz":
-        write_npz(occupancy_map, path)
-        return [path]
-    raise ValueError(f"unknown map file type {suffix!r}: use .yaml, .pgm, .png or .npz")
+    write_npz(occupancy_map, path)
+    return [path]

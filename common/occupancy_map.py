@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -60,6 +62,27 @@ OPTIONAL_LAYER_DTYPES = {
 """The layers a map message may carry beside ``occupancy``, each on the occupancy's cells."""
 
 
+Region = tuple[float, float, float, float]
+"""A metric rectangle x0, y0, x1, y1 in the world frame (metres)."""
+
+
+def region_of(values: Sequence[str] | Sequence[float]) -> Region:
+    """x0,y0,x1,y1 as four finite numbers with x1 > x0 and y1 > y0; a ValueError says which rule
+    ``values`` breaks (an infinite or NaN bound would otherwise give a silent empty crop)."""
+    text = ",".join(str(v) for v in values)
+    try:
+        x0, y0, x1, y1 = (float(v) for v in values)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"region must be four numbers x0,y0,x1,y1 in metres, got {text!r}"
+        ) from None
+    if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
+        raise ValueError(f"region bounds must be finite numbers of metres, got {text!r}")
+    if not (x1 > x0 and y1 > y0):
+        raise ValueError(f"region needs x1 > x0 and y1 > y0, got {text!r}")
+    return (x0, y0, x1, y1)
+
+
 @dataclass(frozen=True)
 class OccupancyMap:
     occupancy: npt.NDArray[np.int8]
@@ -95,11 +118,10 @@ class OccupancyMap:
         """World position of the lower-left corner of cell (0, 0), as map_server's ``origin``."""
         return self.window.origin_m(self.resolution_m)
 
-    def crop(self, region_m: tuple[float, float, float, float]) -> OccupancyMap:
-        """The part of the map covering the metric rectangle (x0, y0, x1, y1)."""
-        x0, y0, x1, y1 = region_m
-        if not (x1 > x0 and y1 > y0):
-            raise ValueError(f"region must be x0,y0,x1,y1 with x1 > x0 and y1 > y0, got {region_m}")
+    def crop(self, region_m: Region) -> OccupancyMap:
+        """The part of the map covering the metric rectangle (x0, y0, x1, y1); no cells when
+        the rectangle lies outside the map."""
+        x0, y0, x1, y1 = region_of(region_m)
         part = Window.covering(x0, y0, x1, y1, self.resolution_m).intersect(self.window)
         rows, cols = part.slices_in(self.window)
         return replace(

@@ -7,10 +7,11 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from common.client import MapUnavailable, health, latest, objects
-from common.mapfiles import write_map
+from common.mapfiles import map_file_suffix, write_map
+from common.occupancy_map import Region, region_of
 from common.settings import CommaList, ZenohSettings, parse_settings
 from common.zenoh_session import open_session
 
@@ -23,6 +24,23 @@ class MapGetSettings(ZenohSettings):
         default_factory=list, description="x0,y0,x1,y1 in metres (default: whole map)"
     )
     timeout_s: float = Field(5.0, gt=0.0, description="how long to wait for the fusion service")
+
+    @field_validator("out")
+    @classmethod
+    def _known_suffix(cls, out: Path) -> Path:
+        map_file_suffix(out)
+        return out
+
+    @field_validator("region")
+    @classmethod
+    def _valid_region(cls, values: list[str]) -> list[str]:
+        if values:
+            region_of(values)
+        return values
+
+    @property
+    def region_m(self) -> Region | None:
+        return region_of(self.region) if self.region else None
 
 
 class HealthSettings(ZenohSettings):
@@ -39,15 +57,18 @@ def map_cli(argv: Sequence[str] | None = None) -> None:
         raise SystemExit(2)
     args = ["--out" if a == "-o" else a for a in args[1:]]
     settings = parse_settings(MapGetSettings, args, "overgrid map get", "Save the current map.")
-    region = tuple(float(v) for v in settings.region) if settings.region else None
-    if region is not None and len(region) != 4:
-        raise SystemExit("--region takes four numbers: x0,y0,x1,y1")
     with open_session(settings) as session:
         try:
-            occupancy_map = latest(session, region, ("height", "logodds"), settings.timeout_s)  # type: ignore[arg-type]
+            occupancy_map = latest(
+                session, settings.region_m, ("height", "logodds"), settings.timeout_s
+            )
         except MapUnavailable as error:
             raise SystemExit(f"map unavailable: {error}") from None
-    for path in write_map(occupancy_map, settings.out):
+    try:
+        written = write_map(occupancy_map, settings.out)
+    except (ValueError, OSError) as error:
+        raise SystemExit(f"{settings.out}: {error}") from None
+    for path in written:
         print(path)
 
 

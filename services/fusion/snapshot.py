@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 
 from common.codec import WIRE_ENCODING
 from common.mapfiles import map_yaml, pgm_bytes, png_bytes
-from common.occupancy_map import OccupancyMap
+from common.occupancy_map import OccupancyMap, Region, region_of
 
 FORMATS = ("msgpack", "png", "pgm", "yaml")
 LAYERS = ("logodds", "height", "predicted", "last_seen")
@@ -20,7 +20,10 @@ CONTENT_TYPES = {
 }
 MAX_CACHED_ENCODINGS = 32
 
-Region = tuple[float, float, float, float]
+
+class MapQueryError(ValueError):
+    """A well-formed query the map cannot answer (nothing to draw, or a region off the map): the
+    service replies with this error, naming why, rather than with an empty or broken payload."""
 
 
 @dataclass(frozen=True)
@@ -38,17 +41,7 @@ def parse_map_query(parameters: dict[str, str]) -> MapQuery:
     fmt = parameters.get("format", "msgpack")
     if fmt not in FORMATS:
         raise ValueError(f"format {fmt!r} not one of {', '.join(FORMATS)}")
-    region = None
-    if "region" in parameters:
-        try:
-            x0, y0, x1, y1 = (float(v) for v in parameters["region"].split(","))
-        except ValueError:
-            raise ValueError(
-                f"region must be x0,y0,x1,y1 in metres, got {parameters['region']!r}"
-            ) from None
-        if not (x1 > x0 and y1 > y0):
-            raise ValueError(f"region needs x1 > x0 and y1 > y0, got {parameters['region']!r}")
-        region = (x0, y0, x1, y1)
+    region = region_of(parameters["region"].split(",")) if "region" in parameters else None
     layers = tuple(sorted(v for v in parameters.get("layers", "").split(",") if v))
     if set(layers) - set(LAYERS):
         raise ValueError(f"layers must be among {', '.join(LAYERS)}, got {parameters['layers']!r}")
@@ -56,6 +49,9 @@ def parse_map_query(parameters: dict[str, str]) -> MapQuery:
 
 
 class MapSnapshot:
+    """One map version and its encodings. :meth:`encoded` raises :class:`MapQueryError` for a
+    query that version cannot answer."""
+
     def __init__(self, full_map: OccupancyMap) -> None:
         self.map = full_map
         self._lock = threading.Lock()
@@ -78,7 +74,7 @@ class MapSnapshot:
             return payload
 
     def _encode(self, query: MapQuery) -> bytes:
-        view = self.map.crop(query.region) if query.region else self.map
+        view = self._view(query)
         if query.format == "msgpack":
             return replace(
                 view,
@@ -92,3 +88,19 @@ class MapSnapshot:
         if query.format == "pgm":
             return pgm_bytes(view)
         return map_yaml(view, "map.pgm").encode()
+
+    def _view(self, query: MapQuery) -> OccupancyMap:
+        """The cells ``query`` asks for. None at all is an error for a region or an image (an
+        image of no pixels is no image); the whole map as msgpack may be empty: a follower that
+        starts before the first tile still learns the version and resolution."""
+        view = self.map if query.region is None else self.map.crop(query.region)
+        if view.occupancy.size > 0 or (query.region is None and query.format == "msgpack"):
+            return view
+        if self.map.occupancy.size == 0:
+            raise MapQueryError("the map has no cells yet (no tile fused): nothing to serve")
+        (x0, y0), r = self.map.origin_m, self.map.resolution_m
+        x1, y1 = x0 + self.map.window.cols * r, y0 + self.map.window.rows * r
+        raise MapQueryError(
+            "region {:g},{:g},{:g},{:g} does not overlap the map, which covers x {:g}…{:g} m, "
+            "y {:g}…{:g} m".format(*(query.region or ()), x0, x1, y0, y1)
+        )

@@ -1,0 +1,60 @@
+"""``overgrid map get`` as a person runs it: a bad flag is one line naming it (exit 2) before any
+network; a map the service cannot serve is one line saying why, never a traceback."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from common.lattice import Window
+from tests.conftest import REPO, Bus
+from tests.test_ros2_native import start_fusion_with_a_tile
+
+STARTUP_ERROR_EXIT = 2
+
+
+def map_get(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", "map", "get", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
+@pytest.mark.parametrize(
+    ("args", "flag", "reason"),
+    [
+        (("--region", "a,b,c,d"), "--region", "four numbers"),
+        (("--region", "1,2,3"), "--region", "four numbers"),
+        (("--region", "0,0,inf,1"), "--region", "finite"),
+        (("--region", "nan,0,1,1"), "--region", "finite"),
+        (("--region", "1,0,0,1"), "--region", "x1 > x0"),
+        (("-o", "m.txt"), "--out", "unknown map file type '.txt'"),
+    ],
+)
+def test_a_bad_flag_is_one_line_naming_it(
+    tmp_path: Path, args: tuple[str, ...], flag: str, reason: str
+) -> None:
+    done = map_get(*args, "--no-multicast-scouting", "--timeout-s", "0.5", cwd=tmp_path)
+    assert done.returncode == STARTUP_ERROR_EXIT, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and flag in lines[0] and reason in lines[0], done.stderr
+    assert "Traceback" not in done.stderr and not list(tmp_path.iterdir())
+
+
+@pytest.mark.process
+def test_a_region_off_the_map_is_one_line_saying_so(bus: Bus, tmp_path: Path) -> None:
+    start_fusion_with_a_tile(bus, tmp_path, Window(0, 0, 20, 20))
+    out = tmp_path / "part.png"
+    done = map_get("-o", str(out), "--region", "100,100,101,101", *bus.flags())
+    assert done.returncode != 0 and not out.exists()
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "does not overlap the map" in lines[0], done.stderr
+    done = map_get("-o", str(out), "--region=-1,-1,0.5,0.5", *bus.flags())
+    assert done.returncode == 0, done.stderr
+    assert out.read_bytes().startswith(b"\x89PNG")
