@@ -35,14 +35,15 @@ from services.fusion.intake import TileGate
 RESOLUTION_M = 0.05
 
 
-def ours_rate(payloads: list[bytes], count: int) -> float:
+def ours_rate(payloads: list[tuple[str, bytes]], count: int) -> float:
     grid = FusedGrid(GridParams(resolution_m=RESOLUTION_M))
     gate = TileGate(RESOLUTION_M, max_age_s=1e9, max_bytes=64 * 1024 * 1024)
     now_ns = time.time_ns()
     started = time.perf_counter()
     for k in range(count):
         gate.newest_stamp_ns.clear()  # replaying the same tiles: the order check still runs, and passes
-        tile = gate.admit(payloads[k % len(payloads)], now_ns)
+        key, payload = payloads[k % len(payloads)]
+        tile = gate.admit(payload, now_ns, key)
         grid.integrate(tile.window, tile.logodds, tile.height_m, tile.count, tile.header.stamp_ns)
     return count / (time.perf_counter() - started)
 
@@ -84,7 +85,7 @@ def main() -> None:
             cols=w.cols,
             rows=w.rows,
         )
-        payloads.append(encode(TILE_KIND, header, tile.arrays()))
+        payloads.append((f"depth/{pair}/tile", encode(TILE_KIND, header, tile.arrays())))
         x, y = w.cell_centers(RESOLUTION_M)
         observed = tile.count > 0
         z = np.full(x.shape, RESOLUTION_M / 2)

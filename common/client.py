@@ -114,9 +114,18 @@ def calibrations(session: zenoh.Session, timeout_s: float = 5.0) -> list[StereoC
     return [found[pair] for pair in sorted(found)]
 
 
+UPDATES_BACKLOG = 64
+"""Updates a follower holds while it applies one; older ones are dropped (the version gap then
+makes it fetch the map)."""
+
+
 class MapFollower:
-    """A local copy kept current by ``map/updates``; a missed update (version gap) or a grown map
-    triggers one fetch of ``map/latest``."""
+    """A local copy kept current by ``map/updates``. The map's version is (epoch, version): an
+    update of a new epoch (a fusion restarted, perhaps after a crash with a lower counter), a
+    missed update (version gap) or a grown map triggers one fetch of ``map/latest``.
+
+    Updates are applied on the follower's own thread (a ring channel hands them over), so the
+    fetch never blocks a Zenoh callback."""
 
     def __init__(
         self,
@@ -124,7 +133,8 @@ class MapFollower:
         timeout_s: float = 5.0,
         on_change: Callable[[OccupancyMap, float], None] | None = None,
     ) -> None:
-        """``on_change(map, arrival_s)`` is called with each new version (arrival: epoch seconds)."""
+        """``on_change(map, arrival_s)`` is called with each new version (arrival: epoch seconds),
+        from the follower's thread."""
         self._session = session
         self._timeout_s = timeout_s
         self._on_change = on_change
@@ -132,26 +142,37 @@ class MapFollower:
         self.refetches = 0
         self.applied = 0
         self._map = latest(session, timeout_s=timeout_s)
-        self._subscriber = session.declare_subscriber(keys.MAP_UPDATES, self._on_update)
+        self._subscriber = session.declare_subscriber(
+            keys.MAP_UPDATES, zenoh.handlers.RingChannel(UPDATES_BACKLOG)
+        )
+        self._thread = threading.Thread(target=self._run, name="map-follower", daemon=True)
+        self._thread.start()
 
     @property
     def map(self) -> OccupancyMap:
         with self._lock:
             return self._map
 
-    def _on_update(self, sample: zenoh.Sample) -> None:
-        arrival_s = time.time()
-        try:
-            message = decode(sample.payload.to_bytes(), MAP_UPDATE_KIND, MapUpdateHeader)
-        except CodecError:
-            return
+    def _run(self) -> None:
+        for sample in self._subscriber:  # ends when the subscriber is undeclared
+            try:
+                self._on_update(sample.payload.to_bytes(), time.time())
+            except (MapUnavailable, CodecError, ValueError, zenoh.ZError):
+                continue  # fusion gone mid-fetch: the next update or epoch tries again
+
+    def _on_update(self, payload: bytes, arrival_s: float) -> None:
+        message = decode(payload, MAP_UPDATE_KIND, MapUpdateHeader)
         h = message.header
         changed: OccupancyMap | None = None
         with self._lock:
             current = self._map
-            if h.version <= current.version:
-                return
-            if h.previous_version == current.version and h.map_window == current.window:
+            if (h.epoch, h.version) <= current.revision:
+                return  # old news, or from a fusion run that has since been replaced
+            if (
+                h.epoch == current.epoch
+                and h.previous_version == current.version
+                and h.map_window == current.window
+            ):
                 occupancy = current.occupancy.copy()
                 occupancy[h.window.slices_in(current.window)] = message.arrays["occupancy"]
                 self._map = replace(
@@ -168,13 +189,15 @@ class MapFollower:
             fresh = latest(self._session, timeout_s=self._timeout_s)
             with self._lock:
                 self.refetches += 1
-                if fresh.version > self._map.version:
+                if fresh.revision > self._map.revision:
                     self._map = changed = fresh
         if changed is not None and self._on_change is not None:
             self._on_change(changed, arrival_s)
 
     def close(self) -> None:
         self._subscriber.undeclare()  # type: ignore[no-untyped-call]
+        if threading.current_thread() is not self._thread:
+            self._thread.join(self._timeout_s + 1.0)
 
 
 def occupied_fraction(occupancy_map: OccupancyMap, threshold: int = 65) -> float:

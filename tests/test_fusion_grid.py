@@ -41,7 +41,7 @@ def test_logodds_never_leave_the_clamp(tiles: list[tuple[int, int, int]]) -> Non
         rng = np.random.default_rng(seed)
         window = Window(i0, j0, 7, 5)
         count = rng.integers(0, 3, window.shape).astype(np.uint16)
-        before = grid.logodds[window.slices_in(grid.window)].copy()
+        before = grid.layer("logodds")[window.slices_in(grid.window)].copy()
         grid.integrate(
             window,
             rng.uniform(-3, 3, window.shape).astype(np.float32),
@@ -49,11 +49,16 @@ def test_logodds_never_leave_the_clamp(tiles: list[tuple[int, int, int]]) -> Non
             count,
             1,
         )
-        assert grid.logodds.min() >= P.logodds_min and grid.logodds.max() <= P.logodds_max
-        after = grid.logodds[window.slices_in(grid.window)]
+        assert (
+            grid.layer("logodds").min() >= P.logodds_min
+            and grid.layer("logodds").max() <= P.logodds_max
+        )
+        after = grid.layer("logodds")[window.slices_in(grid.window)]
         np.testing.assert_array_equal(after[count == 0], before[count == 0])
     # The kernel's cell-by-cell occupancy is the whole-layer conversion's, exactly.
-    np.testing.assert_array_equal(grid.occupancy, occupancy_from_logodds(grid.logodds, grid.known))
+    np.testing.assert_array_equal(
+        grid.layer("occupancy"), occupancy_from_logodds(grid.layer("logodds"), grid.layer("known"))
+    )
 
 
 def test_overlapping_tiles_stitch_exactly() -> None:
@@ -64,16 +69,16 @@ def test_overlapping_tiles_stitch_exactly() -> None:
     expected = np.zeros(grid.window.shape, np.float32)
     expected[a.slices_in(grid.window)] += 0.4
     expected[b.slices_in(grid.window)] += np.float32(-0.3)
-    np.testing.assert_array_equal(grid.logodds, expected)
+    np.testing.assert_array_equal(grid.layer("logodds"), expected)
     overlap = a.intersect(b)
     assert np.all(
-        grid.logodds[overlap.slices_in(grid.window)] == np.float32(0.4) + np.float32(-0.3)
+        grid.layer("logodds")[overlap.slices_in(grid.window)] == np.float32(0.4) + np.float32(-0.3)
     )
     # Height: the occupied pair's top, replaced by the floor where a free observation came last.
-    assert np.all(grid.height_m[overlap.slices_in(grid.window)] == 0.5)
+    assert np.all(grid.layer("height_m")[overlap.slices_in(grid.window)] == 0.5)
     only_a = Window(10, 20, 15, 5)
-    assert np.all(grid.height_m[only_a.slices_in(grid.window)] == 1.0)
-    assert not grid.known[Window(0, 0, 5, 5).slices_in(grid.window)].any()
+    assert np.all(grid.layer("height_m")[only_a.slices_in(grid.window)] == 1.0)
+    assert not grid.layer("known")[Window(0, 0, 5, 5).slices_in(grid.window)].any()
 
 
 def test_height_keeps_the_maximum_over_occupied_observations() -> None:
@@ -81,14 +86,14 @@ def test_height_keeps_the_maximum_over_occupied_observations() -> None:
     w = Window(0, 0, 4, 4)
     _integrate(grid, w, 0.8, height=1.2)
     _integrate(grid, w, 0.8, height=0.9)
-    assert np.all(grid.height_m[w.slices_in(grid.window)] == np.float32(1.2))
+    assert np.all(grid.layer("height_m")[w.slices_in(grid.window)] == np.float32(1.2))
 
 
 def test_cells_with_no_pixels_are_not_updated() -> None:
     grid = FusedGrid(P)
     w = Window(0, 0, 4, 4)
     _integrate(grid, w, 0.8, count=0)
-    assert not grid.known.any() and np.all(grid.logodds == 0)
+    assert not grid.layer("known").any() and np.all(grid.layer("logodds") == 0)
 
 
 def test_decay_returns_unobserved_cells_to_unknown() -> None:
@@ -99,26 +104,30 @@ def test_decay_returns_unobserved_cells_to_unknown() -> None:
     for k in range(30):
         grid.decay(now_s=102.0 + k, elapsed_s=1.0)
     region = w.slices_in(grid.window)
-    assert not grid.known[region].any()
-    assert np.all(grid.logodds[region] == 0) and np.all(np.isnan(grid.height_m[region]))
+    assert not grid.layer("known")[region].any()
+    assert np.all(grid.layer("logodds")[region] == 0) and np.all(
+        np.isnan(grid.layer("height_m")[region])
+    )
 
 
 def test_fresh_cells_do_not_decay() -> None:
     grid = FusedGrid(GridParams(decay_after_s=1.0))
     _integrate(grid, Window(0, 0, 4, 4), 2.0, stamp_ns=int(100e9))
     grid.decay(now_s=100.2, elapsed_s=1.0)
-    assert np.all(grid.logodds[Window(0, 0, 4, 4).slices_in(grid.window)] == 2.0)
+    assert np.all(grid.layer("logodds")[Window(0, 0, 4, 4).slices_in(grid.window)] == 2.0)
 
 
 def test_map_grows_and_keeps_what_it_had() -> None:
     grid = FusedGrid(P)
     _integrate(grid, Window(0, 0, 10, 10), 1.0)
-    before = grid.logodds[Window(0, 0, 10, 10).slices_in(grid.window)].copy()
+    before = grid.layer("logodds")[Window(0, 0, 10, 10).slices_in(grid.window)].copy()
     _integrate(grid, Window(-100, 300, 5, 5), -1.0)
     assert grid.window.contains(Window(-100, 300, 5, 5)) and grid.window.contains(
         Window(0, 0, 10, 10)
     )
-    np.testing.assert_array_equal(grid.logodds[Window(0, 0, 10, 10).slices_in(grid.window)], before)
+    np.testing.assert_array_equal(
+        grid.layer("logodds")[Window(0, 0, 10, 10).slices_in(grid.window)], before
+    )
 
 
 def test_fixed_bounds_crop_and_reject_outside() -> None:
@@ -144,19 +153,48 @@ def test_dirty_window_collects_changes_until_taken() -> None:
     assert grid.take_dirty().empty
 
 
-def test_snapshot_pace_follows_the_interval_and_the_cost_of_a_refresh(tmp_path) -> None:
-    from services.fusion.service import REFRESH_COST_SHARE, FusionSettings, FusionState
+def test_growth_beyond_the_limit_changes_nothing() -> None:
+    grid = FusedGrid(GridParams(max_cells=256 * 256))
+    _integrate(grid, Window(0, 0, 10, 10), 1.0)
+    window, version, chunks = grid.window, grid.version, set(grid.chunks)
+    with pytest.raises(TileOutsideMap) as refused:
+        _integrate(grid, Window(4900, 4900, 1, 1), 1.0)
+    assert refused.value.reason == "growth"
+    assert (grid.window, grid.version, set(grid.chunks)) == (window, version, chunks)
 
-    settings = FusionSettings(publish_interval_s=0.02, state_dir=tmp_path)
-    state = FusionState(settings, FusedGrid(settings.grid_params()))
-    assert state.refresh() is None  # nothing changed: no new snapshot
-    _integrate(state.grid, Window(0, 0, 20, 10), 1.0)
-    refreshed = state.refresh()
-    assert refreshed is not None and refreshed[0].version == 1
-    assert refreshed[1] == Window(0, 0, 20, 10)  # the changed window, for map/updates
-    assert state.refresh_cost_s > 0
-    state.refresh_cost_s = 0.001  # a cheap map: the configured interval rules
-    assert state.next_refresh_in(0.0) == pytest.approx(0.02)
-    assert state.next_refresh_in(0.05) == 0.0
-    state.refresh_cost_s = 0.03  # a costly one: at most REFRESH_COST_SHARE of the time
-    assert state.next_refresh_in(0.05) == pytest.approx(0.03 / REFRESH_COST_SHARE - 0.05)
+
+def test_memory_follows_the_area_observed_not_the_extent() -> None:
+    grid = FusedGrid(P)
+    _integrate(grid, Window(0, 0, 10, 10), 1.0)
+    _integrate(grid, Window(1000, 1000, 1, 1), 1.0)
+    assert grid.window.cols * grid.window.rows > 1000 * 1000
+    assert len(grid.chunks) == 2  # two chunks, not a million cells
+    bounded = FusedGrid(GridParams(bounds=Window(0, 0, 5000, 5000)))
+    _integrate(bounded, Window(100, 100, 70, 10), 1.0)
+    assert set(bounded.chunks) == {(1, 1), (2, 1)}
+
+
+def test_freeze_copies_only_the_changed_chunks_and_shares_the_rest() -> None:
+    grid = FusedGrid(P, epoch_ns=7)
+    _integrate(grid, Window(0, 0, 200, 200), 1.0)
+    first, changed = grid.freeze()
+    assert changed == set(grid.chunks) and len(changed) == 16
+    _integrate(grid, Window(70, 70, 5, 5), -2.0)
+    second, changed = grid.freeze()
+    assert changed == {(1, 1)} and second.key == (7, 2) and first.key == (7, 1)
+    assert all(second.chunks[k] is first.chunks[k] for k in first.chunks if k != (1, 1))
+    # The first snapshot is immutable: the later tile is not in it.
+    assert first.layer("served")[72, 72] > 50 and second.layer("served")[72, 72] < 50
+    np.testing.assert_array_equal(second.layer("logodds"), grid.layer("logodds"))
+    with pytest.raises(ValueError):
+        second.chunks[(1, 1)].layers["logodds"][0, 0] = 0.0
+
+
+def test_decay_visits_only_chunks_that_may_be_stale() -> None:
+    grid = FusedGrid(GridParams(decay_after_s=1.0, decay_time_constant_s=0.5))
+    _integrate(grid, Window(0, 0, 10, 10), 2.0, stamp_ns=int(100e9))
+    _integrate(grid, Window(640, 640, 10, 10), 2.0, stamp_ns=int(103e9))
+    grid.freeze()
+    grid.take_dirty()
+    assert grid.decay(now_s=103.5, elapsed_s=1.0) == 100  # the old chunk only
+    assert grid.changed == {(0, 0)} and grid.take_dirty() == Window(0, 0, 64, 64)

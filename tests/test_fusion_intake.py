@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from common.lattice import Window
-from services.fusion.intake import TileGate, TileRejected
+from services.fusion.intake import FUTURE_TOLERANCE_S, Rejected, TileGate
 from tests.tiles import tile_arrays, tile_payload
 
 W = Window(0, 0, 8, 6)
@@ -15,14 +15,18 @@ def _gate() -> TileGate:
     return TileGate(resolution_m=0.05, max_age_s=2.0, max_bytes=1_000_000)
 
 
-def _reason(payload: bytes, gate: TileGate | None = None) -> str:
-    with pytest.raises(TileRejected) as rejected:
-        (gate or _gate()).admit(payload, time.time_ns())
+def _reason(payload: bytes, gate: TileGate | None = None, key: str = "depth/p0/tile") -> str:
+    with pytest.raises(Rejected) as rejected:
+        (gate or _gate()).admit(payload, time.time_ns(), key)
     return rejected.value.reason
 
 
+def _admit(gate: TileGate, payload: bytes, now_ns: int, key: str = "depth/p0/tile") -> None:
+    gate.accepted(gate.admit(payload, now_ns, key))
+
+
 def test_good_tile_is_admitted() -> None:
-    tile = _gate().admit(tile_payload("p0", W, 0.5), time.time_ns())
+    tile = _gate().admit(tile_payload("p0", W, 0.5), time.time_ns(), "depth/p0/tile")
     assert tile.window == W and tile.logodds.shape == (6, 8)
 
 
@@ -64,17 +68,38 @@ def test_oversized_message_is_rejected_before_decoding() -> None:
 def test_out_of_order_per_pair() -> None:
     gate = _gate()
     now = time.time_ns()
-    gate.admit(tile_payload("p0", W, 0.5, stamp_ns=now), now)
+    _admit(gate, tile_payload("p0", W, 0.5, stamp_ns=now), now)
     assert _reason(tile_payload("p0", W, 0.5, stamp_ns=now - 1000), gate) == "out_of_order"
-    gate.admit(
-        tile_payload("p1", W, 0.5, stamp_ns=now - 1000), now
-    )  # another pair has its own order
+    _admit(gate, tile_payload("p1", W, 0.5, stamp_ns=now - 1000), now, "depth/p1/tile")
 
 
 def test_heights_may_be_nan_only_where_unobserved() -> None:
     arrays = tile_arrays(W, 0.0)
     arrays["count"][0, 0] = 0
     arrays["height_m"][0, 0] = np.nan
-    _gate().admit(tile_payload("p0", W, 0.0, arrays=arrays), time.time_ns())
+    _gate().admit(tile_payload("p0", W, 0.0, arrays=arrays), time.time_ns(), "depth/p0/tile")
     arrays["height_m"][1, 1] = np.nan
     assert _reason(tile_payload("p0", W, 0.0, arrays=arrays)) == "nan"
+
+
+def test_the_pair_comes_from_the_key() -> None:
+    """A p1 credential cannot speak for p0: the header must name the key's pair."""
+    assert _reason(tile_payload("p0", W, 0.5), key="depth/p1/tile") == "pair"
+    assert _reason(tile_payload("p0", W, 0.5), key="elsewhere") == "pair"
+
+
+def test_a_tile_from_the_future_is_refused_and_does_not_lock_the_pair_out() -> None:
+    gate = _gate()
+    now = time.time_ns()
+    ahead = tile_payload("p0", W, 0.5, stamp_ns=now + int((FUTURE_TOLERANCE_S + 1.5) * 1e9))
+    assert _reason(ahead, gate) == "future"
+    _admit(gate, tile_payload("p0", W, 0.5, stamp_ns=now), now)  # the pair's next real tile lands
+    # Within the tolerance (clock skew between boxes) a tile is taken.
+    _admit(gate, tile_payload("p0", W, 0.5, stamp_ns=now + int(FUTURE_TOLERANCE_S * 0.5e9)), now)
+
+
+def test_a_stamp_is_kept_only_once_the_map_took_the_tile() -> None:
+    gate = _gate()
+    now = time.time_ns()
+    gate.admit(tile_payload("p0", W, 0.5, stamp_ns=now), now, "depth/p0/tile")  # refused later
+    _admit(gate, tile_payload("p0", W, 0.5, stamp_ns=now - 1000), now)

@@ -1,12 +1,18 @@
-"""The fused map: clamped log-odds, top heights and observation times on the global lattice.
+"""The fused map: named layers (clamped log-odds, top heights, observation times, …) on the global
+lattice, stored in fixed square chunks (nvblox's blocks, grid_map's layers).
 
-Pure numpy: no Zenoh, no threads. The service holds one :class:`FusedGrid` behind a lock.
+Why chunks: snapshots, ``map/updates``, decay and saves then visit the chunks that changed, so their
+cost follows the change, not the map's size; and memory follows the area observed (a tile far away
+costs one chunk, not a map grown to reach it). Pure numpy: no Zenoh, no threads. One thread of the
+service owns a :class:`FusedGrid`; everyone else reads :class:`FrozenMap` copies.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -15,90 +21,182 @@ import numpy.typing as npt
 from common.lattice import Window
 from common.occupancy_map import UNKNOWN, occupancy_from_logodds
 from services.fusion import rules
+from services.fusion.params import GridParams as GridParams  # declared there, with its settings
 
-GROWTH_CHUNK_CELLS = 64
-LAYER_FILLS = (
-    ("logodds", 0.0),
-    ("height_m", np.nan),
-    ("known", False),
-    ("last_seen_s", 0.0),
-    ("occupancy", UNKNOWN),
-    ("predicted", False),
+CHUNK_CELLS = 64
+"""Side of a chunk in cells: 64×64 is nvblox's order of block size; a 5000×5000 map is 6,200 of
+them, and a tile of a few hundred cells a side touches a few dozen."""
+LAYER_FILLS: tuple[tuple[str, type[np.generic], float | bool], ...] = (
+    ("logodds", np.float32, 0.0),
+    ("height_m", np.float32, np.nan),
+    ("known", np.bool_, False),
+    ("last_seen_s", np.float64, 0.0),
+    ("occupancy", np.int8, UNKNOWN),
+    ("predicted", np.bool_, False),
 )
-"""Every per-cell array of the grid and the value of a cell never observed."""
-"""The map grows in chunks so a stream of tiles at its edge does not reallocate every time."""
+"""Every layer, its dtype and the value of a cell never observed."""
+EVIDENCE_LAYERS = ("logodds", "height_m", "known", "last_seen_s")
+"""What a frame measured: the layers saved (occupancy follows from them; predictions are a guess)."""
+LAYER_FILL = {name: fill for name, _, fill in LAYER_FILLS}
 
-
-@dataclass(frozen=True)
-class GridParams:
-    resolution_m: float = 0.05
-    logodds_min: float = -1.5
-    logodds_max: float = 2.5
-    """Narrower than OctoMap's −2 … 3.5: with the depth model's p_hit/p_miss of 0.9/0.1, one
-    conclusive observation moves a cell across the occupied (0.65) or free (0.25) threshold, so a
-    moved object appears and clears within a frame; ambiguous observations still accumulate."""
-    decay_after_s: float = 5.0
-    """Cells unobserved this long start drifting back toward unknown."""
-    decay_time_constant_s: float = 2.0
-    unknown_below: float = 0.05
-    """|L| under which a decaying cell is unknown again."""
-    max_cells: int = 25_000_000
-    bounds: Window | None = None
-    """Fixed map window; None grows the map to cover the tiles."""
-
-    def __post_init__(self) -> None:
-        if not self.logodds_min < 0 < self.logodds_max:
-            raise ValueError(
-                f"need logodds_min < 0 < logodds_max, got {self.logodds_min}, {self.logodds_max}"
-            )
-        if self.decay_after_s <= 0 or self.decay_time_constant_s <= 0:
-            raise ValueError("decay times must be positive")
+ChunkKey = tuple[int, int]
+"""(ci, cj): the chunk holding cells i ∈ [ci·64, ci·64+64), j ∈ [cj·64, cj·64+64)."""
 
 
 class TileOutsideMap(ValueError):
-    """The tile would make the map larger than allowed, or lies outside fixed bounds."""
+    """A tile the map cannot take: ``reason`` is ``outside_map`` (beyond fixed bounds) or
+    ``growth`` (it would grow the map past the cell limit)."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
 
 
-def _chunked(window: Window) -> Window:
-    c = GROWTH_CHUNK_CELLS
+def chunk_window(key: ChunkKey) -> Window:
+    return Window(key[0] * CHUNK_CELLS, key[1] * CHUNK_CELLS, CHUNK_CELLS, CHUNK_CELLS)
+
+
+def chunk_keys(window: Window) -> Iterator[ChunkKey]:
+    """Keys of the chunks a window overlaps."""
+    if window.empty:
+        return
+    c = CHUNK_CELLS
+    for cj in range(window.j0 // c, (window.j1 - 1) // c + 1):
+        for ci in range(window.i0 // c, (window.i1 - 1) // c + 1):
+            yield (ci, cj)
+
+
+def chunk_aligned(window: Window) -> Window:
+    """The smallest window of whole chunks covering ``window``."""
+    c = CHUNK_CELLS
     i0, j0 = math.floor(window.i0 / c) * c, math.floor(window.j0 / c) * c
     i1, j1 = math.ceil(window.i1 / c) * c, math.ceil(window.j1 / c) * c
     return Window(i0, j0, i1 - i0, j1 - j0)
 
 
+class Chunk:
+    """One chunk's layers, each a CHUNK_CELLS² array ([row, col] = [j - j0, i - i0])."""
+
+    __slots__ = (*(name for name, _, _ in LAYER_FILLS), "decay_check_s")
+    logodds: npt.NDArray[np.float32]
+    height_m: npt.NDArray[np.float32]
+    known: npt.NDArray[np.bool_]
+    last_seen_s: npt.NDArray[np.float64]
+    occupancy: npt.NDArray[np.int8]
+    predicted: npt.NDArray[np.bool_]
+    decay_check_s: float
+    """Observation time of its oldest known cell (or earlier): decay looks here only once that is
+    ``decay_after_s`` old, so a pass costs the chunks that may be stale, not the whole map."""
+
+    def __init__(self, layers: Mapping[str, npt.NDArray[Any]] | None = None) -> None:
+        shape = (CHUNK_CELLS, CHUNK_CELLS)
+        for name, dtype, fill in LAYER_FILLS:
+            given = None if layers is None else layers.get(name)
+            setattr(self, name, np.full(shape, fill, dtype) if given is None else given)
+        known_seen = self.last_seen_s[self.known]
+        self.decay_check_s = float(known_seen.min()) if known_seen.size else math.inf
+
+    def served(self) -> npt.NDArray[np.int8]:
+        """What clients read: the evidence, with the predicted layer's cells occupied."""
+        return rules.occupied_where_predicted(self.occupancy, self.predicted)
+
+
+@dataclass(frozen=True)
+class FrozenChunk:
+    """A read-only copy of a chunk, shared by every snapshot until the chunk changes again."""
+
+    layers: Mapping[str, npt.NDArray[Any]]
+    served: npt.NDArray[np.int8]
+    known_cells: int
+
+    @staticmethod
+    def of(chunk: Chunk) -> FrozenChunk:
+        layers = {name: getattr(chunk, name).copy() for name, _, _ in LAYER_FILLS}
+        served = chunk.served()
+        for array in (*layers.values(), served):
+            array.setflags(write=False)
+        return FrozenChunk(MappingProxyType(layers), served, int(layers["known"].sum()))
+
+
+@dataclass(frozen=True)
+class FrozenMap:
+    """The map at one version, immutable: queries and the state writer read it from their own
+    threads while the owner goes on changing the grid. Made by copy-on-write: a new one copies the
+    chunks changed since the last and shares the rest."""
+
+    epoch_ns: int
+    version: int
+    stamp_ns: int
+    resolution_m: float
+    window: Window
+    chunks: Mapping[ChunkKey, FrozenChunk]
+
+    @property
+    def key(self) -> tuple[int, int]:
+        """(epoch, version): compared in that order, it never goes backwards."""
+        return (self.epoch_ns, self.version)
+
+    def layer(self, name: str) -> npt.NDArray[Any]:
+        """One layer over the whole window (``served`` for the occupancy clients read)."""
+        if name == "served":
+            return self.assemble(lambda chunk: chunk.served, np.int8, UNKNOWN)
+        dtype = next(d for n, d, _ in LAYER_FILLS if n == name)
+        return self.assemble(lambda chunk: chunk.layers[name], dtype, LAYER_FILL[name])
+
+    def assemble(self, pick: Any, dtype: type[np.generic], fill: float | bool) -> npt.NDArray[Any]:
+        out = np.full(self.window.shape, fill, dtype)
+        for key, chunk in self.chunks.items():
+            _paste(out, self.window, pick(chunk), key)
+        return out
+
+    def known_cells(self) -> int:
+        return sum(chunk.known_cells for chunk in self.chunks.values())
+
+
+def _paste(out: npt.NDArray[Any], window: Window, array: npt.NDArray[Any], key: ChunkKey) -> None:
+    """Copy a chunk's array into ``out`` (covering ``window``) where they overlap."""
+    cw = chunk_window(key)
+    part = cw.intersect(window)
+    if not part.empty:
+        out[part.slices_in(window)] = array[part.slices_in(cw)]
+
+
 class FusedGrid:
-    def __init__(self, params: GridParams) -> None:
+    def __init__(self, params: GridParams, epoch_ns: int = 0) -> None:
         self.params = params
         self.window = params.bounds or Window(0, 0, 0, 0)
-        self.logodds = np.zeros(self.window.shape, np.float32)
-        self.height_m = np.full(self.window.shape, np.nan, np.float32)
-        self.known = np.zeros(self.window.shape, np.bool_)
-        self.last_seen_s = np.zeros(self.window.shape, np.float64)
-        self.occupancy = np.full(self.window.shape, UNKNOWN, np.int8)
-        """nav_msgs view of ``logodds``/``known``, kept current cell by cell as they change."""
-        self.predicted = np.zeros(self.window.shape, np.bool_)
-        """Cells a moving object's path covers (its own layer, not evidence: never saved)."""
-        self.predicted_any = False
+        """The map's extent: the fixed bounds, or the chunks observed so far."""
+        self.chunks: dict[ChunkKey, Chunk] = {}
+        self.epoch_ns = epoch_ns
         self.version = 0
+        """Change counter within the epoch; restored from the saved state at start."""
         self.stamp_ns = 0
         self.dirty = Window(0, 0, 0, 0)
-        """Cells changed since :meth:`take_dirty` was last called."""
+        """Cells changed since :meth:`take_dirty` was last called (the next ``map/updates``)."""
+        self.changed: set[ChunkKey] = set()
+        """Chunks changed since the last :meth:`freeze`."""
+        self._predicted: set[ChunkKey] = set()
+        self._frozen = FrozenMap(epoch_ns, 0, 0, params.resolution_m, self.window, {})
 
-    def _grow_to(self, needed: Window) -> None:
-        if self.window.contains(needed):
-            return
-        target = _chunked(self.window.union(needed))
+    def _admit(self, tile_window: Window) -> Window:
+        """The part of a tile the map takes; grows the window (chunk-aligned) within the limit."""
+        bounds = self.params.bounds
+        if bounds is not None:
+            part = tile_window.intersect(bounds)
+            if part.empty:
+                raise TileOutsideMap(
+                    "outside_map", f"tile {tile_window} lies outside the map bounds {bounds}"
+                )
+            return part
+        target = chunk_aligned(self.window.union(tile_window))
         if target.cols * target.rows > self.params.max_cells:
             raise TileOutsideMap(
-                f"covering {needed} needs a map of {target.cols}×{target.rows} cells, over the limit of {self.params.max_cells}"
+                "growth",
+                f"covering {tile_window} needs a map of {target.cols}×{target.rows} cells, "
+                f"over the limit of {self.params.max_cells}",
             )
-        old_slices = self.window.slices_in(target)
-        for name, fill in LAYER_FILLS:
-            old = getattr(self, name)
-            grown = np.full(target.shape, fill, dtype=old.dtype)
-            grown[old_slices] = old
-            setattr(self, name, grown)
         self.window = target
+        return tile_window
 
     def integrate(
         self,
@@ -108,90 +206,177 @@ class FusedGrid:
         count: npt.NDArray[np.uint16],
         stamp_ns: int,
     ) -> Window:
-        """Add one tile's evidence; returns the map cells it touched."""
-        if self.params.bounds is None:
-            self._grow_to(tile_window)
-        part = tile_window.intersect(self.window)
-        if part.empty:
-            raise TileOutsideMap(f"tile {tile_window} lies outside the map bounds {self.window}")
-        in_tile = part.slices_in(tile_window)
-        in_map = part.slices_in(self.window)
-        rules.combine_tile(
-            self.logodds[in_map],
-            self.height_m[in_map],
-            self.known[in_map],
-            self.last_seen_s[in_map],
-            self.occupancy[in_map],
-            logodds_update[in_tile],
-            tile_height_m[in_tile],
-            count[in_tile],
-            stamp_ns / 1e9,
-            self.params.logodds_min,
-            self.params.logodds_max,
-        )
+        """Add one tile's evidence; returns the map cells it touched. A refused tile changes
+        nothing (no chunk, no growth)."""
+        part = self._admit(tile_window)
+        stamp_s = stamp_ns / 1e9
+        for key in chunk_keys(part):
+            cw = chunk_window(key)
+            sub = part.intersect(cw)
+            in_tile, in_chunk = sub.slices_in(tile_window), sub.slices_in(cw)
+            chunk = self.chunks.get(key)
+            if chunk is None:
+                chunk = self.chunks[key] = Chunk()
+            rules.combine_tile(
+                chunk.logodds[in_chunk],
+                chunk.height_m[in_chunk],
+                chunk.known[in_chunk],
+                chunk.last_seen_s[in_chunk],
+                chunk.occupancy[in_chunk],
+                logodds_update[in_tile],
+                tile_height_m[in_tile],
+                count[in_tile],
+                stamp_s,
+                self.params.logodds_min,
+                self.params.logodds_max,
+            )
+            chunk.decay_check_s = min(chunk.decay_check_s, stamp_s)
+            self.changed.add(key)
         self.stamp_ns = max(self.stamp_ns, stamp_ns)
         self.version += 1
         self.dirty = self.dirty.union(part)
         return part
 
     def decay(self, now_s: float, elapsed_s: float) -> int:
-        """Cells unobserved for ``decay_after_s`` drift toward unknown; returns how many changed."""
-        stale = self.known & (now_s - self.last_seen_s > self.params.decay_after_s)
-        if not stale.any():
-            return 0
-        self.logodds[stale] *= np.float32(math.exp(-elapsed_s / self.params.decay_time_constant_s))
-        forgotten = stale & (np.abs(self.logodds) < self.params.unknown_below)
-        self.logodds[forgotten] = 0.0
-        self.height_m[forgotten] = np.nan
-        self.known[forgotten] = False
-        changed = self._bounds_of(stale)
-        box = changed.slices_in(self.window)
-        self.occupancy[box] = occupancy_from_logodds(self.logodds[box], self.known[box])
-        self.dirty = self.dirty.union(changed)
-        self.version += 1
-        return int(stale.sum())
-
-    def _bounds_of(self, cells: npt.NDArray[np.bool_]) -> Window:
-        """The lattice window bounding the true cells of a map-sized mask (at least one)."""
-        rows, cols = np.nonzero(cells)
-        return Window(
-            self.window.i0 + int(cols.min()),
-            self.window.j0 + int(rows.min()),
-            int(cols.max() - cols.min()) + 1,
-            int(rows.max() - rows.min()) + 1,
-        )
+        """Cells unobserved for ``decay_after_s`` drift toward unknown; returns how many changed.
+        Visits only chunks whose oldest known cell is that old."""
+        p = self.params
+        factor = np.float32(math.exp(-elapsed_s / p.decay_time_constant_s))
+        changed = 0
+        for key, chunk in self.chunks.items():
+            if now_s - chunk.decay_check_s <= p.decay_after_s:
+                continue
+            stale = chunk.known & (now_s - chunk.last_seen_s > p.decay_after_s)
+            count = int(stale.sum())
+            if count:
+                chunk.logodds[stale] *= factor
+                forgotten = stale & (np.abs(chunk.logodds) < p.unknown_below)
+                chunk.logodds[forgotten] = 0.0
+                chunk.height_m[forgotten] = np.nan
+                chunk.known[forgotten] = False
+                chunk.occupancy[stale] = occupancy_from_logodds(
+                    chunk.logodds[stale], chunk.known[stale]
+                )
+                self.changed.add(key)
+                self.dirty = self.dirty.union(chunk_window(key).intersect(self.window))
+                changed += count
+            known_seen = chunk.last_seen_s[chunk.known]
+            chunk.decay_check_s = float(known_seen.min()) if known_seen.size else math.inf
+        if changed:
+            self.version += 1
+        return changed
 
     def set_predicted(self, swept: list[tuple[Window, npt.NDArray[np.bool_]]]) -> bool:
         """Replace the predicted layer by these swept cells (those outside the map are dropped);
         True if it changed. The cells it no longer covers show the frames' evidence again."""
-        if not swept and not self.predicted_any:
-            return False  # the usual case without movers: no pass over the whole map
-        predicted = np.zeros(self.window.shape, np.bool_)
+        if not swept and not self._predicted:
+            return False  # the usual case without movers: nothing to visit
+        masks: dict[ChunkKey, npt.NDArray[np.bool_]] = {}
         for window, mask in swept:
             part = window.intersect(self.window)
-            if not part.empty:
-                predicted[part.slices_in(self.window)] |= mask[part.slices_in(window)]
-        changed = predicted != self.predicted
-        if not changed.any():
-            return False
-        self.dirty = self.dirty.union(self._bounds_of(changed))
-        self.predicted = predicted
-        self.predicted_any = bool(swept) and bool(predicted.any())
-        self.version += 1
-        return True
+            for key in chunk_keys(part):
+                cw = chunk_window(key)
+                sub = part.intersect(cw)
+                target = masks.setdefault(key, np.zeros((CHUNK_CELLS, CHUNK_CELLS), np.bool_))
+                target[sub.slices_in(cw)] |= mask[sub.slices_in(window)]
+        changed = False
+        for key in self._predicted | set(masks):
+            new = masks.get(key)
+            chunk = self.chunks.get(key)
+            if chunk is None:
+                if new is None or not new.any():
+                    continue
+                chunk = self.chunks[key] = Chunk()
+            if new is None:
+                new = np.zeros((CHUNK_CELLS, CHUNK_CELLS), np.bool_)
+            if np.array_equal(new, chunk.predicted):
+                continue
+            chunk.predicted = new
+            self.changed.add(key)
+            self.dirty = self.dirty.union(chunk_window(key).intersect(self.window))
+            changed = True
+        self._predicted = {key for key, mask in masks.items() if mask.any()}
+        if changed:
+            self.version += 1
+        return changed
+
+    def window_of(self, name: str, window: Window) -> npt.NDArray[Any]:
+        """One layer (``served``: the occupancy clients read) over a window of the map, from the
+        chunks it overlaps only."""
+        dtype = np.int8 if name == "served" else next(d for n, d, _ in LAYER_FILLS if n == name)
+        fill = UNKNOWN if name == "served" else LAYER_FILL[name]
+        out = np.full(window.shape, fill, dtype)
+        for key in chunk_keys(window):
+            chunk = self.chunks.get(key)
+            if chunk is not None:
+                _paste(
+                    out, window, chunk.served() if name == "served" else getattr(chunk, name), key
+                )
+        return out
+
+    def layer(self, name: str) -> npt.NDArray[Any]:
+        """One layer over the whole map (a copy: for tools and tests; the service uses snapshots)."""
+        return self.window_of(name, self.window)
 
     def served_occupancy(self) -> npt.NDArray[np.int8]:
         """What clients read: the evidence, with the predicted layer's cells occupied."""
-        return rules.occupied_where_predicted(self.occupancy, self.predicted)
+        return self.layer("served")
 
     def take_dirty(self) -> Window:
         dirty, self.dirty = self.dirty, Window(0, 0, 0, 0)
         return dirty
 
+    def freeze(self) -> tuple[FrozenMap, set[ChunkKey]]:
+        """An immutable copy of the map now, and the chunks changed since the last one; copies only
+        those chunks."""
+        changed, self.changed = self.changed, set()
+        chunks = dict(self._frozen.chunks)
+        for key in changed:
+            chunks[key] = FrozenChunk.of(self.chunks[key])
+        self._frozen = FrozenMap(
+            self.epoch_ns,
+            self.version,
+            self.stamp_ns,
+            self.params.resolution_m,
+            self.window,
+            MappingProxyType(chunks),
+        )
+        return self._frozen, changed
+
+    def restore(self, chunks: Mapping[ChunkKey, Mapping[str, npt.NDArray[Any]]]) -> int:
+        """Put saved evidence layers back (chunks outside fixed bounds, or beyond the cell limit,
+        are left out); returns how many chunks were restored."""
+        keys = sorted(chunks)
+        bounds = self.params.bounds
+        if bounds is not None:
+            keys = [k for k in keys if not chunk_window(k).intersect(bounds).empty]
+        window = self.window
+        for key in keys:
+            window = chunk_aligned(window.union(chunk_window(key))) if bounds is None else window
+        if bounds is None and window.cols * window.rows > self.params.max_cells:
+            raise ValueError(
+                f"saved map of {window.cols}×{window.rows} cells exceeds --max-cells "
+                f"{self.params.max_cells}"
+            )
+        self.window = window
+        for key in keys:
+            layers = dict(chunks[key])
+            if bounds is not None:  # cells outside the bounds are not part of this map
+                outside = np.ones((CHUNK_CELLS, CHUNK_CELLS), np.bool_)
+                part = chunk_window(key).intersect(bounds)
+                outside[part.slices_in(chunk_window(key))] = False
+                layers["known"] = layers["known"] & ~outside
+            known = layers["known"]
+            layers["logodds"] = np.where(known, layers["logodds"], np.float32(0.0))
+            layers["occupancy"] = occupancy_from_logodds(layers["logodds"], known)
+            self.chunks[key] = Chunk(layers)
+            self.changed.add(key)
+        return len(keys)
+
 
 def compile_rules() -> None:
     """Compile (or load from numba's cache) the combine kernel for the layouts real tiles bring —
-    read-only decoded tile arrays into views of a larger map — so the first tile does not wait."""
+    read-only decoded tile arrays into views of a chunk — so the first tile does not wait."""
     grid = FusedGrid(GridParams())
     window = Window(0, 0, 2, 2)
 

@@ -1,19 +1,42 @@
-"""Which tiles fusion accepts: every rejection has a named reason, counted in ``map/health``."""
+"""What fusion accepts: one decode function per message kind (tile, detections, liveliness) turns
+bytes into a typed message or a :class:`Rejected` with a named reason, counted in ``map/health``.
+
+Trust: a message's pair is the one in its key (``depth/{pair}/…``), so access control on a pair's
+keys means something; a header naming another pair is rejected.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
+from common import keys
 from common.codec import CodecError, decode
 from common.lattice import Window
-from common.messages import TILE_KIND, TileHeader
+from common.messages import DETECTIONS_KIND, TILE_KIND, DetectionsHeader, TileHeader
 
-REASONS = ("malformed", "resolution", "dimensions", "nan", "stale", "out_of_order", "outside_map")
+REASONS = (
+    "malformed",
+    "resolution",
+    "dimensions",
+    "nan",
+    "stale",
+    "future",
+    "out_of_order",
+    "pair",
+    "outside_map",
+    "growth",
+    "overload",
+)
+FUTURE_TOLERANCE_S = 0.25
+"""A capture stamp this far ahead of fusion's clock is clock skew between boxes; further is a
+forged or broken clock: rejected, and its stamp not kept (it would lock the pair's later tiles
+out as out of order)."""
 
 
-class TileRejected(ValueError):
+class Rejected(ValueError):
     def __init__(self, reason: str, detail: str) -> None:
         super().__init__(detail)
         self.reason = reason
@@ -23,9 +46,34 @@ class TileRejected(ValueError):
 class AcceptedTile:
     header: TileHeader
     window: Window
-    logodds: np.ndarray
-    height_m: np.ndarray
-    count: np.ndarray
+    logodds: npt.NDArray[np.float32]
+    height_m: npt.NDArray[np.float32]
+    count: npt.NDArray[np.uint16]
+
+
+@dataclass(frozen=True)
+class Presence:
+    """One depth process's liveliness token appeared (``alive``) or went."""
+
+    pair: str
+    instance: str
+    alive: bool
+
+
+def pair_of_key(key: str) -> str:
+    try:
+        return keys.pair_of(key)
+    except ValueError as error:
+        raise Rejected("pair", str(error)) from None
+
+
+def check_stamp(stamp_ns: int, now_ns: int, max_age_ns: int) -> None:
+    if now_ns - stamp_ns > max_age_ns:
+        raise Rejected("stale", f"capture stamp is {(now_ns - stamp_ns) / 1e9:.2f} s old")
+    if stamp_ns - now_ns > FUTURE_TOLERANCE_S * 1e9:
+        raise Rejected(
+            "future", f"capture stamp is {(stamp_ns - now_ns) / 1e9:.2f} s in the future"
+        )
 
 
 class TileGate:
@@ -37,14 +85,18 @@ class TileGate:
         self.max_bytes = max_bytes
         self.newest_stamp_ns: dict[str, int] = {}
 
-    def admit(self, payload: bytes, now_ns: int) -> AcceptedTile:
+    def admit(self, payload: bytes, now_ns: int, key: str) -> AcceptedTile:
+        """The tile of ``payload`` received on ``key``, or :class:`Rejected`."""
+        key_pair = pair_of_key(key)
         try:
             message = decode(payload, TILE_KIND, TileHeader, self.max_bytes)
         except CodecError as error:
-            raise TileRejected("malformed", str(error)) from None
+            raise Rejected("malformed", str(error)) from None
         h = message.header
+        if h.pair != key_pair:
+            raise Rejected("pair", f"header names pair {h.pair}, the key {key_pair}")
         if abs(h.resolution_m - self.resolution_m) > 1e-9:
-            raise TileRejected(
+            raise Rejected(
                 "resolution",
                 f"tile resolution {h.resolution_m} m ≠ map resolution {self.resolution_m} m",
             )
@@ -57,7 +109,7 @@ class TileGate:
             array = message.arrays.get(name)
             if array is None or array.dtype != dtype or array.shape != (h.rows, h.cols):
                 got = "missing" if array is None else f"{array.dtype} {array.shape}"
-                raise TileRejected(
+                raise Rejected(
                     "dimensions",
                     f"layer {name} must be {np.dtype(dtype)} {(h.rows, h.cols)}, got {got}",
                 )
@@ -65,22 +117,37 @@ class TileGate:
         observed = layers["count"] > 0
         finite_where_observed = np.less_equal(observed, np.isfinite(layers["height_m"]))
         if not np.isfinite(layers["logodds"]).all() or not finite_where_observed.all():
-            raise TileRejected(
+            raise Rejected(
                 "nan", "tile holds NaN or infinite log-odds, or heights of observed cells"
             )
-        if now_ns - h.stamp_ns > self.max_age_ns or h.stamp_ns - now_ns > self.max_age_ns:
-            raise TileRejected(
-                "stale", f"capture stamp is {(now_ns - h.stamp_ns) / 1e9:.2f} s from now"
-            )
+        check_stamp(h.stamp_ns, now_ns, self.max_age_ns)
         if h.stamp_ns <= self.newest_stamp_ns.get(h.pair, -1):
-            raise TileRejected(
+            raise Rejected(
                 "out_of_order", f"tile of {h.pair} is not newer than the last one accepted"
             )
-        self.newest_stamp_ns[h.pair] = h.stamp_ns
-        return AcceptedTile(
-            h,
-            h.window,
-            layers["logodds"],
-            layers["height_m"],
-            layers["count"],
-        )
+        return AcceptedTile(h, h.window, layers["logodds"], layers["height_m"], layers["count"])
+
+    def accepted(self, tile: AcceptedTile) -> None:
+        """Record the stamp of a tile the map took (a tile the map refused does not count)."""
+        self.newest_stamp_ns[tile.header.pair] = tile.header.stamp_ns
+
+
+def decode_detections(payload: bytes, key: str, now_ns: int, gate: TileGate) -> DetectionsHeader:
+    """One pair's objects of one frame (``depth/{pair}/objects``), or :class:`Rejected`."""
+    key_pair = pair_of_key(key)
+    try:
+        header = decode(payload, DETECTIONS_KIND, DetectionsHeader, gate.max_bytes).header
+    except CodecError as error:
+        raise Rejected("malformed", str(error)) from None
+    if header.pair != key_pair:
+        raise Rejected("pair", f"header names pair {header.pair}, the key {key_pair}")
+    check_stamp(header.stamp_ns, now_ns, gate.max_age_ns)
+    return header
+
+
+def decode_presence(key: str, alive: bool) -> Presence:
+    """A ``depth/{pair}/alive/{instance}`` token's change, or :class:`Rejected` (``liveliness``)."""
+    try:
+        return Presence(keys.pair_of(key), keys.instance_of(key), alive)
+    except ValueError as error:
+        raise Rejected("liveliness", str(error)) from None

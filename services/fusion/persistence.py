@@ -1,81 +1,273 @@
-"""The map survives a restart: written atomically (temp file + rename), loaded at start."""
+"""The map survives a restart, and a crash loses at most one save interval.
+
+On disk: one append-only log of records, each the chunks changed since the previous record
+(``CHUNK_LOG``). Why a log and not a file per chunk or one whole-map file: a save then costs the
+chunks that changed (not the map's size) and one ``fsync`` (not one per chunk file), and a record is
+atomic by its checksum — a crash mid-write leaves a torn last record, which loading drops, keeping
+everything before it. When the log has grown to several times the map, the writer compacts it:
+one record of every chunk, written to a temporary file and renamed over the log (atomic).
+
+The writer is a thread of its own fed with :class:`FrozenMap` copies, so no save ever runs on the
+tile intake's path.
+"""
 
 from __future__ import annotations
 
 import logging
 import os
+import struct
+import threading
 import time
+import zlib
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
+import msgpack
 import numpy as np
+import numpy.typing as npt
 
-from common.lattice import Window
-from common.occupancy_map import occupancy_from_logodds
-from services.fusion.grid import FusedGrid, GridParams
+from services.fusion.grid import (
+    CHUNK_CELLS,
+    EVIDENCE_LAYERS,
+    LAYER_FILLS,
+    ChunkKey,
+    FrozenMap,
+    FusedGrid,
+    GridParams,
+)
 
 log = logging.getLogger("fusion.state")
-STATE_FILE = "map_state.npz"
+CHUNK_LOG = "map_chunks.log"
+RECORD_MAGIC = b"OGC1"
+RECORD_HEAD = struct.Struct("<4sII")
+"""magic, payload length, CRC-32 of the payload."""
+COMPACT_WHEN_LOG_IS = 4.0
+"""Compact once the log is this many times its last compacted size (the map's, roughly)."""
+COMPACT_MIN_BYTES = 8 * 1024 * 1024
+ZLIB_LEVEL = 1
+LAYER_DTYPES = {name: np.dtype(dtype) for name, dtype, _ in LAYER_FILLS}
 
 
-def save_grid(grid: FusedGrid, state_dir: Path) -> Path:
-    state_dir.mkdir(parents=True, exist_ok=True)
-    path = state_dir / STATE_FILE
-    temp = state_dir / f".{STATE_FILE}.{os.getpid()}.tmp"
-    with open(temp, "wb") as handle:
-        np.savez(
-            handle,
-            version=grid.version,
-            stamp_ns=grid.stamp_ns,
-            resolution_m=grid.params.resolution_m,
-            window=np.array([grid.window.i0, grid.window.j0, grid.window.cols, grid.window.rows]),
-            logodds=grid.logodds,
-            height_m=grid.height_m,
-            known=grid.known,
-            last_seen_s=grid.last_seen_s,
-        )
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(temp, path)
-    return path
+class StateUnusable(ValueError):
+    """A state log that cannot be read at all (its first record is bad), or of another map."""
 
 
-def load_grid(params: GridParams, state_dir: Path) -> FusedGrid | None:
-    """The saved grid, or None if there is none; a corrupt or incompatible file is set aside."""
-    path = state_dir / STATE_FILE
-    if not path.exists():
+def encode_record(frozen: FrozenMap, keys: set[ChunkKey], full: bool) -> bytes:
+    """One log record: the map's counters and the evidence layers of the chunks ``keys``."""
+    chunks = [
+        [
+            key[0],
+            key[1],
+            {
+                n: zlib.compress(frozen.chunks[key].layers[n].tobytes(), ZLIB_LEVEL)
+                for n in EVIDENCE_LAYERS
+            },
+        ]
+        for key in sorted(keys)
+        if key in frozen.chunks
+    ]
+    payload: bytes = msgpack.packb(
+        {
+            "resolution_m": frozen.resolution_m,
+            "chunk_cells": CHUNK_CELLS,
+            "version": frozen.version,
+            "stamp_ns": frozen.stamp_ns,
+            "full": full,
+            "chunks": chunks,
+        },
+        use_bin_type=True,
+    )
+    return RECORD_HEAD.pack(RECORD_MAGIC, len(payload), zlib.crc32(payload)) + payload
+
+
+@dataclass
+class SavedState:
+    version: int = 0
+    stamp_ns: int = 0
+    chunks: dict[ChunkKey, dict[str, npt.NDArray[Any]]] = field(default_factory=dict)
+    records: int = 0
+    torn: bool = False
+    """The log ended in a record cut short (a crash while writing it): dropped."""
+
+
+def read_log(path: Path, resolution_m: float) -> SavedState:
+    """Every whole record of the log, applied in order; StateUnusable if not even the first is."""
+    data = path.read_bytes()
+    state = SavedState()
+    offset = 0
+    while offset < len(data):
+        record = _record_at(data, offset)
+        if record is None:
+            if state.records == 0:
+                raise StateUnusable(f"{path}: not a map state log (first record unreadable)")
+            state.torn = True
+            break
+        payload, offset = record
+        _apply(state, payload, resolution_m, path)
+    return state
+
+
+def _record_at(data: bytes, offset: int) -> tuple[Any, int] | None:
+    if offset + RECORD_HEAD.size > len(data):
+        return None
+    magic, length, crc = RECORD_HEAD.unpack_from(data, offset)
+    start = offset + RECORD_HEAD.size
+    payload = data[start : start + length]
+    if magic != RECORD_MAGIC or len(payload) != length or zlib.crc32(payload) != crc:
         return None
     try:
-        with np.load(path) as data:
-            if float(data["resolution_m"]) != params.resolution_m:
-                raise ValueError(
-                    f"saved resolution {float(data['resolution_m'])} m ≠ {params.resolution_m} m"
-                )
-            i0, j0, cols, rows = (int(v) for v in data["window"])
-            saved = Window(i0, j0, cols, rows)
-            layers = {name: data[name] for name in ("logodds", "height_m", "known", "last_seen_s")}
-            for name, array in layers.items():
-                if array.shape != saved.shape:
-                    raise ValueError(
-                        f"layer {name} has shape {array.shape}, expected {saved.shape}"
-                    )
-            grid = FusedGrid(params)
-            if params.bounds is None:
-                grid.window = saved
-                for name, array in layers.items():
-                    setattr(grid, name, array.astype(getattr(grid, name).dtype))
-            else:  # bounds changed since the save: keep what still lies inside them
-                part = saved.intersect(grid.window)
-                for name, array in layers.items():
-                    getattr(grid, name)[part.slices_in(grid.window)] = array[part.slices_in(saved)]
-            grid.occupancy = occupancy_from_logodds(grid.logodds, grid.known)
-            grid.predicted = np.zeros(grid.window.shape, np.bool_)  # predictions are not saved
-            grid.version = int(data["version"])
-            grid.stamp_ns = int(data["stamp_ns"])
-    except Exception as error:  # any unreadable file: keep it for inspection, start empty
-        aside = path.with_name(f"{STATE_FILE}.corrupt-{int(time.time())}")
+        return msgpack.unpackb(payload, raw=False, strict_map_key=False), start + length
+    except Exception:  # a checksum match on bad msgpack: treat it as torn
+        return None
+
+
+def _apply(state: SavedState, record: Any, resolution_m: float, path: Path) -> None:
+    try:
+        if float(record["resolution_m"]) != resolution_m:
+            raise StateUnusable(
+                f"{path}: saved resolution {record['resolution_m']} m ≠ {resolution_m} m"
+            )
+        if record["chunk_cells"] != CHUNK_CELLS:
+            raise StateUnusable(
+                f"{path}: chunks of {record['chunk_cells']} cells, not {CHUNK_CELLS}"
+            )
+        if record["full"]:
+            state.chunks.clear()
+        shape = (CHUNK_CELLS, CHUNK_CELLS)
+        for ci, cj, layers in record["chunks"]:
+            state.chunks[(int(ci), int(cj))] = {
+                name: np.frombuffer(zlib.decompress(layers[name]), LAYER_DTYPES[name])
+                .reshape(shape)
+                .copy()
+                for name in EVIDENCE_LAYERS
+            }
+        state.version = int(record["version"])
+        state.stamp_ns = int(record["stamp_ns"])
+        state.records += 1
+    except StateUnusable:
+        raise
+    except Exception as error:  # a well-formed record of the wrong content
+        raise StateUnusable(f"{path}: bad record: {type(error).__name__}: {error}") from None
+
+
+def load_grid(params: GridParams, state_dir: Path, epoch_ns: int) -> FusedGrid:
+    """The saved map with a new epoch, or an empty one. A log that cannot be used is set aside for
+    inspection (renamed ``….corrupt-<time>``) with an error logged, and the map starts empty; the
+    state directory was checked writable before (see the service), so the rename can be made."""
+    grid = FusedGrid(params, epoch_ns)
+    path = state_dir / CHUNK_LOG
+    if not path.exists():
+        return grid
+    try:
+        state = read_log(path, params.resolution_m)
+        grid.restore(state.chunks)
+    except (StateUnusable, ValueError, OSError) as error:
+        aside = path.with_name(f"{CHUNK_LOG}.corrupt-{int(time.time())}")
         path.rename(aside)
         log.error(
-            "state file unusable, set aside", extra={"path": str(aside), "error": str(error)[:200]}
+            "state unusable, set aside", extra={"path": str(aside), "error": str(error)[:200]}
         )
-        return None
+        return FusedGrid(params, epoch_ns)
+    if state.torn:
+        log.warning("state log ended in a torn record: dropped", extra={"records": state.records})
+    grid.version, grid.stamp_ns = state.version, state.stamp_ns
     return grid
+
+
+class StateWriter:
+    """The thread that writes saves. The map's owner hands it frozen maps and the chunks changed
+    since its last hand-over; when it is still busy, hand-overs merge (the newest map holds every
+    chunk's newest copy), so the owner never waits."""
+
+    def __init__(self, state_dir: Path) -> None:
+        self.path = state_dir / CHUNK_LOG
+        self._wake = threading.Condition()
+        self._frozen: FrozenMap | None = None
+        self._keys: set[ChunkKey] = set()
+        self._closing = False
+        self._compacted_bytes = 0
+        self._needs_full = True
+        """The first save after a start rewrites the log (drops a torn tail, starts compact)."""
+        self.saved_version = -1
+        self.saved_s = 0.0
+        self.errors = 0
+        self._thread = threading.Thread(target=self._run, name="fusion-state", daemon=True)
+        self._thread.start()
+
+    def hand_over(self, frozen: FrozenMap, changed: set[ChunkKey]) -> None:
+        with self._wake:
+            self._frozen = frozen
+            self._keys |= changed
+            self._wake.notify()
+
+    def close(self, timeout_s: float = 10.0) -> None:
+        """Write what was handed over, then stop."""
+        with self._wake:
+            self._closing = True
+            self._wake.notify()
+        self._thread.join(timeout_s)
+
+    def _run(self) -> None:
+        while True:
+            with self._wake:
+                while self._frozen is None and not self._closing:
+                    self._wake.wait()
+                frozen, keys = self._frozen, self._keys
+                self._frozen, self._keys = None, set()
+                closing = self._closing
+            if frozen is not None:
+                self._save(frozen, keys)
+            if closing and frozen is None:
+                return
+
+    def _save(self, frozen: FrozenMap, keys: set[ChunkKey]) -> None:
+        try:
+            if self._needs_full or self._log_bytes() > max(
+                COMPACT_MIN_BYTES, COMPACT_WHEN_LOG_IS * self._compacted_bytes
+            ):
+                self._compact(frozen)
+            else:
+                with open(self.path, "ab") as handle:
+                    handle.write(encode_record(frozen, keys, full=False))
+                    handle.flush()
+                    os.fsync(handle.fileno())
+        except OSError as error:
+            self.errors += 1
+            with self._wake:  # try these chunks again with the next hand-over
+                self._keys |= keys
+            log.error("state save failed", extra={"path": str(self.path), "error": str(error)})
+            return
+        self.saved_version = frozen.version
+        self.saved_s = time.time()
+
+    def _compact(self, frozen: FrozenMap) -> None:
+        temp = self.path.with_name(f".{CHUNK_LOG}.{os.getpid()}.tmp")
+        record = encode_record(frozen, set(frozen.chunks), full=True)
+        with open(temp, "wb") as handle:
+            handle.write(record)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temp, self.path)
+        directory = os.open(self.path.parent, os.O_RDONLY)
+        try:
+            os.fsync(directory)  # the rename itself survives a power cut
+        finally:
+            os.close(directory)
+        self._compacted_bytes = len(record)
+        self._needs_full = False
+
+    def _log_bytes(self) -> int:
+        try:
+            return self.path.stat().st_size
+        except FileNotFoundError:
+            return 0
+
+
+def save_now(grid: FusedGrid, state_dir: Path) -> Path:
+    """Write the whole map at once (tools and tests; the service uses :class:`StateWriter`)."""
+    writer = StateWriter(state_dir)
+    frozen, _ = grid.freeze()
+    writer.hand_over(frozen, set(frozen.chunks))
+    writer.close()
+    return writer.path

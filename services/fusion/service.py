@@ -1,57 +1,86 @@
-"""Fusion process: tiles in from every pair, one log-odds map out through queryables and updates."""
+"""Fusion process: tiles in from every pair, one log-odds map out through queryables and updates.
+
+Threads and who owns what:
+- Zenoh's callbacks only hand messages over (``Inbox``; queries to a ``QueryWorker``) and never block.
+- The main thread owns the map (:class:`FusionState`): it decodes every message (one decode function
+  per kind, ``services.fusion.intake``), integrates tiles, publishes ``map/updates`` and an immutable
+  :class:`View` (a frozen copy-on-write map plus counters) after each change.
+- Query workers answer ``map/latest``, ``map/health`` and ``map/objects`` from the newest View:
+  they never touch the grid, and every query gets a reply (an answer or an error).
+- The state writer (``services.fusion.persistence``) saves the chunks changed since its last save.
+"""
 
 from __future__ import annotations
 
 import json
 import logging
+import os
+import queue
 import threading
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zenoh
 
 from common import keys
-from common.codec import WIRE_ENCODING, CodecError, decode, encode
+from common.codec import WIRE_ENCODING, encode
 from common.lattice import Window
 from common.lifecycle import stop_on_signals
 from common.logs import RateLimitedLog, setup_logging
-from common.messages import (
-    DETECTIONS_KIND,
-    MAP_UPDATE_KIND,
-    OBJECTS_KIND,
-    DetectionsHeader,
-    MapUpdateHeader,
-    ObjectsHeader,
-)
+from common.messages import MAP_UPDATE_KIND, OBJECTS_KIND, MapUpdateHeader, ObjectsHeader
 from common.occupancy_map import OccupancyMap
-from common.settings import parse_settings
+from common.settings import parse_settings, startup_error
 from common.zenoh_session import open_session
-from services.fusion.grid import FusedGrid, TileOutsideMap, compile_rules
-from services.fusion.intake import TileGate, TileRejected
+from services.fusion.grid import FrozenMap, FusedGrid, GridParams, TileOutsideMap, compile_rules
+from services.fusion.inbox import Delivery, Inbox
+from services.fusion.intake import Rejected, TileGate, decode_detections, decode_presence
 from services.fusion.objects import ObjectTracker
-from services.fusion.persistence import load_grid, save_grid
+from services.fusion.persistence import StateWriter, load_grid
 from services.fusion.settings import FusionSettings
-from services.fusion.snapshot import CONTENT_TYPES, MapQuery, MapSnapshot, parse_map_query
+from services.fusion.snapshot import CONTENT_TYPES, MapSnapshot, parse_map_query
 
 log = logging.getLogger("fusion")
-DEFAULT_QUERY = MapQuery()
-REFRESH_COST_SHARE = 0.2
-MAINTENANCE_PERIOD_S = 0.5
-"""Decay, saves and summaries are checked this often even when no tile arrives."""
+IDLE_WAIT_S = 0.1
+"""Longest the owner sleeps without a message: a stop, decay and saves are noticed this soon."""
+DECAY_PERIOD_S = 1.0
+INBOX_MESSAGES = 16384
+"""Messages the inbox holds: a burst of small bad tiles is counted by reason, not as overload."""
+INBOX_LARGEST_MESSAGES = 4
+"""Its byte budget, in largest messages allowed (``--max-message-mb``): a few big tiles may wait
+while one is fused; a stream the map cannot keep up with is dropped, not held in memory."""
+QUERY_BACKLOG = 256
+"""Queries waiting for a worker; beyond it a query is answered "overloaded" at once."""
+
+
+@dataclass(frozen=True)
+class View:
+    """What readers see: made by the owner after each change, never changed after."""
+
+    frozen: FrozenMap
+    pairs: tuple[str, ...] = ()
+    accepted: Mapping[str, int] = field(default_factory=dict)
+    rejected: Mapping[str, int] = field(default_factory=dict)
+    detections_rejected: Mapping[str, int] = field(default_factory=dict)
+    liveliness_rejected: Mapping[str, int] = field(default_factory=dict)
+    last_tile_s: Mapping[str, float] = field(default_factory=dict)
+    capture_to_fused_ms: Mapping[str, float] = field(default_factory=dict)
+    processes: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    objects: ObjectsHeader = field(
+        default_factory=lambda: ObjectsHeader(version=0, stamp_ns=0, objects=[])
+    )
 
 
 class FusionState:
-    """The grid and its bookkeeping, shared by Zenoh callbacks and the maintenance loop."""
+    """The map and its bookkeeping, owned by one thread (the service's main loop)."""
 
-    def __init__(
-        self, settings: FusionSettings, grid: FusedGrid, changed: threading.Event | None = None
-    ) -> None:
+    def __init__(self, settings: FusionSettings, grid: FusedGrid) -> None:
         self.settings = settings
         self.grid = grid
-        self.lock = threading.Lock()
         self.gate = TileGate(
             settings.resolution_m,
             settings.max_tile_age_s,
@@ -59,51 +88,85 @@ class FusionState:
         )
         self.accepted: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
+        self.detections_rejected: Counter[str] = Counter()
+        self.liveliness_rejected: Counter[str] = Counter()
         self.last_tile_s: dict[str, float] = {}
         self.capture_to_fused_ms: dict[str, float] = {}
-        self.alive: set[str] = set()
+        self.processes: dict[str, set[str]] = {}
+        """Each pair's depth processes alive (liveliness tokens ``depth/{pair}/alive/{instance}``)."""
         self.contributors: set[str] = set()
-        self.snapshot = MapSnapshot(self._build_map())
-        self._layered: MapSnapshot | None = None
-        self.warn = RateLimitedLog(log)
-        self.changed = changed or threading.Event()
-        """Set by each accepted tile: the publishing loop wakes at once instead of polling."""
-        self.refresh_cost_s = 0.0
-        """Time the last refresh took (copy, encode): it bounds how often one is made."""
         self.tracker = ObjectTracker()
-        self.objects_rejected: Counter[str] = Counter()
         self.objects_header = ObjectsHeader(version=0, stamp_ns=0, objects=[])
+        self.warn = RateLimitedLog(log)
+        frozen, self.unsaved = grid.freeze()
+        self.view = View(frozen)
+        """Replaced, never changed: readers on other threads take the reference and keep it."""
 
-    def on_detections(self, sample: zenoh.Sample) -> None:
-        """One pair's objects of one frame: held until the rest of the capture arrives."""
-        now_ns = time.time_ns()
+    @property
+    def alive(self) -> set[str]:
+        return {pair for pair, instances in self.processes.items() if instances}
+
+    def handle(self, delivery: Delivery) -> None:
+        """One message from the inbox; a bad one is counted by reason, never raised."""
         try:
-            message = decode(
-                sample.payload.to_bytes(), DETECTIONS_KIND, DetectionsHeader, self.gate.max_bytes
+            if delivery.kind == "tile":
+                self._tile(delivery)
+            elif delivery.kind == "detections":
+                self._detections(delivery)
+            else:
+                self._presence(delivery)
+        except Rejected as rejection:
+            counters = {
+                "tile": self.rejected,
+                "detections": self.detections_rejected,
+            }.get(delivery.kind, self.liveliness_rejected)
+            counters[rejection.reason] += 1
+            self.warn.warning(
+                f"{delivery.kind}_{rejection.reason}",
+                f"{delivery.kind} rejected",
+                reason=rejection.reason,
+                on=delivery.key,
+                error=str(rejection)[:200],
             )
-        except CodecError as error:
-            self._reject_objects("malformed", str(error), str(sample.key_expr))
-            return
-        h = message.header
-        try:
-            key_pair = keys.pair_of(str(sample.key_expr))
-        except ValueError:
-            key_pair = ""
-        if key_pair != h.pair:
-            self._reject_objects("pair", f"header pair {h.pair} ≠ key", str(sample.key_expr))
-            return
-        if abs(now_ns - h.stamp_ns) > self.gate.max_age_ns:
-            self._reject_objects("stale", "detections too old", str(sample.key_expr))
-            return
-        with self.lock:
-            self.tracker.add(h.pair, h.stamp_ns, list(h.detections), now_ns / 1e9)
-        self.changed.set()
 
-    def _reject_objects(self, reason: str, detail: str, key: str) -> None:
-        with self.lock:
-            self.objects_rejected[reason] += 1
-        self.warn.warning(
-            f"objects_{reason}", "detections rejected", reason=reason, key=key, error=detail[:200]
+    def _tile(self, delivery: Delivery) -> None:
+        tile = self.gate.admit(delivery.payload, delivery.arrival_ns, delivery.key)
+        try:
+            self.grid.integrate(
+                tile.window, tile.logodds, tile.height_m, tile.count, tile.header.stamp_ns
+            )
+        except TileOutsideMap as error:
+            raise Rejected(error.reason, str(error)) from None
+        self.gate.accepted(tile)
+        pair = tile.header.pair
+        self.accepted[pair] += 1
+        self.contributors.add(pair)
+        self.last_tile_s[pair] = time.time()
+        self.capture_to_fused_ms[pair] = (time.time_ns() - tile.header.stamp_ns) / 1e6
+
+    def _detections(self, delivery: Delivery) -> None:
+        """One pair's objects of one frame: held until the rest of the capture arrives."""
+        h = decode_detections(delivery.payload, delivery.key, delivery.arrival_ns, self.gate)
+        self.tracker.add(h.pair, h.stamp_ns, list(h.detections), delivery.arrival_ns / 1e9)
+
+    def _presence(self, delivery: Delivery) -> None:
+        presence = decode_presence(delivery.key, delivery.alive)
+        instances = self.processes.setdefault(presence.pair, set())
+        if presence.alive:
+            if instances - {presence.instance}:
+                log.warning(
+                    "a second depth process claims the pair",
+                    extra={
+                        "pair": presence.pair,
+                        "processes": ",".join(sorted(instances | {presence.instance})),
+                    },
+                )
+            instances.add(presence.instance)
+        else:
+            instances.discard(presence.instance)
+        log.info(
+            "depth process joined" if presence.alive else "depth process left",
+            extra={"pair": presence.pair, "instance": presence.instance},
         )
 
     def refresh_objects(self) -> ObjectsHeader | None:
@@ -111,171 +174,109 @@ class FusionState:
         into the predicted layer up to one frame interval past now (the map's visible time);
         returns the new object list if the tracks changed."""
         now_ns = time.time_ns()
-        with self.lock:
-            changed = self.tracker.flush(now_ns / 1e9, self.alive)
+        changed = self.tracker.flush(now_ns / 1e9, self.alive)
+        if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
-            if self.settings.predict_movers:
-                swept = self.tracker.sweep(
-                    self.grid.params.resolution_m, self.grid.stamp_ns, until_ns
-                )
-                self.grid.set_predicted(swept)
-            if not changed:
-                return None
-            self.objects_header = ObjectsHeader(
-                version=self.tracker.version,
-                stamp_ns=self.tracker.stamp_ns,
-                objects=self.tracker.objects(),
-            )
-            return self.objects_header
+            swept = self.tracker.sweep(self.grid.params.resolution_m, self.grid.stamp_ns, until_ns)
+            self.grid.set_predicted(swept)
+        if not changed:
+            return None
+        self.objects_header = ObjectsHeader(
+            version=self.tracker.version,
+            stamp_ns=self.tracker.stamp_ns,
+            objects=self.tracker.objects(),
+        )
+        return self.objects_header
 
-    def on_tile(self, sample: zenoh.Sample) -> None:
-        payload = sample.payload.to_bytes()
-        now_ns = time.time_ns()
-        try:
-            with self.lock:
-                tile = self.gate.admit(payload, now_ns)
-                self.grid.integrate(
-                    tile.window, tile.logodds, tile.height_m, tile.count, tile.header.stamp_ns
-                )
-                pair = tile.header.pair
-                self.accepted[pair] += 1
-                self.contributors.add(pair)
-                self.last_tile_s[pair] = time.time()
-                self.capture_to_fused_ms[pair] = (time.time_ns() - tile.header.stamp_ns) / 1e6
-            self.changed.set()
-        except TileRejected as rejection:
-            self._reject(rejection.reason, str(rejection), str(sample.key_expr))
-        except TileOutsideMap as error:
-            self._reject("outside_map", str(error), str(sample.key_expr))
+    def publish(self) -> bytes | None:
+        """Freeze the changes (copy-on-write of the changed chunks) for readers; returns the
+        ``map/updates`` payload of the changed window, if any."""
+        previous = self.view.frozen
+        dirty = self.grid.take_dirty()
+        frozen, changed = self.grid.freeze()
+        self.unsaved |= changed
+        self.update_view(frozen)
+        part = dirty.intersect(frozen.window)
+        if part.empty or frozen.version == previous.version:
+            return None
+        return update_payload(frozen, part, previous.version, self.grid.window_of("served", part))
 
-    def _reject(self, reason: str, detail: str, key: str) -> None:
-        with self.lock:
-            self.rejected[reason] += 1
-            total = sum(self.rejected.values())
-        self.warn.warning(
-            reason, "tile rejected", reason=reason, key=key, error=detail[:200], rejected=total
+    def update_view(self, frozen: FrozenMap | None = None) -> None:
+        """A new View with the counters as they are now."""
+        self.view = View(
+            frozen or self.view.frozen,
+            tuple(sorted(self.contributors)),
+            dict(self.accepted),
+            dict(self.rejected),
+            dict(self.detections_rejected),
+            dict(self.liveliness_rejected),
+            dict(self.last_tile_s),
+            dict(self.capture_to_fused_ms),
+            {pair: tuple(sorted(i)) for pair, i in self.processes.items()},
+            self.objects_header,
         )
 
-    def on_liveliness(self, sample: zenoh.Sample) -> None:
-        try:
-            pair = keys.pair_of(str(sample.key_expr))
-        except ValueError:
-            return
-        with self.lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self.alive.add(pair)
-            else:
-                self.alive.discard(pair)
-        log.info(
-            "pair joined" if sample.kind == zenoh.SampleKind.PUT else "pair left",
-            extra={"pair": pair},
-        )
 
-    def _build_map(self, with_layers: bool = False) -> OccupancyMap:
-        """Copy of the grid's occupancy (and, if asked, its layers); call with the lock held."""
-        grid = self.grid
-        return OccupancyMap(
-            occupancy=grid.served_occupancy(),
-            resolution_m=grid.params.resolution_m,
-            i0=grid.window.i0,
-            j0=grid.window.j0,
-            version=grid.version,
-            stamp_ns=grid.stamp_ns,
-            pairs=sorted(self.contributors),
-            logodds=grid.logodds.copy() if with_layers else None,
-            height_m=grid.height_m.copy() if with_layers else None,
-            predicted=grid.predicted.copy() if with_layers else None,
-        )
-
-    def snapshot_for(self, query: MapQuery) -> MapSnapshot:
-        """The current snapshot; one with layers (rarely asked: a tool, not a robot) is built from
-        the grid when asked, once per map version."""
-        if not query.layers:
-            return self.snapshot
-        with self.lock:
-            if self._layered is None or self._layered.version != self.grid.version:
-                self._layered = MapSnapshot(self._build_map(with_layers=True))
-            return self._layered
-
-    def next_refresh_in(self, since_last_s: float) -> float:
-        """Seconds to wait before the next snapshot: at least the configured interval, and at
-        least REFRESH_COST_SHARE⁻¹ times what the last one cost, so a huge map under a stream of
-        tiles never spends more than that share of the time encoding snapshots."""
-        interval = max(self.settings.publish_interval_s, self.refresh_cost_s / REFRESH_COST_SHARE)
-        return max(0.0, interval - since_last_s)
-
-    def refresh(self) -> tuple[MapSnapshot, Window, int] | None:
-        """A new snapshot if the grid changed since the last one, with the changed window."""
-        started = time.perf_counter()
-        with self.lock:
-            if self.grid.version == self.snapshot.version:
-                return None
-            previous = self.snapshot.version
-            snapshot = MapSnapshot(self._build_map())
-            dirty = self.grid.take_dirty()
-        # Encode the default answer here, off the query path and outside the lock, before clients
-        # can see this snapshot: no query waits for a compression.
-        snapshot.encoded(DEFAULT_QUERY)
-        self.snapshot = snapshot
-        self.refresh_cost_s = time.perf_counter() - started
-        return snapshot, dirty, previous
-
-    def decay(self, elapsed_s: float) -> None:
-        with self.lock:
-            self.grid.decay(time.time(), elapsed_s)
-
-    def health(self) -> dict[str, Any]:
-        now = time.time()
-        with self.lock:
-            pairs = sorted(set(self.accepted) | self.alive)
-            grid = self.grid
-            return {
-                "pairs": {
-                    p: {
-                        "alive": p in self.alive,
-                        "tiles": self.accepted[p],
-                        "last_tile_age_s": round(now - self.last_tile_s[p], 3)
-                        if p in self.last_tile_s
-                        else None,
-                        "capture_to_fused_ms": self.capture_to_fused_ms.get(p),
-                    }
-                    for p in pairs
-                },
-                "tiles_accepted": sum(self.accepted.values()),
-                "tiles_rejected": dict(self.rejected),
-                "detections_rejected": dict(self.objects_rejected),
-                "objects": len(self.objects_header.objects),
-                "map": {
-                    "version": grid.version,
-                    "cols": grid.window.cols,
-                    "rows": grid.window.rows,
-                    "resolution_m": grid.params.resolution_m,
-                    "origin_m": list(grid.window.origin_m(grid.params.resolution_m)),
-                    "known_cells": int(grid.known.sum()),
-                },
-            }
-
-
-def update_payload(snapshot: MapSnapshot, dirty: Window, previous_version: int) -> bytes:
-    full = snapshot.map
-    part = dirty.intersect(full.window)
-    rows, cols = part.slices_in(full.window)
+def update_payload(
+    frozen: FrozenMap, part: Window, previous_version: int, occupancy: np.ndarray
+) -> bytes:
     header = MapUpdateHeader(
-        version=full.version,
+        version=frozen.version,
         previous_version=previous_version,
-        stamp_ns=full.stamp_ns,
-        resolution_m=full.resolution_m,
+        epoch=frozen.epoch_ns,
+        stamp_ns=frozen.stamp_ns,
+        resolution_m=frozen.resolution_m,
         i0=part.i0,
         j0=part.j0,
         cols=part.cols,
         rows=part.rows,
-        map_i0=full.i0,
-        map_j0=full.j0,
-        map_cols=full.window.cols,
-        map_rows=full.window.rows,
+        map_i0=frozen.window.i0,
+        map_j0=frozen.window.j0,
+        map_cols=frozen.window.cols,
+        map_rows=frozen.window.rows,
     )
-    arrays = {"occupancy": np.ascontiguousarray(full.occupancy[rows, cols])}
-    return encode(MAP_UPDATE_KIND, header, arrays)
+    return encode(MAP_UPDATE_KIND, header, {"occupancy": np.ascontiguousarray(occupancy)})
+
+
+def occupancy_map_of(view: View, with_layers: bool) -> OccupancyMap:
+    """The whole map of a View, assembled from its chunks (on a query worker, not the owner)."""
+    frozen = view.frozen
+
+    def layer(name: str) -> Any:
+        return frozen.layer(name) if with_layers else None
+
+    return OccupancyMap(
+        occupancy=frozen.layer("served"),
+        resolution_m=frozen.resolution_m,
+        i0=frozen.window.i0,
+        j0=frozen.window.j0,
+        version=frozen.version,
+        stamp_ns=frozen.stamp_ns,
+        pairs=list(view.pairs),
+        epoch=frozen.epoch_ns,
+        logodds=layer("logodds"),
+        height_m=layer("height_m"),
+        predicted=layer("predicted"),
+        last_seen_s=layer("last_seen_s"),
+    )
+
+
+class SnapshotCache:
+    """The MapSnapshot of the newest View, made once per version when first asked (with layers:
+    a separate one, rarely asked), so ten clients cost one assembly and one encoding."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._cached: dict[bool, tuple[tuple[int, int], MapSnapshot]] = {}
+
+    def get(self, view: View, with_layers: bool) -> MapSnapshot:
+        with self._lock:
+            cached = self._cached.get(with_layers)
+            if cached is not None and cached[0] == view.frozen.key:
+                return cached[1]
+            snapshot = MapSnapshot(occupancy_map_of(view, with_layers))
+            self._cached[with_layers] = (view.frozen.key, snapshot)
+            return snapshot
 
 
 OBJECT_FORMATS = {"msgpack": WIRE_ENCODING, "json": "application/json"}
@@ -288,52 +289,195 @@ def objects_payload(header: ObjectsHeader, fmt: str) -> bytes:
     return encode(OBJECTS_KIND, header)
 
 
+def health_of(view: View, writer: StateWriter | None, dropped: Mapping[str, int]) -> dict[str, Any]:
+    now = time.time()
+    frozen = view.frozen
+    window = frozen.window
+    pairs = sorted(set(view.accepted) | set(view.processes))
+    state: dict[str, Any] = {}
+    if writer is not None:
+        state = {
+            "saved_version": writer.saved_version,
+            "last_save_age_s": round(now - writer.saved_s, 3) if writer.saved_s else None,
+            "save_errors": writer.errors,
+        }
+    return {
+        "pairs": {
+            p: {
+                "alive": bool(view.processes.get(p)),
+                "processes": list(view.processes.get(p, ())),
+                "conflict": len(view.processes.get(p, ())) > 1,
+                "tiles": view.accepted.get(p, 0),
+                "last_tile_age_s": round(now - view.last_tile_s[p], 3)
+                if p in view.last_tile_s
+                else None,
+                "capture_to_fused_ms": view.capture_to_fused_ms.get(p),
+            }
+            for p in pairs
+        },
+        "tiles_accepted": sum(view.accepted.values()),
+        "tiles_rejected": _with_overload(view.rejected, dropped.get("tile", 0)),
+        "detections_rejected": _with_overload(
+            view.detections_rejected, dropped.get("detections", 0)
+        ),
+        "liveliness_rejected": dict(view.liveliness_rejected),
+        "objects": len(view.objects.objects),
+        "map": {
+            "epoch": frozen.epoch_ns,
+            "version": frozen.version,
+            "cols": window.cols,
+            "rows": window.rows,
+            "resolution_m": frozen.resolution_m,
+            "origin_m": list(window.origin_m(frozen.resolution_m)),
+            "known_cells": frozen.known_cells(),
+            "chunks": len(frozen.chunks),
+        },
+        "state": state,
+    }
+
+
+def _with_overload(counts: Mapping[str, int], overload: int) -> dict[str, int]:
+    return {**counts, "overload": overload} if overload else dict(counts)
+
+
+class QueryWorker:
+    """Answers one kind of query on its own thread; Zenoh's callback only queues the query (a full
+    backlog is answered "overloaded" at once). Every query gets a reply: an answer, or an error
+    naming what went wrong."""
+
+    def __init__(self, name: str, answer: Callable[[zenoh.Query], None]) -> None:
+        self.name = name
+        self._answer = answer
+        self._queue: queue.Queue[zenoh.Query | None] = queue.Queue(QUERY_BACKLOG)
+        self._thread = threading.Thread(target=self._run, name=f"fusion-{name}", daemon=True)
+        self._thread.start()
+
+    def offer(self, query: zenoh.Query) -> None:
+        try:
+            self._queue.put_nowait(query)
+        except queue.Full:
+            query.reply_err(f"{self.name}: overloaded, try again")
+            finish(query)
+
+    def _run(self) -> None:
+        while (query := self._queue.get()) is not None:
+            try:
+                self._answer(query)
+            except Exception as error:  # one odd query must not end the worker, nor go unanswered
+                log.error("query failed", extra={"key": self.name, "error": repr(error)[:200]})
+                query.reply_err(f"{self.name}: {type(error).__name__}: {error}")
+            finally:
+                finish(query)
+
+    def close(self) -> None:
+        self._queue.put(None)
+        self._thread.join(5.0)
+
+
+def query_parameters(query: zenoh.Query) -> dict[str, str]:
+    return dict(query.parameters.__iter__())  # the stub types __iter__ as returning a list
+
+
+def finish(query: zenoh.Query) -> None:
+    """Finalise the query now (replies sent, the asker's get ends) rather than at garbage collection."""
+    query.drop()  # type: ignore[no-untyped-call]
+
+
+def check_state_dir(state_dir: Path) -> None:
+    """A state directory that is a file, or cannot be written, stops start-up with one line:
+    never "serves, then dies at the first save"."""
+    where = f"--state-dir {state_dir}"
+    if state_dir.exists() and not state_dir.is_dir():
+        startup_error(f"{where}: is not a directory")
+    try:
+        state_dir.mkdir(parents=True, exist_ok=True)
+        probe = state_dir / f".write-probe.{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as error:
+        startup_error(f"{where}: not writable: {error.strerror or error}")
+
+
+def check_bounds(params: GridParams) -> None:
+    bounds = params.bounds
+    if bounds is not None and bounds.cols * bounds.rows > params.max_cells:
+        startup_error(
+            f"--bounds: {bounds.cols}×{bounds.rows} = {bounds.cols * bounds.rows} cells exceeds "
+            f"--max-cells {params.max_cells}"
+        )
+
+
 def main(settings: FusionSettings) -> None:
     setup_logging("fusion", settings.log_level)
-    changed = threading.Event()
-    stop = stop_on_signals(changed)  # before loading the state: a stop during a long load is clean
+    stop = stop_on_signals()  # before loading the state: a stop during a long load is clean
     params = settings.grid_params()
+    check_bounds(params)
+    check_state_dir(settings.state_dir)
     compile_rules()
-    grid = load_grid(params, settings.state_dir) or FusedGrid(params)
-    state = FusionState(settings, grid, changed)
+    epoch_ns = time.time_ns()
+    grid = load_grid(params, settings.state_dir, epoch_ns)
+    state = FusionState(settings, grid)
     if grid.version:
         log.info(
             "map restored",
             extra={"version": grid.version, "cols": grid.window.cols, "rows": grid.window.rows},
         )
+    inbox = Inbox(INBOX_MESSAGES, INBOX_LARGEST_MESSAGES * state.gate.max_bytes)
+    writer = StateWriter(settings.state_dir)
+    snapshots = SnapshotCache()
 
-    def on_map_query(query: zenoh.Query) -> None:
+    def answer_map(query: zenoh.Query) -> None:
         try:
-            request = parse_map_query(dict(query.parameters))
+            request = parse_map_query(query_parameters(query))
         except ValueError as error:
             query.reply_err(f"map/latest: {error}")
             return
-        snapshot = state.snapshot_for(request)
+        snapshot = snapshots.get(state.view, bool(request.layers))
         query.reply(
             query.key_expr, snapshot.encoded(request), encoding=CONTENT_TYPES[request.format]
         )
 
-    def on_objects_query(query: zenoh.Query) -> None:
-        fmt = dict(query.parameters).get("format", "msgpack")
+    def answer_objects(query: zenoh.Query) -> None:
+        fmt = query_parameters(query).get("format", "msgpack")
         if fmt not in OBJECT_FORMATS:
             query.reply_err(f"map/objects: format {fmt!r} not one of {', '.join(OBJECT_FORMATS)}")
             return
-        with state.lock:
-            header = state.objects_header
+        header = state.view.objects
         query.reply(query.key_expr, objects_payload(header, fmt), encoding=OBJECT_FORMATS[fmt])
 
-    def on_health_query(query: zenoh.Query) -> None:
-        query.reply(query.key_expr, json.dumps(state.health()), encoding="application/json")
+    def answer_health(query: zenoh.Query) -> None:
+        answer = health_of(state.view, writer, inbox.dropped_counts())
+        query.reply(query.key_expr, json.dumps(answer), encoding="application/json")
 
+    def hand_over(kind: str, droppable: bool = True) -> Callable[[zenoh.Sample], None]:
+        def callback(sample: zenoh.Sample) -> None:
+            inbox.offer(
+                Delivery(
+                    kind,
+                    str(sample.key_expr),
+                    time.time_ns(),
+                    sample.payload.to_bytes(),
+                    sample.kind == zenoh.SampleKind.PUT,
+                ),
+                droppable,
+            )
+
+        return callback
+
+    workers = [
+        QueryWorker(keys.MAP_LATEST, answer_map),
+        QueryWorker(keys.MAP_HEALTH, answer_health),
+        QueryWorker(keys.MAP_OBJECTS, answer_objects),
+    ]
     with open_session(settings) as session:
-        subscriber = session.declare_subscriber(keys.TILES_ALL, state.on_tile)
-        liveliness = session.liveliness().declare_subscriber(
-            keys.DEPTH_ALIVE_ALL, state.on_liveliness, history=True
-        )
-        map_queryable = session.declare_queryable(keys.MAP_LATEST, on_map_query)
-        health_queryable = session.declare_queryable(keys.MAP_HEALTH, on_health_query)
-        detections = session.declare_subscriber(keys.OBJECTS_ALL, state.on_detections)
-        objects_queryable = session.declare_queryable(keys.MAP_OBJECTS, on_objects_query)
+        declared: list[Any] = [
+            session.declare_subscriber(keys.TILES_ALL, hand_over("tile")),
+            session.declare_subscriber(keys.OBJECTS_ALL, hand_over("detections")),
+            session.liveliness().declare_subscriber(
+                keys.DEPTH_ALIVE_ALL, hand_over("presence", droppable=False), history=True
+            ),
+            *(session.declare_queryable(w.name, w.offer) for w in workers),
+        ]
         # DROP, as map/updates: a query of map/objects always gives the current list.
         objects_publisher = session.declare_publisher(
             keys.MAP_OBJECTS,
@@ -349,59 +493,75 @@ def main(settings: FusionSettings) -> None:
         )
         log.info(
             "started",
-            extra={"resolution_m": settings.resolution_m, "state_dir": str(settings.state_dir)},
+            extra={
+                "resolution_m": settings.resolution_m,
+                "state_dir": str(settings.state_dir),
+                "epoch": epoch_ns,
+            },
         )
-        started = time.monotonic()
-        last = {"decay": started, "save": started, "summary": started, "refresh": 0.0}
-        saved_version = grid.version
-        while not stop.is_set():
-            # Publish a change as soon as it lands, but no sooner than the refresh interval.
-            state.changed.wait(MAINTENANCE_PERIOD_S)
-            if stop.wait(state.next_refresh_in(time.monotonic() - last["refresh"])):
-                break
-            state.changed.clear()
-            objects = state.refresh_objects()
-            if objects is not None:
-                objects_publisher.put(objects_payload(objects, "msgpack"))
-            refreshed = state.refresh()
-            now = time.monotonic()
-            if refreshed is not None:  # the interval runs from the last snapshot actually made
-                last["refresh"] = now
-                snapshot, dirty, previous = refreshed
-                if not dirty.empty:
-                    updates.put(update_payload(snapshot, dirty, previous))
-            if now - last["decay"] >= 1.0:
-                state.decay(now - last["decay"])
-                last["decay"] = now
-            if (
-                now - last["save"] >= settings.save_interval_s
-                and state.snapshot.version != saved_version
-            ):
-                with state.lock:
-                    save_grid(state.grid, settings.state_dir)
-                    saved_version = state.grid.version
-                last["save"] = now
-            if now - last["summary"] >= settings.summary_s:
-                health = state.health()
-                log.info(
-                    "summary",
-                    extra={
-                        "version": health["map"]["version"],
-                        "tiles": health["tiles_accepted"],
-                        "rejected": sum(health["tiles_rejected"].values()),
-                        "alive": ",".join(p for p, v in health["pairs"].items() if v["alive"]),
-                    },
-                )
-                last["summary"] = now
-        subscriber.undeclare()
-        liveliness.undeclare()
-        map_queryable.undeclare()
-        health_queryable.undeclare()
-        detections.undeclare()
-        objects_queryable.undeclare()
-    with state.lock:
-        path = save_grid(state.grid, settings.state_dir)
-    log.info("stopped", extra={"version": state.grid.version, "saved": str(path)})
+        run(settings, state, inbox, writer, stop, updates.put, objects_publisher.put)
+        for entity in declared:
+            entity.undeclare()
+    for worker in workers:
+        worker.close()
+    state.publish()
+    writer.hand_over(state.view.frozen, state.unsaved)
+    writer.close()
+    log.info("stopped", extra={"version": grid.version, "saved_version": writer.saved_version})
+
+
+def run(
+    settings: FusionSettings,
+    state: FusionState,
+    inbox: Inbox,
+    writer: StateWriter,
+    stop: threading.Event,
+    put_update: Callable[[bytes], Any],
+    put_objects: Callable[[bytes], Any],
+) -> None:
+    """The owner's loop: messages in, then (when due) updates out, decay, a save hand-over."""
+    now = time.monotonic()
+    last = {"publish": 0.0, "decay": now, "save": now, "summary": now}
+    while not stop.is_set():
+        pending = state.grid.version != state.view.frozen.version
+        wait_s = IDLE_WAIT_S
+        if pending:
+            wait_s = max(0.0, settings.publish_interval_s - (time.monotonic() - last["publish"]))
+        for delivery in inbox.take(min(wait_s, IDLE_WAIT_S)):
+            state.handle(delivery)
+        objects = state.refresh_objects()
+        if objects is not None:
+            put_objects(objects_payload(objects, "msgpack"))
+        now = time.monotonic()
+        if now - last["decay"] >= DECAY_PERIOD_S:
+            state.grid.decay(time.time(), now - last["decay"])
+            last["decay"] = now
+        if (
+            state.grid.version != state.view.frozen.version
+            and now - last["publish"] >= settings.publish_interval_s
+        ):
+            payload = state.publish()
+            last["publish"] = now
+            if payload is not None:
+                put_update(payload)
+        else:
+            state.update_view()  # counters (rejections, liveliness) for health
+        if now - last["save"] >= settings.save_interval_s and state.unsaved:
+            writer.hand_over(state.view.frozen, state.unsaved)
+            state.unsaved = set()
+            last["save"] = now
+        if now - last["summary"] >= settings.summary_s:
+            view = state.view
+            log.info(
+                "summary",
+                extra={
+                    "version": view.frozen.version,
+                    "tiles": sum(view.accepted.values()),
+                    "rejected": sum(view.rejected.values()),
+                    "alive": ",".join(sorted(state.alive)),
+                },
+            )
+            last["summary"] = now
 
 
 def cli(argv: Sequence[str] | None = None) -> None:
