@@ -7,46 +7,56 @@ service, the fusion service and the tests.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
+from pydantic import ConfigDict, Field
+from pydantic.dataclasses import dataclass
 
 FloatArray = npt.NDArray[np.float64] | npt.NDArray[np.float32]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, config=ConfigDict(extra="forbid"))
 class SensorModelParams:
-    """Parameters of the inverse sensor model; defaults follow DESIGN.md and OctoMap."""
+    """Parameters of the inverse sensor model, declared once (the depth settings nest them as
+    ``--model.*``); defaults follow DESIGN.md and OctoMap."""
 
-    disparity_sigma_px: float = 0.25
-    calibration_sigma_m: float = 0.01
-    obstacle_min_m: float = 0.10
-    obstacle_max_m: float = 2.0
-    p_hit: float = 0.9
-    p_miss: float = 0.1
+    disparity_sigma_px: float = Field(default=0.25, gt=0.0, description="Δd, disparity noise, px")
+    calibration_sigma_m: float = Field(
+        default=0.01, ge=0.0, description="ε, calibration error term, m"
+    )
+    obstacle_min_m: float = Field(
+        default=0.10, ge=0.0, description="lowest height that blocks a robot"
+    )
+    obstacle_max_m: float = Field(
+        default=2.0, gt=0.0, description="highest height that blocks a robot"
+    )
+    p_hit: float = Field(default=0.9, gt=0.5, lt=1.0, description="occupied evidence bound")
+    p_miss: float = Field(default=0.1, gt=0.0, lt=0.5, description="free evidence bound")
     """One cell observation aggregates ~20 pixels, far stronger evidence than the single beam
     OctoMap's 0.7/0.4 stand for: a conclusive one (``edge_fraction`` ± ``evidence_ramp`` passed)
     turns a cell from clamped free to occupied, or back, in one frame (with the fusion clamps)."""
-    edge_fraction: float = 0.5
+    edge_fraction: float = Field(
+        default=0.5,
+        gt=0.0,
+        lt=1.0,
+        description="share of a cell's pixels in the band that is neutral",
+    )
     """Share of a cell's pixels in the band at which its observation is neutral (p = 0.5): an object
     edge through the cell's centre covers half the cell, and a cell is occupied by the object when
     its centre is (how nav2 rasterises, and how ``overgrid eval`` scores)."""
-    evidence_ramp: float = 0.25
+    evidence_ramp: float = Field(
+        default=0.25,
+        gt=0.0,
+        description="shares beyond edge_fraction ± this give full p_hit / p_miss",
+    )
     """Shares beyond ``edge_fraction`` ± this give full p_hit / p_miss; p is linear in between."""
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.p_miss < 0.5 < self.p_hit < 1.0:
-            raise ValueError(f"need 0 < p_miss < 0.5 < p_hit < 1, got {self.p_miss}, {self.p_hit}")
-        if not 0.0 <= self.obstacle_min_m < self.obstacle_max_m:
+        if self.obstacle_min_m >= self.obstacle_max_m:
             raise ValueError(
-                f"obstacle band [{self.obstacle_min_m}, {self.obstacle_max_m}] m is empty"
-            )
-        if self.disparity_sigma_px <= 0 or self.calibration_sigma_m < 0:
-            raise ValueError("disparity sigma must be > 0 and calibration sigma ≥ 0")
-        if not 0.0 < self.edge_fraction < 1.0 or self.evidence_ramp <= 0.0:
-            raise ValueError(
-                f"need 0 < edge_fraction < 1 and evidence_ramp > 0, got {self.edge_fraction}, {self.evidence_ramp}"
+                f"obstacle band [{self.obstacle_min_m}, {self.obstacle_max_m}] m is empty: "
+                "obstacle_min_m must be below obstacle_max_m"
             )
 
 

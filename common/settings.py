@@ -1,24 +1,36 @@
-"""Settings from CLI flags and ``OVERGRID_*`` environment variables, validated by pydantic.
+"""Settings from CLI flags and ``OVERGRID_*`` environment variables, parsed and validated by
+pydantic-settings' own CLI support.
 
-Every service declares one flat ``BaseSettings`` subclass; flags are generated from its fields so a
-setting is named once. A bad value stops start-up with a message that names the flag and the
-environment variable.
+One configuration tree: a service's settings nest the parameter models of its algorithms (e.g.
+``DepthSettings.model: SensorModelParams``), whose defaults and bounds live only there. A nested
+parameter is ``--model.p-hit`` / ``OVERGRID_MODEL__P_HIT``; where its last name is unique in the
+tree, the flat ``--p-hit`` says the same (flags derived from the tree, never declared twice). A bad
+value stops start-up with one line that names the flag and the environment variable (exit 2).
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
-import types
-import typing
-from collections.abc import Sequence
+from collections import Counter
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Annotated, Any, Literal, NoReturn, TypeVar, get_args, get_origin
+from typing import Annotated, Any, Literal, NoReturn, TypeVar
 
-from pydantic import BeforeValidator, Field, ValidationError
-from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+from pydantic import BaseModel, BeforeValidator, Field, ValidationError
+from pydantic.dataclasses import is_pydantic_dataclass
+from pydantic_settings import (
+    BaseSettings,
+    CliSettingsSource,
+    NoDecode,
+    SettingsConfigDict,
+    SettingsError,
+)
+
+from common.lattice import MAX_RESOLUTION_M, MIN_RESOLUTION_M
 
 ENV_PREFIX = "OVERGRID_"
+ENV_NESTED_DELIMITER = "__"
+NESTED_FLAG_SEPARATOR = "."
 
 
 def _split_commas(value: Any) -> Any:
@@ -37,11 +49,36 @@ CommaList = Annotated[list[str], NoDecode, BeforeValidator(_split_commas)]
 
 LogLevel = Literal["debug", "info", "warning", "error"]
 
+DEFAULT_RESOLUTION_M = 0.05
+"""The one global lattice's cell size: depth's tiles and fusion's map must agree on it."""
+
+ResolutionM = Annotated[
+    float,
+    Field(ge=MIN_RESOLUTION_M, le=MAX_RESOLUTION_M, description="lattice cell size, m"),
+]
+
 
 class OvergridSettings(BaseSettings):
-    """Base of every service's settings: the environment prefix and strictness live here."""
+    """Base of every service's settings: the environment prefix, strictness and CLI style."""
 
-    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="forbid", validate_default=True)
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX,
+        env_nested_delimiter=ENV_NESTED_DELIMITER,
+        extra="forbid",
+        validate_default=True,
+        cli_kebab_case=True,
+        cli_implicit_flags=True,
+        cli_exit_on_error=False,  # parse errors become one line (startup_error), not a usage dump
+        cli_show_env_vars=True,
+    )
+
+
+class OvergridParams(BaseModel):
+    """Base of a service's parameters apart from its Zenoh session: what ``overgrid up`` nests and
+    hands to its children unchanged. (A settings-style config, so that a service's settings can be
+    both this and :class:`ZenohSettings`.)"""
+
+    model_config = SettingsConfigDict(extra="forbid")
 
 
 class ZenohSettings(OvergridSettings):
@@ -65,64 +102,88 @@ class ZenohSettings(OvergridSettings):
 S = TypeVar("S", bound=OvergridSettings)
 
 
-def flag_name(field: str) -> str:
-    return "--" + field.replace("_", "-")
+def _model_fields(model: Any) -> Mapping[str, Any]:
+    """Fields of a pydantic model or pydantic dataclass; empty for anything else (a leaf)."""
+    if isinstance(model, type) and (issubclass(model, BaseModel) or is_pydantic_dataclass(model)):
+        fields: Mapping[str, Any] = getattr(model, "__pydantic_fields__", {})
+        return fields
+    return {}
 
 
-def env_name(field: str) -> str:
-    return ENV_PREFIX + field.upper()
-
-
-def _is_list(annotation: Any) -> bool:
-    origin = get_origin(annotation)
-    if origin is Annotated:
-        return _is_list(get_args(annotation)[0])
-    if origin in (typing.Union, types.UnionType):
-        return any(_is_list(arg) for arg in get_args(annotation))
-    return origin is list
-
-
-def _is_bool(annotation: Any) -> bool:
-    return annotation is bool
-
-
-def build_parser(
-    settings_cls: type[OvergridSettings], prog: str, description: str
-) -> argparse.ArgumentParser:
-    """One flag per settings field; defaults stay in the model so env vars can fill the gaps."""
-    parser = argparse.ArgumentParser(prog=prog, description=description)
-    for name, field in settings_cls.model_fields.items():
-        help_text = f"{field.description or ''} [env {env_name(name)}]"
-        extra = field.json_schema_extra if isinstance(field.json_schema_extra, dict) else {}
-        flag = flag_name(str(extra.get("flag", name)))  # a field may not shadow BaseModel (json)
-        if _is_bool(field.annotation):
-            parser.add_argument(
-                flag,
-                dest=name,
-                action=argparse.BooleanOptionalAction,
-                default=None,
-                help=help_text,
-            )
-        elif _is_list(field.annotation):
-            parser.add_argument(flag, dest=name, action="append", default=None, help=help_text)
+def _leaves(model: type[Any], path: tuple[str, ...] = ()) -> Iterator[tuple[str, ...]]:
+    """Path of every leaf setting of the tree (a nested model's fields, not the model itself)."""
+    for name, field in _model_fields(model).items():
+        nested = _model_fields(field.annotation)
+        if nested:
+            yield from _leaves(field.annotation, (*path, name))
         else:
-            parser.add_argument(flag, dest=name, default=None, help=help_text)
-    return parser
+            yield (*path, name)
 
 
-def describe_validation_error(error: ValidationError) -> str:
-    """Name the flag and env var of each bad setting, with what was wrong."""
-    lines = []
-    for item in error.errors():
-        loc = [str(part) for part in item["loc"]]
-        if not loc:  # a check across settings names them in its own message
-            lines.append(f"invalid settings: {item['msg'].removeprefix('Value error, ')}")
+def flag_name(path: Sequence[str]) -> str:
+    """``("model", "p_hit")`` → ``--model.p-hit``."""
+    return "--" + NESTED_FLAG_SEPARATOR.join(path).replace("_", "-")
+
+
+def env_name(path: Sequence[str]) -> str:
+    """``("model", "p_hit")`` → ``OVERGRID_MODEL__P_HIT``."""
+    return ENV_PREFIX + ENV_NESTED_DELIMITER.join(path).upper()
+
+
+def flat_flags(settings_cls: type[BaseSettings]) -> dict[str, str]:
+    """Nested flag (without ``--``) → its flat alias: the class's own ``cli_shortcuts`` first, then
+    the leaf's last name wherever no other setting of the tree has that name."""
+    explicit = dict(settings_cls.model_config.get("cli_shortcuts") or {})
+    taken = {flag for aliases in explicit.values() for flag in _as_list(aliases)}
+    leaves = list(_leaves(settings_cls))
+    nested_models = [name for name in _model_fields(settings_cls) if (name,) not in leaves]
+    names = Counter([path[-1] for path in leaves] + nested_models)
+    flags: dict[str, str] = {}
+    for path in leaves:
+        target = flag_name(path)[2:]
+        if target in explicit:
+            flags[target] = ",".join(_as_list(explicit[target]))
             continue
-        where = f"{flag_name(loc[0])} / {env_name(loc[0])}"
+        flat = flag_name(path[-1:])[2:]
+        if len(path) > 1 and names[path[-1]] == 1 and flat not in taken:
+            flags[target] = flat
+    return flags
+
+
+def _as_list(aliases: str | list[str]) -> list[str]:
+    return [aliases] if isinstance(aliases, str) else list(aliases)
+
+
+def _setting_path(settings_cls: type[BaseModel], loc: Sequence[int | str]) -> list[str]:
+    """The settings path in an error's location (pydantic adds union members and list indices)."""
+    path: list[str] = []
+    model: Any = settings_cls
+    for part in loc:
+        fields = _model_fields(model)
+        if not isinstance(part, str) or part not in fields:
+            break
+        path.append(part)
+        model = fields[part].annotation
+    return path
+
+
+def describe_validation_error(error: ValidationError, settings_cls: type[BaseSettings]) -> str:
+    """One line naming the flag (its flat alias too) and env var of each bad setting, and why."""
+    flats = flat_flags(settings_cls)
+    parts = []
+    for item in error.errors():
+        path = _setting_path(settings_cls, item["loc"])
+        message = item["msg"].removeprefix("Value error, ")
+        if not path:  # a check across settings names them in its own message
+            parts.append(f"invalid settings: {message}")
+            continue
+        flag = flag_name(path)
+        flat = flats.get(flag[2:])
+        names = (f"--{flat} ({flag})" if flat else flag) + f" / {env_name(path)}"
         got = item.get("input")
         suffix = f" (got {got!r})" if got is not None and not isinstance(got, dict) else ""
-        lines.append(f"invalid setting {where}: {item['msg']}{suffix}")
-    return "\n".join(lines)
+        parts.append(f"invalid setting {names}: {message}{suffix}")
+    return "; ".join(parts)
 
 
 STARTUP_ERROR_EXIT = 2
@@ -130,21 +191,29 @@ STARTUP_ERROR_EXIT = 2
 
 def startup_error(message: str) -> NoReturn:
     """Stop start-up with one line naming the setting or file and what is wrong (exit 2)."""
-    print(message, file=sys.stderr)
+    print(" ".join(message.split()), file=sys.stderr)
     raise SystemExit(STARTUP_ERROR_EXIT)
 
 
 def load_settings(settings_cls: type[S], **values: Any) -> S:
-    """Validate ``values`` (CLI wins over env); exit with a clear message naming bad settings."""
+    """Validate ``values`` (they win over env); exit with one line naming the bad settings."""
     try:
-        return settings_cls(**{k: v for k, v in values.items() if v is not None})
+        return settings_cls(**values)
     except ValidationError as error:
-        startup_error(describe_validation_error(error))
+        startup_error(describe_validation_error(error, settings_cls))
 
 
 def parse_settings(
     settings_cls: type[S], argv: Sequence[str] | None, prog: str, description: str
 ) -> S:
-    parser = build_parser(settings_cls, prog, description)
-    args = parser.parse_args(argv)
-    return load_settings(settings_cls, **vars(args))
+    """Flags (``argv``, default ``sys.argv[1:]``) over ``OVERGRID_*`` env over the models' defaults."""
+    shortcuts = {target: flat.split(",") for target, flat in flat_flags(settings_cls).items()}
+    try:
+        source: CliSettingsSource[Any] = CliSettingsSource(
+            settings_cls, cli_prog_name=prog, cli_shortcuts=shortcuts
+        )
+        source.root_parser.description = description
+        parsed = source(args=list(sys.argv[1:] if argv is None else argv))
+        return load_settings(settings_cls, _cli_settings_source=parsed)
+    except SettingsError as error:
+        startup_error(f"{prog}: {str(error).removeprefix('error parsing CLI: ')} (see --help)")

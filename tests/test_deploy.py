@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from common.settings import build_parser, load_settings
+from common.settings import parse_settings
 from services.camera_sim.service import CameraSimSettings
 from services.depth.service import DepthSettings
 from services.fusion.service import FusionSettings
@@ -32,8 +32,7 @@ def test_systemd_units_run_commands_that_parse(unit: Path, tmp_path: Path) -> No
     assert words[0].endswith("/overgrid")
     command, args = words[1], words[2:]
     settings_cls = SETTINGS[command]
-    parsed = build_parser(settings_cls, command, "").parse_args(args)
-    settings = load_settings(settings_cls, **vars(parsed))
+    settings = parse_settings(settings_cls, args, command, "")
     assert settings.config is not None and settings.config.name.endswith(".json5")
 
 

@@ -96,7 +96,7 @@ def test_logodds_round_trip() -> None:
 
 
 def test_bad_parameters_are_rejected() -> None:
-    with pytest.raises(ValueError, match="p_miss"):
+    with pytest.raises(ValueError, match="p_hit"):  # its bounds say p_miss < 0.5 < p_hit
         SensorModelParams(p_hit=0.4)
     with pytest.raises(ValueError, match="band"):
         SensorModelParams(obstacle_min_m=2.5)

@@ -3,8 +3,13 @@ import sys
 
 import pytest
 
-from common.settings import load_settings
-from services.camera_sim.service import CameraSimSettings
+from common.sensor_model import SensorModelParams
+from common.settings import load_settings, parse_settings
+from services.camera_sim.settings import CameraSimSettings
+from services.depth.settings import DepthSettings
+from services.depth.stereo import MatcherConfig
+from services.fusion.params import GridParams
+from services.fusion.settings import FusionSettings
 
 
 def test_bad_value_names_the_flag_and_env_var(capsys: pytest.CaptureFixture[str]) -> None:
@@ -18,10 +23,10 @@ def test_bad_value_names_the_flag_and_env_var(capsys: pytest.CaptureFixture[str]
 def test_env_var_is_read_and_validated(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setenv("OVERGRID_PAIR_COUNT", "6")
+    monkeypatch.setenv("OVERGRID_RIG__PAIR_COUNT", "6")
     monkeypatch.setenv("OVERGRID_PAIRS", "p1,p5")
     settings = load_settings(CameraSimSettings)
-    assert settings.pair_count == 6 and settings.pairs == ["p1", "p5"]
+    assert settings.rig.pair_count == 6 and settings.pairs == ["p1", "p5"]
     monkeypatch.setenv("OVERGRID_MODE", "satellite")
     with pytest.raises(SystemExit):
         load_settings(CameraSimSettings)
@@ -30,7 +35,7 @@ def test_env_var_is_read_and_validated(
 
 def test_cross_setting_check_names_both_settings(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
-        load_settings(CameraSimSettings, pair_count=2, pairs=["p3"])
+        load_settings(CameraSimSettings, rig={"pair_count": 2}, pairs=["p3"])
     err = capsys.readouterr().err
     assert "--pairs" in err and "--pair-count" in err
 
@@ -43,4 +48,63 @@ def test_cli_rejects_bad_setting_at_start_up() -> None:
         timeout=60,
     )
     assert result.returncode == 2
-    assert "--width-px" in result.stderr
+    assert "--width-px" in result.stderr and "OVERGRID_RIG__WIDTH_PX" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+
+
+def test_nested_parameters_take_flat_and_nested_flags_and_env(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The algorithms' own parameter objects come out of the flags: their defaults are theirs."""
+    monkeypatch.setenv("OVERGRID_MODEL__P_MISS", "0.2")
+    settings = parse_settings(
+        DepthSettings,
+        ["--pair", "p1", "--p-hit", "0.8", "--matcher.block-size", "5", "--no-subpixel"],
+        "overgrid depth",
+        "",
+    )
+    assert settings.model == SensorModelParams(p_hit=0.8, p_miss=0.2)
+    assert settings.matcher == MatcherConfig(block_size=5, subpixel=False)
+    assert settings.pipeline_config().model is settings.model
+    defaults = parse_settings(FusionSettings, [], "overgrid fusion", "")
+    assert defaults.grid_params() == GridParams()
+    fusion = parse_settings(
+        FusionSettings,
+        ["--decay-after-s", "3", "--grid.resolution-m", "0.1", "--bounds", "0,0,10,5"],
+        "overgrid fusion",
+        "",
+    )
+    params = fusion.grid_params()
+    assert params.decay_after_s == 3.0 and params.resolution_m == 0.1
+    assert params.bounds is not None and (params.bounds.cols, params.bounds.rows) == (100, 50)
+
+
+@pytest.mark.parametrize(
+    ("args", "names"),
+    [
+        (["--p-hit", "0.3"], ["--p-hit", "--model.p-hit", "OVERGRID_MODEL__P_HIT"]),
+        (["--block-size", "4"], ["--matcher", "OVERGRID_MATCHER", "odd"]),
+        (["--obstacle-min-m", "3"], ["--model", "obstacle_min_m"]),
+        (["--downscale", "3"], ["--downscale", "OVERGRID_DOWNSCALE"]),
+        (["--no-such-flag", "1"], ["--no-such-flag"]),
+    ],
+)
+def test_bad_nested_value_or_unknown_flag_is_one_line(
+    capsys: pytest.CaptureFixture[str], args: list[str], names: list[str]
+) -> None:
+    with pytest.raises(SystemExit) as stopped:
+        parse_settings(DepthSettings, ["--pair", "p0", *args], "overgrid depth", "")
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    for name in names:
+        assert name in err, err
+
+
+def test_bounds_over_the_cell_limit_fail_at_start_up(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        parse_settings(FusionSettings, ["--bounds", "0,0,500,500"], "overgrid fusion", "")
+    assert "--bounds" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        parse_settings(FusionSettings, ["--bounds", "nan,0,1,1"], "overgrid fusion", "")
+    assert "--bounds" in capsys.readouterr().err

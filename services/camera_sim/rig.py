@@ -11,14 +11,16 @@ from common.camera import PinholeCamera, StereoCalibration, intrinsics_from_hfov
 
 
 class RigSpec(BaseModel):
-    model_config = ConfigDict(frozen=True)
+    """The simulated ceiling rig, declared once (the camera_sim settings nest it as ``--rig.*``)."""
 
-    pair_count: int = Field(4, ge=1, le=256)
-    height_m: float = Field(6.0, gt=0.5)
-    baseline_m: float = Field(0.5, gt=0.0)
-    width_px: int = Field(640, ge=64, le=4096)
-    height_px: int = Field(480, ge=48, le=4096)
-    hfov_deg: float = Field(60.0, gt=5.0, lt=170.0)
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    pair_count: int = Field(4, ge=1, le=256, description="stereo pairs on the ceiling grid")
+    height_m: float = Field(6.0, gt=0.5, le=50.0, description="ceiling height of the cameras")
+    baseline_m: float = Field(0.5, gt=0.0, le=5.0, description="stereo baseline")
+    width_px: int = Field(640, ge=64, le=4096, description="image width")
+    height_px: int = Field(480, ge=48, le=4096, description="image height")
+    hfov_deg: float = Field(60.0, gt=5.0, lt=170.0, description="horizontal field of view")
 
 
 def pair_name(index: int) -> str:

@@ -131,7 +131,7 @@ def main(settings: CameraSimSettings) -> None:
     stop = stop_on_signals()
     scene = settings.scene_spec()
     encode_jpeg = jpeg_encoder(0 if settings.ideal_cameras else settings.jpeg_quality)
-    true_calibrations = layout_pairs(settings.rig(), scene.floor_size_m)
+    true_calibrations = layout_pairs(settings.rig, scene.floor_size_m)
     if settings.pairs:
         true_calibrations = [c for c in true_calibrations if c.pair in settings.pairs]
     renderer = SceneRenderer(scene, true_calibrations, settings.shadows, settings.lighting())

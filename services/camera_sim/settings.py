@@ -6,8 +6,9 @@ from pathlib import Path
 
 import yaml
 from pydantic import Field, model_validator
+from pydantic_settings import SettingsConfigDict
 
-from common.settings import CommaList, ZenohSettings, startup_error
+from common.settings import CommaList, OvergridParams, ZenohSettings, startup_error
 from services.camera_sim.calibration_error import CalibrationError
 from services.camera_sim.capture import CameraModel
 from services.camera_sim.lighting import Lighting
@@ -19,7 +20,10 @@ _SENSOR = SensorParams()
 _CALIB_ERROR = CalibrationError()
 
 
-class CameraSimSettings(ZenohSettings):
+class CameraSimParams(OvergridParams):
+    """What the simulator renders and serves: the settings without the Zenoh session, which
+    ``overgrid up`` nests and hands over unchanged."""
+
     seed: int = Field(0, description="seed of the generated scene and its texture")
     scene: Path | None = Field(
         None, description="scene file (JSON/YAML SceneSpec) instead of a generated one"
@@ -31,17 +35,10 @@ class CameraSimSettings(ZenohSettings):
     plain_objects: bool = Field(False, description="every static object one uniform colour")
     floor_x_m: float = Field(12.0, gt=1.0, le=500.0, description="floor length along x")
     floor_y_m: float = Field(10.0, gt=1.0, le=500.0, description="floor length along y")
-    pair_count: int = Field(4, ge=1, le=256, description="stereo pairs on the ceiling grid")
+    rig: RigSpec = Field(default_factory=RigSpec)
     pairs: CommaList = Field(
         default_factory=list, description="render only these pairs (e.g. p0,p2)"
     )
-    camera_height_m: float = Field(
-        6.0, gt=0.5, le=50.0, description="ceiling height of the cameras"
-    )
-    baseline_m: float = Field(0.5, gt=0.0, le=5.0, description="stereo baseline")
-    width_px: int = Field(640, ge=64, le=4096, description="image width")
-    height_px: int = Field(480, ge=48, le=4096, description="image height")
-    hfov_deg: float = Field(60.0, gt=5.0, lt=170.0, description="horizontal field of view")
     rate_hz: float = Field(2.0, gt=0.0, le=60.0, description="frames per second per pair")
     vary_lighting: bool = Field(False, description="slowly vary the lighting over time")
     light_step_period_s: float = Field(
@@ -78,24 +75,22 @@ class CameraSimSettings(ZenohSettings):
     )
 
     @model_validator(mode="after")
-    def _pairs_exist(self) -> CameraSimSettings:
-        known = {pair_name(k) for k in range(self.pair_count)}
-        unknown = sorted(set(self.pairs) - known)
+    def _pairs_exist(self) -> CameraSimParams:
+        count = self.rig.pair_count
+        unknown = sorted(set(self.pairs) - set(self.pair_names()))
         if unknown:
             raise ValueError(
-                f"--pairs names {unknown}, but --pair-count {self.pair_count} has only p0…p{self.pair_count - 1}"
+                f"--pairs names {unknown}, but --pair-count {count} has only p0…p{count - 1}"
             )
         return self
 
-    def rig(self) -> RigSpec:
-        return RigSpec(
-            pair_count=self.pair_count,
-            height_m=self.camera_height_m,
-            baseline_m=self.baseline_m,
-            width_px=self.width_px,
-            height_px=self.height_px,
-            hfov_deg=self.hfov_deg,
-        )
+    def pair_names(self) -> list[str]:
+        """Every pair of the rig."""
+        return [pair_name(k) for k in range(self.rig.pair_count)]
+
+    def rendered_pairs(self) -> list[str]:
+        """The pairs this simulator renders: ``--pairs``, else all of them."""
+        return list(self.pairs) or self.pair_names()
 
     def scene_spec(self) -> SceneSpec:
         if self.scene is not None:
@@ -131,3 +126,9 @@ class CameraSimSettings(ZenohSettings):
 
     def lighting(self) -> Lighting:
         return Lighting(drift=self.vary_lighting, step_period_s=self.light_step_period_s)
+
+
+class CameraSimSettings(ZenohSettings, CameraSimParams):
+    """The camera_sim process: the simulator's parameters on a Zenoh session."""
+
+    model_config = SettingsConfigDict(cli_shortcuts={"rig.height-m": "camera-height-m"})

@@ -11,6 +11,8 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 import numpy.typing as npt
+from pydantic import ConfigDict, Field
+from pydantic.dataclasses import dataclass as pydantic_dataclass
 
 from common.camera import StereoCalibration
 
@@ -145,24 +147,41 @@ class Rectifier:
         return d_min, 16 * math.ceil((d_max - d_min) / 16)
 
 
-@dataclass(frozen=True)
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
 class MatcherConfig:
-    algorithm: Literal["sgbm", "bm"] = "sgbm"
-    block_size: int = 3
-    uniqueness_ratio: int = 10
-    speckle_window: int = 100
-    speckle_range: int = 2
-    full_width: bool = True
+    """The stereo matcher and its optional stages, declared once (the depth settings nest them as
+    ``--matcher.*``)."""
+
+    algorithm: Literal["sgbm", "bm"] = Field(default="sgbm", description="stereo matcher")
+    block_size: int = Field(default=3, ge=1, le=21, description="matcher block size (odd)")
+    uniqueness_ratio: int = Field(
+        default=10, ge=0, le=100, description="matcher uniqueness ratio, %"
+    )
+    speckle_window: int = Field(
+        default=100, ge=0, description="largest speckle removed, px (0: off)"
+    )
+    speckle_range: int = Field(default=2, ge=0, description="disparity range within a speckle, px")
+    full_width: bool = Field(default=True, description="match the image's left margin too (padded)")
     """Match the left margin too (:func:`match_full_width`) instead of leaving it invalid."""
-    edge_filter_px: float = 1.0
+    edge_filter_px: float = Field(
+        default=1.0,
+        ge=0.0,
+        description="drop pixels whose 3×3 disparity range exceeds this (0: off)",
+    )
     """Drop pixels whose 3×3 disparity range exceeds this (:func:`invalidate_depth_edges`; 0: off)."""
-    subpixel: bool = True
+    subpixel: bool = Field(
+        default=True, description="undo SGBM's pixel locking (equiangular fraction, 5×5 mean)"
+    )
     """Sub-pixel disparity free of pixel locking: :func:`equiangular_fraction`, then, after the
     edge filter, a 5×5 :func:`neighbourhood_mean` where the window spans ≤ 0.5 px. The re-mapped
     fraction alone is unbiased but noisy (its slope is 2 near whole pixels): on the renders' flat
     floor it is worse than SGBM's own; a mean of SGBM's own fractions keeps their bias. A wider
     gate (1 px) mixes surfaces 25 cm apart in height at 6 m and blurs object tops. Figures: README
     ("Depth"), bench/stereo_real.py, bench/depth_pipeline.py."""
+
+    def __post_init__(self) -> None:
+        if self.block_size % 2 == 0:
+            raise ValueError(f"block_size must be odd, got {self.block_size}")
 
 
 OPTIONAL_STAGES = ("full_width", "edge_filter_px", "subpixel")

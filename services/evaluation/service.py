@@ -20,6 +20,7 @@ import numpy as np
 import numpy.typing as npt
 import zenoh
 from pydantic import Field
+from pydantic_settings import SettingsConfigDict
 
 from common import keys
 from common.client import MapFollower, MapUnavailable, calibrations, latest, query_first
@@ -73,12 +74,12 @@ LIGHTING_IOU_DROP_MAX = 0.02
 
 
 class EvalSettings(ZenohSettings):
+    model_config = SettingsConfigDict(cli_shortcuts={"json-output": "json"})  # BaseModel has .json
+
     watch_s: float = Field(
         10.0, ge=0.0, le=MAX_RECORD_S, description="watch the stream this long for latencies"
     )
-    json_output: bool = Field(
-        False, description="print JSON instead of a table", json_schema_extra={"flag": "json"}
-    )
+    json_output: bool = Field(False, description="print JSON instead of a table")
     timeout_s: float = Field(10.0, gt=0.0, description="wait this long for each service")
 
 

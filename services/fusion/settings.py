@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import os
 from pathlib import Path
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
-from common.lattice import MAX_RESOLUTION_M, MIN_RESOLUTION_M, Window
-from common.settings import CommaList, ZenohSettings
-from services.fusion.grid import GridParams
+from common.lattice import Window
+from common.settings import CommaList, OvergridParams, ZenohSettings
+from services.fusion.params import GridParams
 
 
 def default_state_dir() -> Path:
@@ -17,31 +19,14 @@ def default_state_dir() -> Path:
     return base / "overgrid" / "fusion"
 
 
-class FusionSettings(ZenohSettings):
-    resolution_m: float = Field(
-        0.05,
-        ge=MIN_RESOLUTION_M,
-        le=MAX_RESOLUTION_M,
-        description="map cell size; tiles must match",
-    )
-    logodds_min: float = Field(
-        -1.5,
-        lt=0.0,
-        description="lower log-odds clamp (OctoMap: -2; here one conclusive hit flips it)",
-    )
-    logodds_max: float = Field(
-        2.5,
-        gt=0.0,
-        description="upper log-odds clamp (OctoMap: 3.5; here one conclusive miss clears it)",
-    )
-    decay_after_s: float = Field(
-        5.0, gt=0.0, description="unobserved this long, a cell drifts to unknown"
-    )
-    decay_time_constant_s: float = Field(2.0, gt=0.0, description="time constant of that drift")
+class FusionParams(OvergridParams):
+    """How fusion builds and serves the map: the settings without the state directory and the
+    Zenoh session, which ``overgrid up`` nests and hands to its fusion process unchanged."""
+
+    grid: GridParams = Field(default_factory=GridParams)
     bounds: CommaList = Field(
         default_factory=list, description="fixed map bounds x0,y0,x1,y1 in metres (default: grow)"
     )
-    max_cells: int = Field(25_000_000, gt=0, description="largest map allowed, in cells")
     max_tile_age_s: float = Field(
         2.0, gt=0.0, description="drop tiles captured longer ago than this"
     )
@@ -51,10 +36,9 @@ class FusionSettings(ZenohSettings):
         gt=0.0,
         description="shortest time between map snapshots (and map/updates) while tiles arrive",
     )
-    state_dir: Path = Field(
-        default_factory=default_state_dir, description="where the map is saved and loaded"
+    save_interval_s: float = Field(
+        0.5, gt=0.0, description="period of state saves: a crash loses at most this much"
     )
-    save_interval_s: float = Field(10.0, gt=0.0, description="period of state saves")
     predict_movers: bool = Field(
         False,
         description="serve the cells moving objects' paths cover up to the next frame as occupied "
@@ -67,21 +51,43 @@ class FusionSettings(ZenohSettings):
     def _four_numbers(cls, bounds: list[str]) -> list[str]:
         if bounds:
             values = [float(v) for v in bounds]
-            if len(values) != 4 or values[2] <= values[0] or values[3] <= values[1]:
-                raise ValueError("bounds must be x0,y0,x1,y1 with x1 > x0 and y1 > y0")
+            if (
+                len(values) != 4
+                or not all(math.isfinite(v) for v in values)
+                or values[2] <= values[0]
+                or values[3] <= values[1]
+            ):
+                raise ValueError("bounds must be x0,y0,x1,y1 (finite, m) with x1 > x0 and y1 > y0")
         return bounds
 
+    @model_validator(mode="after")
+    def _bounds_within_cell_limit(self) -> FusionParams:
+        window = self.bounds_window()
+        if window is not None and window.cols * window.rows > self.grid.max_cells:
+            raise ValueError(
+                f"--bounds cover {window.cols}×{window.rows} cells at {self.grid.resolution_m} m, "
+                f"over --max-cells {self.grid.max_cells}"
+            )
+        return self
+
+    @property
+    def resolution_m(self) -> float:
+        return self.grid.resolution_m
+
+    def bounds_window(self) -> Window | None:
+        """The fixed bounds on the lattice; None: the map grows (up to ``grid.max_cells``)."""
+        if not self.bounds:
+            return None
+        x0, y0, x1, y1 = (float(v) for v in self.bounds)
+        return Window.covering(x0, y0, x1, y1, self.grid.resolution_m)
+
     def grid_params(self) -> GridParams:
-        window = None
-        if self.bounds:
-            x0, y0, x1, y1 = (float(v) for v in self.bounds)
-            window = Window.covering(x0, y0, x1, y1, self.resolution_m)
-        return GridParams(
-            resolution_m=self.resolution_m,
-            logodds_min=self.logodds_min,
-            logodds_max=self.logodds_max,
-            decay_after_s=self.decay_after_s,
-            decay_time_constant_s=self.decay_time_constant_s,
-            max_cells=self.max_cells,
-            bounds=window,
-        )
+        return dataclasses.replace(self.grid, bounds=self.bounds_window())
+
+
+class FusionSettings(ZenohSettings, FusionParams):
+    """The fusion process: the map's parameters, where it is saved, and the Zenoh session."""
+
+    state_dir: Path = Field(
+        default_factory=default_state_dir, description="where the map is saved and loaded"
+    )

@@ -1,0 +1,44 @@
+"""Parameters of the fused grid, declared once: :class:`services.fusion.grid.FusedGrid` takes them,
+and the fusion settings nest them (``--grid.logodds-min`` / ``OVERGRID_GRID__LOGODDS_MIN``)."""
+
+from __future__ import annotations
+
+from pydantic import ConfigDict, Field
+from pydantic.dataclasses import dataclass
+from pydantic_settings import CliSuppress
+
+from common.lattice import Window
+from common.settings import DEFAULT_RESOLUTION_M, ResolutionM
+
+
+@dataclass(frozen=True, config=ConfigDict(extra="forbid"))
+class GridParams:
+    resolution_m: ResolutionM = Field(
+        default=DEFAULT_RESOLUTION_M, description="map cell size; tiles must match"
+    )
+    logodds_min: float = Field(
+        default=-1.5,
+        lt=0.0,
+        description="lower log-odds clamp (OctoMap: -2; here one conclusive hit flips it)",
+    )
+    logodds_max: float = Field(
+        default=2.5,
+        gt=0.0,
+        description="upper log-odds clamp (OctoMap: 3.5; here one conclusive miss clears it)",
+    )
+    """Narrower than OctoMap's −2 … 3.5: with the depth model's p_hit/p_miss of 0.9/0.1, one
+    conclusive observation moves a cell across the occupied (0.65) or free (0.25) threshold, so a
+    moved object appears and clears within a frame; ambiguous observations still accumulate."""
+    decay_after_s: float = Field(
+        default=5.0, gt=0.0, description="unobserved this long, a cell drifts back toward unknown"
+    )
+    decay_time_constant_s: float = Field(
+        default=2.0, gt=0.0, description="time constant of that drift"
+    )
+    unknown_below: float = Field(
+        default=0.05, gt=0.0, description="|log-odds| under which a decaying cell is unknown again"
+    )
+    max_cells: int = Field(default=25_000_000, gt=0, description="largest map allowed, in cells")
+    bounds: CliSuppress[Window | None] = None
+    """Fixed map window; None grows the map to cover the tiles, up to ``max_cells``. Given in
+    metres as the fusion setting ``--bounds`` (a window needs the resolution)."""
