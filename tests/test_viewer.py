@@ -6,6 +6,7 @@ from __future__ import annotations
 import http.client
 import io
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -35,6 +36,7 @@ from services.viewer.status import TileRates, objects_for_page, pair_states
 from services.viewer.wire import (
     CHUNK_CELLS,
     NO_HEIGHT_MM,
+    CellTimes,
     MapLayers,
     changed_windows,
     frames_between,
@@ -144,6 +146,15 @@ def test_height_follows_the_map_window() -> None:
 
 
 # ---- footprints and pair states ----------------------------------------------------------------
+
+
+def test_cell_times_answer_by_lattice_index() -> None:
+    seen = np.zeros((2, 3), np.float64)
+    seen[1, 2] = 1_700_000_000.5
+    times = CellTimes(Window(-1, 4, 3, 2), seen)
+    assert times.at(1, 5) == 1_700_000_000.5  # col 2, row 1
+    assert times.at(-1, 4) == 0.0  # in the map, never observed
+    assert times.at(2, 5) is None and times.at(0, 3) is None  # outside
 
 
 def test_a_pair_footprint_is_the_floor_both_cameras_see() -> None:
@@ -386,6 +397,12 @@ def _drawn_as(page: Any, x_m: float, y_m: float, color: str) -> str:
     )
 
 
+def _readout_at(page: Any, corner: dict[str, float], x_m: float, y_m: float) -> str:
+    sx, sy = page.evaluate(f"window.overgridView.worldToScreen({x_m}, {y_m})")
+    page.mouse.move(corner["x"] + sx, corner["y"] + sy)
+    return str(page.inner_text("#readout"))
+
+
 def _screenshot(page: Any, tmp_path: Path, name: str) -> None:
     """A test artefact under the test's directory, and a copy where OVERGRID_SCREENSHOT_DIR says."""
     path = tmp_path / name
@@ -478,6 +495,16 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
 
     wait_for(lambda: readout_shows(2.3, 2.3, "1.20 m"), 10, "the readout to show the box's top")
     wait_for(lambda: readout_shows(4.3, 1.3, "0.80 m"), 10, "the readout to show the new top")
+
+    # … and when the cell was last observed (fusion's last-seen layer, via the viewer): the box's
+    # cell moments ago; a cell of the map no tile covered, never.
+    def observed_ago_s(x_m: float, y_m: float) -> float | None:
+        found = re.search(r"last observed (\d+\.\d) s ago", _readout_at(page, corner, x_m, y_m))
+        return None if found is None else float(found.group(1))
+
+    wait_for(lambda: observed_ago_s(4.3, 1.3) is not None, 10, "the readout's last observed")
+    assert 0.0 <= (observed_ago_s(4.3, 1.3) or -1) < 30.0
+    wait_for(lambda: "never observed" in _readout_at(page, corner, 0.2, 0.2), 10, "never observed")
     page.check("#height-mode")
     assert _rgb(page, 2.3, 2.3) not in (PICTURE_COLORS["occupied"], PICTURE_COLORS["free"])
     assert _rgb(page, 1.0, 3.5) == PICTURE_COLORS["free"]

@@ -1,6 +1,6 @@
 """The viewer's Zenoh side: follows fusion (``map/latest`` once, then ``map/updates`` through the
 client's MapFollower), asks ``map/health``, the pairs' calibrations and depth health, the height
-layer and ``map/objects`` on their own periods, and keeps the newest of each for the page side.
+and last-seen layers and ``map/objects`` on their own periods, and keeps the newest of each for the page side.
 
 Each poll runs on its own thread, so a silent key (fusion stopped, no camera source) delays no
 other; every change calls ``notify`` (from any thread), which the server turns into a push.
@@ -33,10 +33,14 @@ from common.logs import RateLimitedLog
 from common.occupancy_map import OccupancyMap
 from services.viewer.footprints import Polygon, pair_footprint
 from services.viewer.status import TileRates, objects_for_page, pair_states
-from services.viewer.wire import MapLayers, height_mm
+from services.viewer.wire import CellTimes, MapLayers, height_mm
 
 log = logging.getLogger("view")
 DEPTH_HEALTH_TIMEOUT_S = 0.3
+MAP_FIELDS = frozenset({"layers", "map", "cell_times"})
+"""FeedState fields of the map itself: a change of only these is pushed as frames, not status."""
+PER_CELL_LAYERS = ("height", "last_seen")
+"""What the periodic layered query asks of map/latest (map/updates carry occupancy only)."""
 
 
 @dataclass(frozen=True)
@@ -63,6 +67,8 @@ class FeedState:
     pairs: list[dict[str, Any]] = field(default_factory=list)
     objects: list[dict[str, Any]] | None = None
     """None while map/objects does not answer."""
+    cell_times: CellTimes | None = None
+    """The last_seen layer, fetched with the height layer; None until then."""
     map_revision: int = 0
     status_revision: int = 0
 
@@ -142,7 +148,7 @@ class MapFeed:
             if not changes:
                 return
             changes["map_revision"] = state.map_revision + ("layers" in changes)
-            changes["status_revision"] = state.status_revision + (set(changes) != {"layers", "map"})
+            changes["status_revision"] = state.status_revision + (not set(changes) <= MAP_FIELDS)
             self._state = replace(state, **changes)
         self.notify()
 
@@ -218,15 +224,20 @@ class MapFeed:
         layers = self._state.layers
         if layers is None or layers.revision == self._height_revision:
             return
-        layered = latest(self._session, layers=("height",), timeout_s=self.periods.query_timeout_s)
+        layered = latest(
+            self._session, layers=PER_CELL_LAYERS, timeout_s=self.periods.query_timeout_s
+        )
         self._height_revision = layered.revision
         heights = height_mm(layered.height_m, layered.occupancy.shape)
+        times = (
+            None if layered.last_seen_s is None else CellTimes(layered.window, layered.last_seen_s)
+        )
 
         def changes(state: FeedState) -> dict[str, Any]:
             if state.layers is None:
                 return {}
             updated = state.layers.with_height(heights, layered.window, layered.resolution_m)
-            return {"layers": updated, "map": state.map}
+            return {"layers": updated, "map": state.map, "cell_times": times}
 
         self._change(changes)
 

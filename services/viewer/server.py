@@ -316,6 +316,25 @@ async def download(request: web.Request) -> web.StreamResponse:
     raise web.HTTPNotFound(text=f"no download {kind!r}: png, pgm, yaml or zip")
 
 
+async def cell(request: web.Request) -> web.StreamResponse:
+    """When cell (i, j) was last observed, for the page's readout: answered from the layer the
+    feed fetched, never by asking fusion (a pointer moving in ten tabs must not reach it)."""
+    try:
+        i, j = int(request.query["i"]), int(request.query["j"])
+    except (KeyError, ValueError):
+        raise web.HTTPBadRequest(text="cell?i=I&j=J with integer lattice indices") from None
+    times = request.app[FEED].state().cell_times
+    return web.json_response(
+        {
+            "i": i,
+            "j": j,
+            "last_seen_s": None if times is None else times.at(i, j),
+            "now_s": time.time(),
+        },
+        headers={"Cache-Control": "no-store"},
+    )
+
+
 def make_app(feed: MapFeed, settings: ViewSettings) -> web.Application:
     app = web.Application(middlewares=[guard(settings)])
     app[FEED] = feed
@@ -323,6 +342,7 @@ def make_app(feed: MapFeed, settings: ViewSettings) -> web.Application:
     app.router.add_get("/", index)
     app.router.add_get("/ws", websocket)
     app.router.add_get("/download/map.{kind}", download)
+    app.router.add_get("/cell", cell)
     app.router.add_static("/static/", STATIC)
 
     async def close_pages(app: web.Application) -> None:

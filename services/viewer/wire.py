@@ -103,6 +103,23 @@ class MapLayers:
         return replace(self, height_mm=heights_mm)
 
 
+@dataclass(frozen=True)
+class CellTimes:
+    """Each cell's newest capture time (Unix s, 0 never observed) on a lattice window, fetched
+    with the height layer: the viewer answers a page's "last observed" from it, so hovering in
+    any number of tabs costs fusion nothing beyond that one periodic query."""
+
+    window: Window
+    last_seen_s: npt.NDArray[np.float64]
+
+    def at(self, i: int, j: int) -> float | None:
+        """The time of cell (i, j); None outside the window."""
+        row, col = j - self.window.j0, i - self.window.i0
+        if 0 <= row < self.window.rows and 0 <= col < self.window.cols:
+            return float(self.last_seen_s[row, col])
+        return None
+
+
 def changed_windows(
     old: MapLayers, new: MapLayers, chunk_cells: int = CHUNK_CELLS
 ) -> list[Window] | None:

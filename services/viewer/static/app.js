@@ -17,6 +17,8 @@
   const COLORS = { alive: "#1f9d45", dead: "#d32f2f", unknown: "#e0a100", object: "#1565c0", axisX: "#d32f2f", axisY: "#1f9d45" };
   const MIN_SPEED_MPS = 0.05; // slower is drawn as standing still: no arrow
   const SERVER_SILENT_S = 3.5; // the server sends status every second: silence means a lost link
+  const CELL_QUERY_MS = 250; // "last observed" is asked at most this often, and only for a new cell
+  const CELL_REFRESH_MS = 1000; // … or again for the same cell (the viewer's layer is about this old)
   const HEIGHT_RAMP = [[48, 18, 59], [70, 134, 251], [27, 229, 181], [164, 252, 60], [251, 185, 56], [228, 70, 10], [122, 4, 3]];
 
   const state = {
@@ -31,6 +33,8 @@
     retryMs: 500,
     pointer: null,
     drawQueued: false,
+    // The viewer's answer for the cell under the pointer: {key, lastSeenS, nowS, receivedMs}.
+    seen: { key: null, wanted: null, asking: false, lastAskMs: 0 },
   };
 
   // ---- frames -------------------------------------------------------------------------------
@@ -452,9 +456,56 @@
       const mm = map.height[row * map.cols + col];
       const prob = value < 0 ? "unknown" : `p(occ) ${value}%`;
       const height = mm === state.hello.no_height_mm ? "height —" : `height ${(mm / 1000).toFixed(2)} m`;
-      cell = `${prob}  ${height}  last observed — (not served by fusion)`;
+      cell = `${prob}  ${height}  ${lastObserved(i, j)}`;
     }
     readout.textContent = `x ${x.toFixed(2)} m  y ${y.toFixed(2)} m  cell (${i}, ${j})  ${cell}`;
+  }
+
+  // "last observed" comes from the viewer (cell?i=&j=), which answers from the last-seen layer it
+  // fetches with the height layer: hovering asks the viewer, never fusion.
+  function lastObserved(i, j) {
+    const key = `${i},${j}`;
+    const seen = state.seen;
+    if (seen.key !== key) {
+      seen.wanted = key;
+      askLastSeen();
+      return "last observed …";
+    }
+    if (performance.now() - seen.receivedMs > CELL_REFRESH_MS) {
+      seen.wanted = key;
+      askLastSeen();
+    }
+    if (seen.lastSeenS === null) return "last observed — (no layer yet)";
+    if (seen.lastSeenS === 0) return "never observed";
+    const ageS = seen.nowS - seen.lastSeenS + (performance.now() - seen.receivedMs) / 1000;
+    return `last observed ${Math.max(ageS, 0).toFixed(1)} s ago`;
+  }
+
+  function askLastSeen() {
+    const seen = state.seen;
+    if (seen.asking || seen.wanted === null) return;
+    const waitMs = seen.lastAskMs + CELL_QUERY_MS - performance.now();
+    if (waitMs > 0) {
+      seen.asking = true;
+      setTimeout(() => { seen.asking = false; askLastSeen(); }, waitMs);
+      return;
+    }
+    const key = seen.wanted;
+    const [i, j] = key.split(",");
+    seen.asking = true;
+    seen.lastAskMs = performance.now();
+    fetch(`cell?i=${i}&j=${j}`, { cache: "no-store" })
+      .then((response) => (response.ok ? response.json() : Promise.reject(response.status)))
+      .then((answer) => {
+        Object.assign(seen, { key, lastSeenS: answer.last_seen_s, nowS: answer.now_s, receivedMs: performance.now() });
+        if (seen.wanted === key) seen.wanted = null;
+      })
+      .catch(() => {}) // the viewer is gone: the banner says so, the readout keeps "…"
+      .finally(() => {
+        seen.asking = false;
+        renderReadout();
+        askLastSeen();
+      });
   }
 
   // ---- socket -------------------------------------------------------------------------------
@@ -504,6 +555,7 @@
 
   setInterval(() => {
     renderBanner();
+    renderReadout(); // the age of "last observed" goes on
     const silentS = (performance.now() - state.lastMessageMs) / 1000;
     if (state.connected && silentS > SERVER_SILENT_S && state.socket) state.socket.close();
   }, 1000);
