@@ -11,6 +11,7 @@ value stops start-up with one line that names the flag and the environment varia
 from __future__ import annotations
 
 import sys
+from argparse import SUPPRESS
 from collections import Counter
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -111,8 +112,10 @@ def _model_fields(model: Any) -> Mapping[str, Any]:
 
 
 def _leaves(model: type[Any], path: tuple[str, ...] = ()) -> Iterator[tuple[str, ...]]:
-    """Path of every leaf setting of the tree (a nested model's fields, not the model itself)."""
+    """Path of every leaf flag of the tree (a nested model's fields, not the model itself)."""
     for name, field in _model_fields(model).items():
+        if SUPPRESS in field.metadata:  # no flag (pydantic_settings.CliSuppress)
+            continue
         nested = _model_fields(field.annotation)
         if nested:
             yield from _leaves(field.annotation, (*path, name))

@@ -18,7 +18,8 @@ from typing import IO, Any
 import numpy as np
 import numpy.typing as npt
 import zenoh
-from pydantic import Field
+from pydantic import BaseModel, Field, model_validator
+from pydantic_settings import CliApp, SettingsConfigDict
 
 from common.client import MapUnavailable, health, latest
 from common.codec import CodecError
@@ -28,10 +29,12 @@ from common.mapfiles import write_map
 from common.occupancy_map import OccupancyMap
 from common.settings import ZenohSettings, parse_settings
 from common.zenoh_session import open_session
-from services.camera_sim.scene import FloorKind
+from services.camera_sim.settings import CameraSimParams
+from services.depth.settings import DepthParams
 from services.evaluation.service import Evaluator, Recorder, map_summary
 from services.evaluation.service import report as evaluation_report
 from services.evaluation.service import table as evaluation_table
+from services.fusion.settings import FusionParams
 from services.viewer.address import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, available_port, page_url
 
 STOP_TIMEOUT_S = 10.0
@@ -39,20 +42,12 @@ LOG_TAIL_LINES = 15
 
 
 class UpSettings(ZenohSettings):
-    pairs: int = Field(
-        4, ge=1, le=64, description="stereo pairs to simulate, one depth process each"
-    )
-    seed: int = Field(0, description="scene seed")
-    scene: Path | None = Field(None, description="scene file instead of a generated one")
-    floor: FloorKind = Field("concrete", description="floor: concrete, speckle (ideal) or plain")
-    plain_objects: bool = Field(False, description="every static object one uniform colour")
-    ideal_cameras: bool = Field(False, description="noise-free renders, exact calibration")
-    vary_lighting: bool = Field(False, description="slow drift of the light")
-    light_step_period_s: float = Field(
-        0.0, ge=0.0, description="half the lights off in the second half of every period (0: never)"
-    )
-    jpeg_quality: int = Field(0, ge=0, le=100, description="cameras stream JPEG (0: raw)")
-    rate_hz: float = Field(2.0, gt=0.0, le=30.0, description="frames per second per pair")
+    """``up``'s own settings, and its children's parameters nested: each child is handed the very
+    values validated here (flags serialised from the nested models), so no child setting is
+    declared twice. Flat flags (``--seed``, ``--floor``, ``--p-hit``, …) work where unique."""
+
+    model_config = SettingsConfigDict(cli_shortcuts={"camera-sim.rig.pair-count": "pairs"})
+
     duration_s: float = Field(0.0, ge=0.0, description="stop after this long (0: run until Ctrl-C)")
     out: Path = Field(Path("out"), description="where the map, report and logs go")
     progress_s: float = Field(2.0, gt=0.0, description="period of the progress line")
@@ -60,6 +55,24 @@ class UpSettings(ZenohSettings):
     view_port: int = Field(
         DEFAULT_HTTP_PORT, ge=1, le=65535, description="its port (if taken: any free one)"
     )
+    camera_sim: CameraSimParams = Field(
+        default_factory=CameraSimParams, description="the simulator (overgrid camera-sim)"
+    )
+    depth: DepthParams = Field(
+        default_factory=DepthParams, description="every depth process (overgrid depth)"
+    )
+    fusion: FusionParams = Field(
+        default_factory=FusionParams, description="the fusion process (overgrid fusion)"
+    )
+
+    @model_validator(mode="after")
+    def _one_lattice(self) -> UpSettings:
+        if self.depth.resolution_m != self.fusion.grid.resolution_m:
+            raise ValueError(
+                f"--depth.resolution-m {self.depth.resolution_m} must equal "
+                f"--fusion.grid.resolution-m {self.fusion.grid.resolution_m}: tiles must match the map"
+            )
+        return self
 
 
 @dataclass
@@ -74,62 +87,47 @@ class Child:
         return "\n".join(lines[-LOG_TAIL_LINES:])
 
 
-def _zenoh_flags(settings: ZenohSettings) -> list[str]:
-    flags = ["--mode", settings.mode] if settings.mode else []
-    for endpoint in settings.connect:
-        flags += ["--connect", endpoint]
-    # --listen stays with `up` itself: children would fight over the same endpoints.
-    if settings.config:
-        flags += ["--config", str(settings.config)]
-    if settings.no_multicast_scouting:
-        flags.append("--no-multicast-scouting")
-    if settings.namespace:
-        flags += ["--namespace", settings.namespace]
-    return flags
+def flags_of(values: BaseModel) -> list[str]:
+    """The flags that give a child exactly these values (those that differ from the defaults)."""
+    return CliApp.serialize(values, list_style="argparse")
 
 
-def _commands(settings: UpSettings) -> list[tuple[str, list[str]]]:
-    sim = [
-        "camera-sim",
-        "--pair-count",
-        str(settings.pairs),
-        "--seed",
-        str(settings.seed),
-        "--floor",
-        settings.floor,
-        "--rate-hz",
-        str(settings.rate_hz),
-    ]
-    if settings.scene:
-        sim += ["--scene", str(settings.scene)]
-    for flag, on in (
-        ("--plain-objects", settings.plain_objects),
-        ("--ideal-cameras", settings.ideal_cameras),
-        ("--vary-lighting", settings.vary_lighting),
-    ):
-        sim += [flag] if on else []
-    sim += ["--light-step-period-s", str(settings.light_step_period_s)]
-    sim += ["--jpeg-quality", str(settings.jpeg_quality)]
+def session_flags(settings: ZenohSettings) -> list[str]:
+    """The children join the same Zenoh network as ``up``; ``--listen`` stays with ``up`` itself:
+    children would fight over the same endpoints."""
+    session = {name: getattr(settings, name) for name in ZenohSettings.model_fields}
+    return flags_of(ZenohSettings.model_construct(**{**session, "listen": []}))
+
+
+def child_commands(settings: UpSettings) -> list[tuple[str, list[str]]]:
+    """(name, ``overgrid`` arguments) of every child."""
     commands = [
-        ("fusion", ["fusion", "--state-dir", str(settings.out / "state")]),
-        ("camera_sim", sim),
+        (
+            "fusion",
+            ["fusion", *flags_of(settings.fusion), "--state-dir", str(settings.out / "state")],
+        ),
+        ("camera_sim", ["camera-sim", *flags_of(settings.camera_sim)]),
     ]
-    commands += [(f"depth_p{k}", ["depth", "--pair", f"p{k}"]) for k in range(settings.pairs)]
+    depth = flags_of(settings.depth)
+    commands += [
+        (f"depth_{pair}", ["depth", "--pair", pair, *depth])
+        for pair in settings.camera_sim.rendered_pairs()
+    ]
     if settings.view:
         commands.append(("viewer", ["view", "--http-port", str(settings.view_port)]))
-    return commands
+    return [(name, [*args, *session_flags(settings)]) for name, args in commands]
 
 
 def start_children(settings: UpSettings) -> list[Child]:
     logs = settings.out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     children = []
-    for name, args in _commands(settings):
+    for name, args in child_commands(settings):
         log_path = logs / f"{name}.log"
         log_file = open(log_path, "wb")  # noqa: SIM115 - closed in stop_children
         # A new session: the terminal's Ctrl-C reaches `up` alone, which saves the map first.
         process = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", *args, *_zenoh_flags(settings)],
+            [sys.executable, "-m", "services.cli", *args],
             stdout=log_file,
             stderr=subprocess.STDOUT,
             start_new_session=True,

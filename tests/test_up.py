@@ -11,6 +11,11 @@ import pytest
 
 from common.mapfiles import PICTURE_COLORS, read_map_server
 from common.png import decode_png
+from common.settings import OvergridParams, OvergridSettings, parse_settings
+from services.camera_sim.settings import CameraSimParams, CameraSimSettings
+from services.depth.settings import DepthParams, DepthSettings
+from services.fusion.settings import FusionParams, FusionSettings
+from services.up import UpSettings, child_commands
 from tests.conftest import REPO, Bus, wait_for
 
 pytestmark = pytest.mark.process
@@ -39,6 +44,40 @@ def _up(bus: Bus, out: Path, *args: str) -> subprocess.Popen[str]:
     )
 
 
+CHILDREN: dict[str, tuple[type[OvergridSettings], type[OvergridParams], str]] = {
+    "camera-sim": (CameraSimSettings, CameraSimParams, "camera_sim"),
+    "depth": (DepthSettings, DepthParams, "depth"),
+    "fusion": (FusionSettings, FusionParams, "fusion"),
+}
+
+
+def test_children_are_handed_the_values_up_validated() -> None:
+    """Flat, nested and list values, negative numbers: each child parses back exactly ``up``'s."""
+    args = ["--pairs", "3", "--seed", "4", "--camera-sim.pairs", "p0,p2", "--rate-hz", "1.5"]
+    args += ["--p-hit", "0.8", "--depth.matcher.block-size", "5", "--no-subpixel"]
+    args += ["--decay-after-s", "3", "--logodds-min", "-1", "--bounds=-2,-2,14,12"]
+    args += ["--no-view", "--namespace", "site-a", "--listen", "tcp/127.0.0.1:7999"]
+    settings = parse_settings(UpSettings, args, "overgrid up", "")
+    commands = dict(child_commands(settings))
+    assert sorted(commands) == ["camera_sim", "depth_p0", "depth_p2", "fusion"]  # rendered pairs
+    for name, (command, *child_args) in commands.items():
+        settings_cls, params_cls, field = CHILDREN[command]
+        child = parse_settings(settings_cls, child_args, command, "")
+        assert child.namespace == "site-a" and child.listen == []  # `up` alone listens
+        for param in params_cls.model_fields:
+            assert getattr(child, param) == getattr(getattr(settings, field), param), (name, param)
+    assert settings.camera_sim.rig.pair_count == 3 and settings.depth.model.p_hit == 0.8
+    assert settings.fusion.grid.logodds_min == -1.0
+
+
+def test_depth_and_fusion_must_share_the_lattice(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as stopped:
+        parse_settings(UpSettings, ["--depth.resolution-m", "0.1"], "overgrid up", "")
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    assert "--depth.resolution-m" in err and "--fusion.grid.resolution-m" in err
+
+
 def _children_of(namespace: str) -> list[str]:
     result = subprocess.run(
         ["pgrep", "-f", f"--namespace {namespace}"], capture_output=True, text=True
@@ -47,7 +86,8 @@ def _children_of(namespace: str) -> list[str]:
 
 
 def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_path: Path) -> None:
-    up = _up(bus, tmp_path / "run", "--duration-s", "12")
+    # Nested flags reach the children: each would refuse to start on a flag it does not know.
+    up = _up(bus, tmp_path / "run", "--duration-s", "12", "--depth.summary-s", "5")
     out, _ = up.communicate(timeout=180)
     assert up.returncode == 0, out
     assert "map v" in out and "p0" in out and "p1" in out  # progress lines
