@@ -36,7 +36,7 @@ from common.messages import MAP_UPDATE_KIND, OBJECTS_KIND, MapUpdateHeader, Obje
 from common.occupancy_map import OccupancyMap
 from common.settings import parse_settings, startup_error
 from common.zenoh_session import open_session
-from services.fusion.grid import FrozenMap, FusedGrid, GridParams, TileOutsideMap, compile_rules
+from services.fusion.grid import FrozenMap, FusedGrid, TileOutsideMap, compile_rules
 from services.fusion.inbox import Delivery, Inbox
 from services.fusion.intake import Rejected, TileGate, decode_detections, decode_presence
 from services.fusion.objects import ObjectTracker
@@ -398,20 +398,10 @@ def check_state_dir(state_dir: Path) -> None:
         startup_error(f"{where}: not writable: {error.strerror or error}")
 
 
-def check_bounds(params: GridParams) -> None:
-    bounds = params.bounds
-    if bounds is not None and bounds.cols * bounds.rows > params.max_cells:
-        startup_error(
-            f"--bounds: {bounds.cols}×{bounds.rows} = {bounds.cols * bounds.rows} cells exceeds "
-            f"--max-cells {params.max_cells}"
-        )
-
-
 def main(settings: FusionSettings) -> None:
     setup_logging("fusion", settings.log_level)
     stop = stop_on_signals()  # before loading the state: a stop during a long load is clean
     params = settings.grid_params()
-    check_bounds(params)
     check_state_dir(settings.state_dir)
     compile_rules()
     epoch_ns = time.time_ns()

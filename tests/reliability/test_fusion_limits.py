@@ -1,0 +1,105 @@
+"""Trust and limits at a real fusion process: the pair comes from the key, a future stamp locks
+nobody out, growth past the cell limit is refused and never saved, a flood is dropped and counted,
+and a second depth process claiming a pair is reported."""
+
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from common.client import health, latest
+from common.codec import WIRE_ENCODING
+from common.lattice import Window
+from tests.conftest import Bus, wait_for
+from tests.tiles import tile_payload
+
+pytestmark = pytest.mark.process
+
+W = Window(0, 0, 20, 20)
+
+
+def _health(bus: Bus) -> dict:
+    return health(bus.session, timeout_s=10)
+
+
+def _start(bus: Bus, state_dir: Path, *extra: str, log_path: Path | None = None) -> None:
+    bus.start("fusion", "--state-dir", str(state_dir), *extra, log_path=log_path)
+    wait_for(lambda: "map" in _health(bus), 60, "fusion up")
+
+
+def test_the_pair_is_the_keys_and_a_future_stamp_locks_nobody_out(bus: Bus, tmp_path: Path) -> None:
+    _start(bus, tmp_path / "state")
+    p0 = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
+    p1 = bus.session.declare_publisher("depth/p1/tile", encoding=WIRE_ENCODING)
+    p1.put(tile_payload("p0", W, 1.0, seq=0))  # p1's credential speaking for p0
+    p0.put(tile_payload("p0", W, 1.0, seq=1, stamp_ns=time.time_ns() + 1_500_000_000))
+    wait_for(lambda: sum(_health(bus)["tiles_rejected"].values()) == 2, 10, "both refused")
+    assert _health(bus)["tiles_rejected"] == {"pair": 1, "future": 1}
+    p0.put(tile_payload("p0", W, 1.0, seq=2))  # p0's real next tile, stamped now
+    wait_for(lambda: _health(bus)["tiles_accepted"] == 1, 10, "p0's real tile to land")
+    answer = _health(bus)
+    assert answer["pairs"]["p0"]["tiles"] == 1 and "p1" not in answer["pairs"]
+
+
+def test_growth_past_the_cell_limit_is_refused_counted_and_never_saved(
+    bus: Bus, tmp_path: Path
+) -> None:
+    args = ("--max-cells", "200000", "--save-interval-s", "0.2")
+    _start(bus, tmp_path / "state", *args)
+    p0 = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
+    p0.put(tile_payload("p0", W, 1.0, seq=0))
+    wait_for(lambda: _health(bus)["tiles_accepted"] == 1, 10, "a first tile")
+    p0.put(tile_payload("p0", Window(4900, 4900, 1, 1), 1.0, seq=1))  # would need 24 M cells
+    wait_for(lambda: _health(bus)["tiles_rejected"].get("growth") == 1, 10, "growth refused")
+    p0.put(tile_payload("p0", Window(20, 0, 20, 20), 1.0, seq=2))  # the pair goes on
+    wait_for(lambda: _health(bus)["tiles_accepted"] == 2, 10, "the next tile")
+    assert latest(bus.session).window == Window(0, 0, 64, 64)
+    time.sleep(0.5)  # a save or two
+    bus.stop_all()
+    _start(bus, tmp_path / "state", *args)
+    assert latest(bus.session).window == Window(0, 0, 64, 64)  # the refused growth was not saved
+
+
+def test_a_flood_is_dropped_and_counted_as_overload_and_queries_still_answer(
+    bus: Bus, tmp_path: Path
+) -> None:
+    # One-megabyte messages: the inbox holds four of them while the map takes one.
+    _start(bus, tmp_path / "state", "--max-message-mb", "1", "--max-tile-age-s", "60")
+    p0 = bus.session.declare_publisher(
+        "depth/p0/tile", encoding=WIRE_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
+    )
+    sent = 200
+    big = Window(0, 0, 250, 250)  # 0.6 MB
+    now_ns = time.time_ns()
+    payloads = [tile_payload("p0", big, 0.1, seq=n, stamp_ns=now_ns + n) for n in range(sent)]
+    for payload in payloads:  # encoded beforehand: they arrive faster than the map takes them
+        p0.put(payload)
+
+    def counted() -> int:
+        answer = _health(bus)
+        return answer["tiles_accepted"] + sum(answer["tiles_rejected"].values())
+
+    wait_for(lambda: counted() == sent, 60, "every tile fused or counted")
+    answer = _health(bus)
+    print("accepted", answer["tiles_accepted"], "rejected", answer["tiles_rejected"])
+    assert set(answer["tiles_rejected"]) == {"overload"}
+    assert answer["tiles_accepted"] >= 1 and answer["tiles_rejected"]["overload"] >= 1
+    assert latest(bus.session).value_at(1.0, 1.0) > 50
+
+
+def test_two_processes_claiming_one_pair_are_reported(bus: Bus, tmp_path: Path) -> None:
+    log_path = tmp_path / "fusion.log"
+    _start(bus, tmp_path / "state", log_path=log_path)
+    liveliness = bus.session.liveliness()
+    first = liveliness.declare_token("depth/p0/alive/a1")
+    wait_for(lambda: _health(bus)["pairs"].get("p0", {}).get("alive"), 10, "p0 alive")
+    second = liveliness.declare_token("depth/p0/alive/b2")
+    wait_for(lambda: _health(bus)["pairs"]["p0"]["conflict"], 10, "the conflict reported")
+    assert _health(bus)["pairs"]["p0"]["processes"] == ["a1", "b2"]
+    assert "a second depth process claims the pair" in log_path.read_text()
+    first.undeclare()
+    wait_for(lambda: not _health(bus)["pairs"]["p0"]["conflict"], 10, "one process left")
+    assert _health(bus)["pairs"]["p0"]["alive"]  # alive while any of its processes is
+    second.undeclare()
+    wait_for(lambda: not _health(bus)["pairs"]["p0"]["alive"], 10, "p0 gone")
