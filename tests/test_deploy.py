@@ -1,23 +1,39 @@
-"""The shipped deploy files stay in step with the code: unit commands parse, configs load."""
+"""The shipped deploy files stay in step with the code: unit commands parse, configs load, and
+the router's access control lets the native ROS 2 output publish the map and nothing more."""
 
+from __future__ import annotations
+
+import json
+import queue
 import shlex
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 import zenoh
+import zenoh.ext
 
+from common.client import MapUnavailable, latest
+from common.lattice import Window
 from common.settings import parse_settings
 from services.camera_sim.service import CameraSimSettings
 from services.depth.service import DepthSettings
 from services.fusion.service import FusionSettings
+from services.ros2 import cdr
+from services.ros2.settings import RmwZenohSettings
 from services.router import RouterSettings
-from tests.conftest import REPO
+from tests.conftest import PROCESS_LIFETIME_S, REPO, free_port, wait_for
+from tests.reliability.test_security import PASSWORDS, _client_config, certs  # noqa: F401
+from tests.tiles import tile_payload
 
 SETTINGS = {
     "router": RouterSettings,
     "fusion": FusionSettings,
     "depth": DepthSettings,
     "camera-sim": CameraSimSettings,
+    "rmw-zenoh": RmwZenohSettings,
 }
 
 
@@ -39,3 +55,138 @@ def test_systemd_units_run_commands_that_parse(unit: Path, tmp_path: Path) -> No
 @pytest.mark.parametrize("name", ["router.json5", "client.json5"])
 def test_zenoh_configs_load(name: str) -> None:
     zenoh.Config.from_file(str(REPO / "deploy" / "zenoh" / name))
+
+
+DOMAIN = 7
+USERS = {**PASSWORDS, "ros2": "pw-ros2"}
+
+
+def _data_key(topic: str, ros_type: str) -> str:
+    package, _, name = ros_type.split("/")
+    return f"{DOMAIN}/{topic}/{package}::msg::dds_::{name}_/{cdr.type_hash('jazzy', ros_type)}"
+
+
+def _late_joiner(session: zenoh.Session, key: str) -> tuple[object, queue.Queue[zenoh.Sample]]:
+    """Subscribed as rmw_zenoh subscribes a transient_local reader: it asks the cache."""
+    samples: queue.Queue[zenoh.Sample] = queue.Queue()
+    subscriber = zenoh.ext.declare_advanced_subscriber(
+        session,
+        key,
+        samples.put,
+        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+        recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+        subscriber_detection=True,
+    )
+    return subscriber, samples
+
+
+@pytest.mark.process
+def test_the_router_lets_the_ros2_user_publish_the_map_and_no_more(
+    certs: Path,  # noqa: F811 (the fixture imported above)
+    tmp_path: Path,
+) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    credentials = tmp_path / "credentials.txt"
+    credentials.write_text("".join(f"{u}:{p}\n" for u, p in USERS.items()))
+    config = zenoh.Config.from_file(str(REPO / "deploy" / "zenoh" / "router.json5"))
+    config.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    config.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(credentials)))
+    router = zenoh.open(config)
+
+    def session(user: str) -> zenoh.Session:
+        path = _client_config(tmp_path / f"{user}.json5", endpoint, certs, user, USERS[user])
+        return zenoh.open(zenoh.Config.from_file(str(path)))
+
+    def start(user: str, *args: str) -> subprocess.Popen[bytes]:
+        path = _client_config(tmp_path / f"{user}.json5", endpoint, certs, user, USERS[user])
+        command = ["timeout", "-s", "INT", "-k", "5", str(PROCESS_LIFETIME_S), sys.executable]
+        return subprocess.Popen(
+            [*command, "-m", "services.cli", *args, "--config", str(path)],
+            cwd=REPO,
+            stdout=open(tmp_path / f"{args[0]}.log", "wb"),
+            stderr=subprocess.STDOUT,
+        )
+
+    processes = [start("fusion", "fusion", "--state-dir", str(tmp_path / "state"))]
+    robot, rogue_robot, depth = session("robot"), session("robot"), session("depth")
+    try:
+
+        def fused() -> bool:
+            depth.put("depth/p0/tile", tile_payload("p0", Window(0, 0, 20, 20), 1.0))
+            try:
+                return latest(robot, timeout_s=1).version >= 1
+            except MapUnavailable:
+                return False
+
+        wait_for(fused, 30, "a tile fused through the router")
+        processes.append(
+            start("ros2", "rmw-zenoh", "--domain-id", str(DOMAIN), "--map-interval-s", "600")
+        )
+        log = tmp_path / "rmw-zenoh.log"
+        wait_for(lambda: b"first map published" in log.read_bytes(), 30, "the first /map")
+
+        # A robot sees the node in the ROS graph and, joining late, gets /map and /tf_static
+        # from the publishers' caches.
+        def graph() -> list[str]:
+            replies = robot.liveliness().get(f"@ros2_lv/{DOMAIN}/**", timeout=2)
+            return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+        wait_for(lambda: len(graph()) == 6, 10, "the node and its five publishers in the graph")
+        assert sum("/NN/%/%/overgrid_map" in token for token in graph()) == 1
+        maps = _late_joiner(robot, _data_key("map", cdr.OCCUPANCY_GRID))
+        transforms = _late_joiner(robot, _data_key("tf_static", cdr.TF_MESSAGE))
+        grid = cdr.decode(
+            "jazzy", bytes(maps[1].get(timeout=10).payload.to_bytes()), cdr.OCCUPANCY_GRID
+        )
+        assert grid.info.width * grid.info.height == latest(robot).occupancy.size > 0
+        raw_tf = bytes(transforms[1].get(timeout=10).payload.to_bytes())
+        assert cdr.decode("jazzy", raw_tf, cdr.TF_MESSAGE).transforms[0].child_frame_id == (
+            "overgrid_world"
+        )
+
+        # Nothing more: the ros2 user cannot command robots, pose as another node or answer
+        # map/latest; a robot cannot put a /map of its own or pose as overgrid's node.
+        seen: queue.Queue[str] = queue.Queue()
+        watcher = robot.declare_subscriber(f"{DOMAIN}/**", lambda s: seen.put(str(s.key_expr)))
+        rogue_ros2 = session("ros2")
+        cmd_vel = _data_key("cmd_vel", "geometry_msgs/msg/Twist")
+        forged_map = _data_key("map", cdr.OCCUPANCY_GRID)
+        rogue_ros2.put(cmd_vel, b"\x00\x01\x00\x00")
+        rogue_robot.put(forged_map, b"forged")
+        intruders = [
+            rogue_ros2.liveliness().declare_token(f"@ros2_lv/{DOMAIN}/ff/0/0/NN/%/%/intruder"),
+            rogue_robot.liveliness().declare_token(f"@ros2_lv/{DOMAIN}/ff/0/0/NN/%/%/overgrid_map"),
+        ]
+        forger = rogue_ros2.declare_queryable(
+            "map/latest", lambda q: q.reply("map/latest", b"forged")
+        )
+        # The watcher does see what is allowed: a tile changes the map, /map_updates follows.
+        updates_key = _data_key("map_updates", cdr.OCCUPANCY_GRID_UPDATE)
+        received: list[str] = []
+
+        def update_seen() -> bool:
+            depth.put("depth/p0/tile", tile_payload("p0", Window(2, 2, 4, 4), -2.0))
+            time.sleep(0.2)
+            while not seen.empty():
+                received.append(seen.get())
+            return updates_key in received
+
+        wait_for(update_seen, 10, "a /map_updates sample at the robot")
+        assert cmd_vel not in received and forged_map not in received
+        assert len(graph()) == 6 and not any("/ff/" in token for token in graph())
+        replies = [r.ok.payload.to_bytes() for r in robot.get("map/latest", timeout=2) if r.ok]
+        assert replies and b"forged" not in replies
+        for token in intruders:
+            token.undeclare()
+        forger.undeclare()
+        watcher.undeclare()
+        for subscriber, _ in (maps, transforms):
+            subscriber.undeclare()  # type: ignore[attr-defined]
+        rogue_ros2.close()
+    finally:
+        for process in processes:
+            process.terminate()
+            process.wait(10)
+        for each in (robot, rogue_robot, depth):
+            each.close()
+        router.close()
