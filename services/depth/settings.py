@@ -40,7 +40,8 @@ class DepthParams(OvergridParams):
     )
     summary_s: float = Field(10.0, gt=0.0, description="period of the summary log line")
     floor_model: bool = Field(
-        True, description="fixed-camera floor model: floor test + learned background (DESIGN.md)"
+        FloorModelConfig.enabled,
+        description="fixed-camera floor model: floor test + learned background (DESIGN.md)",
     )
 
     def pipeline_config(self) -> PipelineConfig:
