@@ -330,11 +330,11 @@ def test_view_stops_on_sigterm_within_2_s(bus: Bus, tmp_path: Path) -> None:
 
 
 def test_up_starts_the_viewer_and_prints_its_url() -> None:
-    from services.up import UpSettings, _commands
+    from services.up import UpSettings, child_commands
 
-    commands = dict(_commands(UpSettings(view_port=8471)))
+    commands = dict(child_commands(UpSettings(view_port=8471)))
     assert commands["viewer"] == ["view", "--http-port", "8471"]
-    assert "viewer" not in dict(_commands(UpSettings(view=False)))
+    assert "viewer" not in dict(child_commands(UpSettings(view=False)))
 
 
 # ---- the page in a real browser ------------------------------------------------------------------
