@@ -133,23 +133,23 @@ def env_name(path: Sequence[str]) -> str:
     return ENV_PREFIX + ENV_NESTED_DELIMITER.join(path).upper()
 
 
-def flat_flags(settings_cls: type[BaseSettings]) -> dict[str, str]:
-    """Nested flag (without ``--``) → its flat alias: the class's own ``cli_shortcuts`` first, then
-    the leaf's last name wherever no other setting of the tree has that name."""
+def flat_flags(settings_cls: type[BaseSettings]) -> dict[str, list[str]]:
+    """Nested flag (without ``--``) → its flat aliases: the class's own ``cli_shortcuts`` first,
+    else the leaf's last name wherever no other setting of the tree has that name."""
     explicit = dict(settings_cls.model_config.get("cli_shortcuts") or {})
     taken = {flag for aliases in explicit.values() for flag in _as_list(aliases)}
     leaves = list(_leaves(settings_cls))
     nested_models = [name for name in _model_fields(settings_cls) if (name,) not in leaves]
     names = Counter([path[-1] for path in leaves] + nested_models)
-    flags: dict[str, str] = {}
+    flags: dict[str, list[str]] = {}
     for path in leaves:
         target = flag_name(path)[2:]
         if target in explicit:
-            flags[target] = ",".join(_as_list(explicit[target]))
+            flags[target] = _as_list(explicit[target])
             continue
         flat = flag_name(path[-1:])[2:]
         if len(path) > 1 and names[path[-1]] == 1 and flat not in taken:
-            flags[target] = flat
+            flags[target] = [flat]
     return flags
 
 
@@ -181,8 +181,8 @@ def describe_validation_error(error: ValidationError, settings_cls: type[BaseSet
             parts.append(f"invalid settings: {message}")
             continue
         flag = flag_name(path)
-        flat = flats.get(flag[2:])
-        names = (f"--{flat} ({flag})" if flat else flag) + f" / {env_name(path)}"
+        aliases = " ".join(f"--{alias}" for alias in flats.get(flag[2:], []))
+        names = (f"{aliases} ({flag})" if aliases else flag) + f" / {env_name(path)}"
         got = item.get("input")
         suffix = f" (got {got!r})" if got is not None and not isinstance(got, dict) else ""
         parts.append(f"invalid setting {names}: {message}{suffix}")
@@ -194,7 +194,7 @@ STARTUP_ERROR_EXIT = 2
 
 def startup_error(message: str) -> NoReturn:
     """Stop start-up with one line naming the setting or file and what is wrong (exit 2)."""
-    print(" ".join(message.split()), file=sys.stderr)
+    print(" ".join(line.strip() for line in message.splitlines() if line.strip()), file=sys.stderr)
     raise SystemExit(STARTUP_ERROR_EXIT)
 
 
@@ -210,10 +210,9 @@ def parse_settings(
     settings_cls: type[S], argv: Sequence[str] | None, prog: str, description: str
 ) -> S:
     """Flags (``argv``, default ``sys.argv[1:]``) over ``OVERGRID_*`` env over the models' defaults."""
-    shortcuts = {target: flat.split(",") for target, flat in flat_flags(settings_cls).items()}
     try:
         source: CliSettingsSource[Any] = CliSettingsSource(
-            settings_cls, cli_prog_name=prog, cli_shortcuts=shortcuts
+            settings_cls, cli_prog_name=prog, cli_shortcuts=flat_flags(settings_cls)
         )
         source.root_parser.description = description
         parsed = source(args=list(sys.argv[1:] if argv is None else argv))
