@@ -102,14 +102,12 @@ def test_rclpy_subscriber_gets_map_then_newer_map(
         prefix + "/map_height",
         "--objects-topic",
         prefix + "/map_objects",
-        "--frame-id",
-        "site",
-        "--world-in-map",
-        "1,2,0",
         "--map-interval-s",
         "0.2",
         "--height-interval-s",
         "0.2",
+        # Settings as node parameters, the ROS way; overgrid's (Zenoh) flags follow the "--".
+        *("--ros-args", "-p", "frame_id:=site", "-p", "world_in_map:=1,2,0", "--"),
         log_path=node_log,
     )
     wait_for(lambda: b"first map published" in node_log.read_bytes(), 60, "the node's first /map")

@@ -14,6 +14,7 @@ import xxhash
 
 from services.ros2 import cdr
 from services.ros2.environment import ros_environment
+from services.ros2.node import split_ros_args
 from services.ros2.rmw_zenoh import (
     DEFAULT_QOS,
     NO_TYPE_HASH,
@@ -140,3 +141,12 @@ def test_ros_environment_names_the_wheels_prefix(tmp_path: Path) -> None:
         "/opt/x",
     ]
     assert ros_environment({**changes}, tmp_path) == {}
+
+
+def test_ros_arguments_run_from_ros_args_to_a_lone_double_dash() -> None:
+    own, ros = split_ros_args(
+        ["--frame-id", "a", "--ros-args", "-p", "x:=1", "--", "--mode", "peer"]
+    )
+    assert (own, ros) == (["--frame-id", "a", "--mode", "peer"], ["-p", "x:=1"])
+    assert split_ros_args(["--ros-args", "-r", "/map:=/m"]) == ([], ["-r", "/map:=/m"])
+    assert split_ros_args(["--frame-id", "a"]) == (["--frame-id", "a"], [])

@@ -250,12 +250,19 @@ def main(settings: Ros2Settings, ros_args: Sequence[str] = ()) -> None:
         rclpy.try_shutdown()
 
 
+def split_ros_args(args: Sequence[str]) -> tuple[list[str], list[str]]:
+    """overgrid's own arguments, and the ROS ones: from ``--ros-args`` to a lone ``--`` or the
+    end, as rcl delimits them (so overgrid's flags may follow a ``--``)."""
+    if ROS_ARGS not in args:
+        return list(args), []
+    at = list(args).index(ROS_ARGS)
+    rest = list(args[at + 1 :])
+    end = rest.index("--") if "--" in rest else len(rest)
+    return [*args[:at], *rest[end + 1 :]], rest[:end]
+
+
 def cli(argv: Sequence[str] | None = None) -> None:
-    args = list(sys.argv[1:] if argv is None else argv)
-    own, ros_args = args, []
-    if ROS_ARGS in args:
-        at = args.index(ROS_ARGS)
-        own, ros_args = args[:at], args[at + 1 :]
+    own, ros_args = split_ros_args(sys.argv[1:] if argv is None else argv)
     settings = parse_settings(
         Ros2Settings, own, "overgrid ros2", "A ROS 2 node publishing the map (rclpy)."
     )
