@@ -10,6 +10,7 @@ value stops start-up with one line that names the flag and the environment varia
 
 from __future__ import annotations
 
+import re
 import sys
 from argparse import SUPPRESS
 from collections import Counter
@@ -198,12 +199,20 @@ def startup_error(message: str) -> NoReturn:
     raise SystemExit(STARTUP_ERROR_EXIT)
 
 
+_UNDECODABLE = re.compile(r'error parsing value for field "(\w+)" from source "EnvSettingsSource"')
+
+
 def load_settings(settings_cls: type[S], **values: Any) -> S:
     """Validate ``values`` (they win over env); exit with one line naming the bad settings."""
     try:
         return settings_cls(**values)
     except ValidationError as error:
         startup_error(describe_validation_error(error, settings_cls))
+    except SettingsError as error:  # an env value that is not the JSON its nested model needs
+        undecodable = _UNDECODABLE.search(str(error))
+        if undecodable is None:
+            raise
+        startup_error(f"invalid setting {env_name([undecodable[1]])}: not valid JSON ({error})")
 
 
 def parse_settings(

@@ -108,3 +108,14 @@ def test_bounds_over_the_cell_limit_fail_at_start_up(capsys: pytest.CaptureFixtu
     with pytest.raises(SystemExit):
         parse_settings(FusionSettings, ["--bounds", "nan,0,1,1"], "overgrid fusion", "")
     assert "--bounds" in capsys.readouterr().err
+
+
+def test_undecodable_nested_env_var_is_named(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("OVERGRID_MODEL", "{p_hit")
+    with pytest.raises(SystemExit) as stopped:
+        load_settings(DepthSettings, pair="p0")
+    assert stopped.value.code == 2
+    err = capsys.readouterr().err
+    assert "OVERGRID_MODEL" in err and len(err.strip().splitlines()) == 1
