@@ -9,6 +9,7 @@ import shlex
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 
 import pytest
@@ -143,6 +144,19 @@ def test_the_router_lets_the_ros2_user_publish_the_map_and_no_more(
         assert cdr.decode("jazzy", raw_tf, cdr.TF_MESSAGE).transforms[0].child_frame_id == (
             "overgrid_world"
         )
+
+        # The viewer behind the router connects as a robot and shows the map.
+        port = free_port()
+        processes.append(start("robot", "view", "--http-port", str(port)))
+
+        def viewer_has_the_map() -> bool:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/download/map.png") as got:
+                    return bool(got.status == 200 and got.read(8) == b"\x89PNG\r\n\x1a\n")
+            except OSError:  # not serving yet, or 503 until its feed has the map
+                return False
+
+        wait_for(viewer_has_the_map, 30, "the viewer, as the robot user, to have the map")
 
         # Nothing more: the ros2 user cannot command robots, pose as another node or answer
         # map/latest; a robot cannot put a /map of its own or pose as overgrid's node.

@@ -108,6 +108,11 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
     )
     updates: queue.Queue[zenoh.Sample] = queue.Queue()
     updates_subscriber = bus.session.declare_subscriber(UPDATES_KEY + updates_hash, updates.put)
+    heights: queue.Queue[zenoh.Sample] = queue.Queue()
+    heights_subscriber = bus.session.declare_subscriber(
+        f"{DOMAIN}/map_height/sensor_msgs::msg::dds_::Image_/{cdr.type_hash('jazzy', cdr.IMAGE)}",
+        heights.put,
+    )
     transforms: queue.Queue[zenoh.Sample] = queue.Queue()
     late_tf = zenoh.ext.declare_advanced_subscriber(
         bus.session,
@@ -165,6 +170,19 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
     wait_for(copy_is_current, 10, "the copy kept by /map_updates to equal map/latest")
     late.undeclare()
     updates_subscriber.undeclare()
+
+    # The height layer follows as a 32FC1 image on /map's cells, which rclpy reads as well.
+    raw_image = bytes(heights.get(timeout=10).payload.to_bytes())
+    image = cdr.decode("jazzy", raw_image, cdr.IMAGE)
+    assert (image.encoding, image.width, image.height) == (
+        "32FC1",
+        grid.info.width,
+        grid.info.height,
+    )
+    metres = np.frombuffer(bytes(image.data), "<f4").reshape(image.height, image.width)
+    assert metres[0, 0] == pytest.approx(0.7)  # the first tile's top, at the origin cell
+    assert _rclpy_reads_and_writes(tmp_path, raw_image, cdr.IMAGE)
+    heights_subscriber.undeclare()
 
     # A map/objects put becomes a MarkerArray: a DELETEALL, then a CUBE per tracked object.
     marker_hash = cdr.type_hash("jazzy", cdr.MARKER_ARRAY)
