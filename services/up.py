@@ -5,6 +5,7 @@ end; every child stopped, none left behind."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -27,7 +28,7 @@ from common.lattice import reframe
 from common.lifecycle import stop_on_signals
 from common.mapfiles import write_map
 from common.occupancy_map import OccupancyMap
-from common.settings import ZenohSettings, parse_settings
+from common.settings import ENV_PREFIX, ZenohSettings, parse_settings
 from common.zenoh_session import open_session
 from services.camera_sim.settings import CameraSimParams
 from services.depth.settings import DepthParams
@@ -118,6 +119,19 @@ def child_commands(settings: UpSettings) -> list[tuple[str, list[str]]]:
     return [(name, [*args, *session_flags(settings)]) for name, args in commands]
 
 
+NESTED_CHILDREN = ("camera-sim", "depth", "fusion")
+"""The commands whose parameters ``up`` nests: their values come as flags only."""
+
+
+def child_environment(command: str) -> dict[str, str]:
+    """A nested child inherits no ``OVERGRID_*`` variable: ``up`` read its own (the nested names)
+    and hands the values over as flags, and one the child would read itself (``OVERGRID_RATE_HZ``)
+    would quietly override what ``up`` validated. Other children read theirs."""
+    if command not in NESTED_CHILDREN:
+        return dict(os.environ)
+    return {name: value for name, value in os.environ.items() if not name.startswith(ENV_PREFIX)}
+
+
 def start_children(settings: UpSettings) -> list[Child]:
     logs = settings.out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
@@ -128,6 +142,7 @@ def start_children(settings: UpSettings) -> list[Child]:
         # A new session: the terminal's Ctrl-C reaches `up` alone, which saves the map first.
         process = subprocess.Popen(
             [sys.executable, "-m", "services.cli", *args],
+            env=child_environment(args[0]),
             stdout=log_file,
             stderr=subprocess.STDOUT,
             start_new_session=True,

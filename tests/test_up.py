@@ -15,7 +15,7 @@ from common.settings import OvergridParams, OvergridSettings, parse_settings
 from services.camera_sim.settings import CameraSimParams, CameraSimSettings
 from services.depth.settings import DepthParams, DepthSettings
 from services.fusion.settings import FusionParams, FusionSettings
-from services.up import UpSettings, child_commands
+from services.up import UpSettings, child_commands, child_environment
 from tests.conftest import REPO, Bus, wait_for
 
 pytestmark = pytest.mark.process
@@ -68,6 +68,17 @@ def test_children_are_handed_the_values_up_validated() -> None:
             assert getattr(child, param) == getattr(getattr(settings, field), param), (name, param)
     assert settings.camera_sim.rig.pair_count == 3 and settings.depth.model.p_hit == 0.8
     assert settings.fusion.grid.logodds_min == -1.0
+
+
+def test_nested_children_read_no_settings_of_their_own(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``up`` reads the nested variable; the child's flat one must not override what it hands over."""
+    monkeypatch.setenv("OVERGRID_CAMERA_SIM__RATE_HZ", "3")
+    monkeypatch.setenv("OVERGRID_RATE_HZ", "9")
+    settings = parse_settings(UpSettings, [], "overgrid up", "")
+    assert settings.camera_sim.rate_hz == 3.0
+    (args,) = [args for name, args in child_commands(settings) if name == "camera_sim"]
+    assert "3.0" in args and not any(k.startswith("OVERGRID_") for k in child_environment(args[0]))
+    assert child_environment("view")["OVERGRID_RATE_HZ"] == "9"  # not nested: reads its own
 
 
 def test_depth_and_fusion_must_share_the_lattice(capsys: pytest.CaptureFixture[str]) -> None:
