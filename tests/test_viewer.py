@@ -538,6 +538,11 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
     page.wait_for_selector('#banner[data-kind="stale"]', state="visible", timeout=10_000)
     assert "stale" in page.inner_text("#banner")
     _screenshot(page, tmp_path, "viewer-stale.png")
+    # "Last observed" never asks fusion: with fusion gone the viewer still answers it.
+    box_i, box_j = int(4.3 / RESOLUTION_M), int(1.3 / RESOLUTION_M)
+    answer = page.request.get(f"http://127.0.0.1:{port}/cell?i={box_i}&j={box_j}").json()
+    assert answer["i"] == box_i and 0 < answer["last_seen_s"] <= answer["now_s"]
+    assert page.request.get(f"http://127.0.0.1:{port}/cell?i=x&j=1").status == 400
     bus.start(*fusion_args, log_path=tmp_path / "fusion-again.log")
     page.wait_for_selector("#banner", state="hidden", timeout=30_000)
     assert _rgb(page, 2.3, 2.3) == PICTURE_COLORS["occupied"]  # the restored map
