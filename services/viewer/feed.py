@@ -205,7 +205,7 @@ class MapFeed:
             self._follower.close()
             self._follower = None
             self._generation += 1
-            self._update(layers=None, map=None)
+            self._update(layers=None, map=None, cell_times=None)
         if self._follower is None:
             self._follow()
         self._update(
