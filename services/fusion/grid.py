@@ -77,7 +77,7 @@ def chunk_aligned(window: Window) -> Window:
 class Chunk:
     """One chunk's layers, each a CHUNK_CELLS² array ([row, col] = [j - j0, i - i0])."""
 
-    __slots__ = (*(name for name, _, _ in LAYER_FILLS), "decay_check_s")
+    __slots__ = (*(name for name, _, _ in LAYER_FILLS), "decay_check_s", "shared")
     logodds: npt.NDArray[np.float32]
     height_m: npt.NDArray[np.float32]
     known: npt.NDArray[np.bool_]
@@ -87,6 +87,8 @@ class Chunk:
     decay_check_s: float
     """Observation time of its oldest known cell (or earlier): decay looks here only once that is
     ``decay_after_s`` old, so a pass costs the chunks that may be stale, not the whole map."""
+    shared: bool
+    """A :class:`FrozenMap` holds these arrays: copy before writing (copy-on-write)."""
 
     def __init__(self, layers: Mapping[str, npt.NDArray[Any]] | None = None) -> None:
         shape = (CHUNK_CELLS, CHUNK_CELLS)
@@ -95,6 +97,12 @@ class Chunk:
             setattr(self, name, np.full(shape, fill, dtype) if given is None else given)
         known_seen = self.last_seen_s[self.known]
         self.decay_check_s = float(known_seen.min()) if known_seen.size else math.inf
+        self.shared = False
+
+    def copy(self) -> Chunk:
+        chunk = Chunk({name: getattr(self, name).copy() for name, _, _ in LAYER_FILLS})
+        chunk.decay_check_s = self.decay_check_s
+        return chunk
 
     def served(self) -> npt.NDArray[np.int8]:
         """What clients read: the evidence, with the predicted layer's cells occupied."""
@@ -111,18 +119,21 @@ class FrozenChunk:
 
     @staticmethod
     def of(chunk: Chunk) -> FrozenChunk:
-        layers = {name: getattr(chunk, name).copy() for name, _, _ in LAYER_FILLS}
+        """Shares the chunk's arrays (read-only views); the grid copies the chunk before its next
+        write, so memory is the map's once plus the chunks changed since."""
+        layers = {name: getattr(chunk, name).view() for name, _, _ in LAYER_FILLS}
         served = chunk.served()
         for array in (*layers.values(), served):
             array.setflags(write=False)
+        chunk.shared = True
         return FrozenChunk(MappingProxyType(layers), served, int(layers["known"].sum()))
 
 
 @dataclass(frozen=True)
 class FrozenMap:
     """The map at one version, immutable: queries and the state writer read it from their own
-    threads while the owner goes on changing the grid. Made by copy-on-write: a new one copies the
-    chunks changed since the last and shares the rest."""
+    threads while the owner goes on changing the grid. Copy-on-write: a new one takes the chunks
+    changed since the last and shares the rest; a chunk is copied when the grid next writes it."""
 
     epoch_ns: int
     version: int
@@ -214,9 +225,7 @@ class FusedGrid:
             cw = chunk_window(key)
             sub = part.intersect(cw)
             in_tile, in_chunk = sub.slices_in(tile_window), sub.slices_in(cw)
-            chunk = self.chunks.get(key)
-            if chunk is None:
-                chunk = self.chunks[key] = Chunk()
+            chunk = self._writable(key)
             rules.combine_tile(
                 chunk.logodds[in_chunk],
                 chunk.height_m[in_chunk],
@@ -249,6 +258,7 @@ class FusedGrid:
             stale = chunk.known & (now_s - chunk.last_seen_s > p.decay_after_s)
             count = int(stale.sum())
             if count:
+                chunk = self._writable(key)
                 chunk.logodds[stale] *= factor
                 forgotten = stale & (np.abs(chunk.logodds) < p.unknown_below)
                 chunk.logodds[forgotten] = 0.0
@@ -282,16 +292,13 @@ class FusedGrid:
         changed = False
         for key in self._predicted | set(masks):
             new = masks.get(key)
-            chunk = self.chunks.get(key)
-            if chunk is None:
-                if new is None or not new.any():
-                    continue
-                chunk = self.chunks[key] = Chunk()
             if new is None:
                 new = np.zeros((CHUNK_CELLS, CHUNK_CELLS), np.bool_)
-            if np.array_equal(new, chunk.predicted):
+            chunk = self.chunks.get(key)
+            unchanged = not new.any() if chunk is None else np.array_equal(new, chunk.predicted)
+            if unchanged:
                 continue
-            chunk.predicted = new
+            self._writable(key).predicted = new
             self.changed.add(key)
             self.dirty = self.dirty.union(chunk_window(key).intersect(self.window))
             changed = True
@@ -299,6 +306,15 @@ class FusedGrid:
         if changed:
             self.version += 1
         return changed
+
+    def _writable(self, key: ChunkKey) -> Chunk:
+        """The chunk to write into: created when new, copied when a frozen map shares it."""
+        chunk = self.chunks.get(key)
+        if chunk is None:
+            chunk = self.chunks[key] = Chunk()
+        elif chunk.shared:
+            chunk = self.chunks[key] = chunk.copy()
+        return chunk
 
     def window_of(self, name: str, window: Window) -> npt.NDArray[Any]:
         """One layer (``served``: the occupancy clients read) over a window of the map, from the
@@ -327,8 +343,8 @@ class FusedGrid:
         return dirty
 
     def freeze(self) -> tuple[FrozenMap, set[ChunkKey]]:
-        """An immutable copy of the map now, and the chunks changed since the last one; copies only
-        those chunks."""
+        """An immutable copy of the map now, and the chunks changed since the last one; costs
+        those chunks only."""
         changed, self.changed = self.changed, set()
         chunks = dict(self._frozen.chunks)
         for key in changed:
