@@ -15,6 +15,12 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 Matrix = list[list[float]]
 
+MAX_IMAGE_PIXELS = 4096 * 4096
+"""Larger than any stereo camera we know (12 MP machine-vision sensors fit): a calibration of a
+16384×16384 image would have the depth process allocate gigabytes of rectification maps."""
+MAX_FIELD_OF_VIEW_DEG = 170.0
+"""A pinhole model cannot see 180° across; a focal length of 1e-9 px claims it does."""
+
 
 def _finite(values: npt.ArrayLike, what: str) -> None:
     if not np.all(np.isfinite(np.asarray(values, dtype=np.float64))):
@@ -42,12 +48,27 @@ class PinholeCamera(BaseModel):
         return k
 
     @model_validator(mode="after")
-    def _principal_point_in_image(self) -> PinholeCamera:
+    def _geometry_of_a_camera(self) -> PinholeCamera:
         cx, cy = self.K[0][2], self.K[1][2]
         if not (-0.5 <= cx <= self.width - 0.5 and -0.5 <= cy <= self.height - 0.5):
             raise ValueError(
                 f"principal point ({cx:g}, {cy:g}) lies outside the {self.width}×{self.height} image"
             )
+        if self.width * self.height > MAX_IMAGE_PIXELS:
+            raise ValueError(
+                f"image {self.width}×{self.height} exceeds {MAX_IMAGE_PIXELS} pixels: "
+                "no stereo camera has so many"
+            )
+        for axis, focal_px, extent_px in (
+            ("x", self.K[0][0], self.width),
+            ("y", self.K[1][1], self.height),
+        ):
+            fov_deg = math.degrees(2.0 * math.atan(extent_px / (2.0 * focal_px)))
+            if fov_deg > MAX_FIELD_OF_VIEW_DEG:
+                raise ValueError(
+                    f"focal length f{axis}={focal_px:g} px gives a {fov_deg:.1f}° field of view over "
+                    f"{extent_px} px; a pinhole camera sees less than {MAX_FIELD_OF_VIEW_DEG:g}°"
+                )
         return self
 
     @field_validator("dist")

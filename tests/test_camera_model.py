@@ -16,7 +16,7 @@ from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import SceneSpec
 from services.camera_sim.sensor import DN_MAX, CameraSensor, SensorParams, auto_exposure
 from services.camera_sim.service import frame_payload, jpeg_encoder
-from services.depth.service import FrameIntake
+from services.depth.intake import StereoFrame, decode_stereo_frame
 
 FLAT = np.full((240, 320), 0.5, dtype=np.float32)
 NO_OPTICS = SensorParams(blur_sigma_px=0.0, vignetting=0.0, prnu_pct=0.0)
@@ -133,13 +133,6 @@ def test_jpeg_frames_decode_where_the_depth_service_takes_them() -> None:
     assert np.abs(decoded.astype(int) - left.astype(int)).mean() < 3.0
 
 
-class _Pipeline:
-    """Only the frame check of a depth pipeline: what FrameIntake needs."""
-
-    def check_frame(self, left: np.ndarray, right: np.ndarray) -> None:
-        assert left.shape == right.shape == (480, 640)
-
-
 def test_depth_intake_accepts_the_sims_jpeg_frames() -> None:
     calib: StereoCalibration = layout_pairs(RigSpec(pair_count=1), (12.0, 10.0))[0]
     renderer = SceneRenderer(SceneSpec(), [calib])
@@ -147,6 +140,6 @@ def test_depth_intake_accepts_the_sims_jpeg_frames() -> None:
     left, right = StereoCapture(renderer, calib, CameraModel(), 0).capture(0)
     renderer.close()
     payload = frame_payload({"pair": "p0", "seq": 3, "stamp_ns": 1}, left, right, jpeg_encoder(90))
-    intake = FrameIntake(_Pipeline(), 32 << 20)  # type: ignore[arg-type]
-    frame = intake._parse(payload)
+    frame = decode_stereo_frame(payload, "p0", calib.image_size, 32 << 20)
+    assert isinstance(frame, StereoFrame)
     assert frame.header.encoding == "jpeg" and frame.left.shape == (480, 640)

@@ -6,6 +6,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -73,55 +74,120 @@ def _answer(key: str, payload: bytes) -> Callable[[zenoh.Query], None]:
 
 
 TRUTH_LIGHT_HISTORY_S = 120.0
+TRUTH_MAX_CELLS = 25_000_000
+TRUTH_PARAMETERS = "t (s since the epoch) or stamp_ns, resolution (m), band=h_min,h_max (m)"
 
 
-def _truth_reply(scene: SceneSpec, lighting: Lighting, query: zenoh.Query) -> bytes:
-    """Parameters: ``t`` (s since epoch) or ``stamp_ns``; ``resolution`` (m); ``band`` (h_min,h_max)."""
-    params = dict(query.parameters)
-    stamp_ns = (
-        int(params["stamp_ns"])
-        if "stamp_ns" in params
-        else int(float(params.get("t", time.time())) * 1e9)  # inf, nan: OverflowError, ValueError
-    )
-    if not 0 <= stamp_ns < 2**63:
-        raise ValueError(f"stamp_ns {stamp_ns} is outside 0 … 2^63")
-    resolution_m = check_resolution(float(params.get("resolution", 0.05)))
-    band = tuple(float(v) for v in params.get("band", "0.1,2.0").split(","))
-    if len(band) != 2 or not all(math.isfinite(v) for v in band) or band[0] >= band[1]:
-        raise ValueError(f"band must be h_min,h_max with h_min < h_max, got {params.get('band')}")
-    objects = scene.truth_objects(stamp_ns / 1e9)
+class TruthQueryError(ValueError):
+    """A ``sim/truth`` query this simulator cannot answer; the message names the parameter."""
+
+
+@dataclass(frozen=True)
+class TruthQuery:
+    stamp_ns: int
+    resolution_m: float
+    band_m: tuple[float, float]
+
+
+def _finite(name: str, text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise TruthQueryError(f"{name}={text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise TruthQueryError(f"{name}={text} is not finite")
+    return value
+
+
+def parse_truth_query(parameters: dict[str, str], now_ns: int) -> TruthQuery:
+    """The query's parameters, each checked and named when wrong; ``now_ns`` without t/stamp_ns.
+    Parameters starting with ``_`` are Zenoh's own and ignored."""
+    known = ("t", "stamp_ns", "resolution", "band")
+    unknown = sorted(k for k in parameters if k not in known and not k.startswith("_"))
+    if unknown:
+        raise TruthQueryError(f"unknown parameter {unknown[0]!r}")
+    if "stamp_ns" in parameters and "t" in parameters:
+        raise TruthQueryError("give t or stamp_ns, not both")
+    if "stamp_ns" in parameters:
+        text = parameters["stamp_ns"]
+        digits = text.isascii() and text.isdigit() and len(text) <= 19
+        stamp_ns = int(text) if digits else -1
+        if not 0 <= stamp_ns < 2**63:
+            raise TruthQueryError(f"stamp_ns={text!r} is not an integer in 0 … 2^63 ns")
+    elif "t" in parameters:
+        t_s = _finite("t", parameters["t"])
+        if not 0.0 <= t_s < (2**63 - 1) / 1e9:
+            raise TruthQueryError(f"t={parameters['t']} s is outside 0 … 2^63 ns since the epoch")
+        stamp_ns = round(t_s * 1e9)
+    else:
+        stamp_ns = now_ns
+    resolution_text = parameters.get("resolution", "0.05")
+    resolution_m = _finite("resolution", resolution_text)
+    try:
+        check_resolution(resolution_m)
+    except ValueError as error:
+        raise TruthQueryError(f"resolution={resolution_text}: {error}") from None
+    band_text = parameters.get("band", "0.1,2.0")
+    band = tuple(_finite("band", v) for v in band_text.split(","))
+    if len(band) != 2 or band[0] >= band[1]:
+        raise TruthQueryError(f"band={band_text} must be h_min,h_max with h_min < h_max")
+    return TruthQuery(stamp_ns, resolution_m, (band[0], band[1]))
+
+
+def truth_payload(scene: SceneSpec, lighting: Lighting, query: TruthQuery) -> bytes:
+    stamp_s = query.stamp_ns / 1e9
+    objects = scene.truth_objects(stamp_s)
     margin = scene.wall_thickness_m
     window = Window.covering(
         -margin,
         -margin,
         scene.floor_size_m[0] + margin,
         scene.floor_size_m[1] + margin,
-        resolution_m,
+        query.resolution_m,
     )
-    if window.cols * window.rows > 25_000_000:
-        raise ValueError(
-            f"resolution {resolution_m} m gives a grid of {window.cols}×{window.rows}: too large"
+    if window.cols * window.rows > TRUTH_MAX_CELLS:
+        raise TruthQueryError(
+            f"resolution={query.resolution_m:g} gives a grid of {window.cols}×{window.rows}: "
+            f"more than {TRUTH_MAX_CELLS} cells"
         )
-    occupied = truth.occupancy(objects, window, resolution_m, (band[0], band[1]))
+    occupied = truth.occupancy(objects, window, query.resolution_m, query.band_m)
     header = TruthHeader(
-        stamp_ns=stamp_ns,
-        resolution_m=resolution_m,
-        height_band_m=(band[0], band[1]),
+        stamp_ns=query.stamp_ns,
+        resolution_m=query.resolution_m,
+        height_band_m=query.band_m,
         i0=window.i0,
         j0=window.j0,
         cols=window.cols,
         rows=window.rows,
         floor_size_m=scene.floor_size_m,
         objects=objects,
-        light_level=lighting.level(stamp_ns / 1e9),
+        light_level=lighting.level(stamp_s),
         light_steps_ns=[
             int(t_s * 1e9)
-            for t_s in lighting.steps_s(
-                stamp_ns / 1e9 - TRUTH_LIGHT_HISTORY_S, stamp_ns / 1e9 + 1.0
-            )
+            for t_s in lighting.steps_s(stamp_s - TRUTH_LIGHT_HISTORY_S, stamp_s + 1.0)
         ],
     )
     return encode(TRUTH_KIND, header, {"occupied": occupied})
+
+
+def _answer_truth(scene: SceneSpec, lighting: Lighting) -> Callable[[zenoh.Query], None]:
+    def on_truth(query: zenoh.Query) -> None:
+        """Every query gets a reply: the truth, or an error naming what is wrong."""
+        try:
+            # zenoh's stub types Parameters.__iter__ as returning the list of pairs it iterates
+            parameters = dict(query.parameters.__iter__())
+            payload = truth_payload(scene, lighting, parse_truth_query(parameters, time.time_ns()))
+        except TruthQueryError as error:
+            query.reply_err(f"{keys.SIM_TRUTH}: {error}; parameters: {TRUTH_PARAMETERS}")
+            return
+        except Exception as error:  # a defect: still a reply, and a log line to find it
+            log.exception("sim/truth query failed", extra={"selector": str(query.selector)})
+            query.reply_err(f"{keys.SIM_TRUTH}: internal error {type(error).__name__}: {error}")
+            return
+        # On its own key: a query on a wildcard (sim/*) cannot be answered on the wildcard.
+        query.reply(keys.SIM_TRUTH, payload, encoding=WIRE_ENCODING)
+
+    return on_truth
 
 
 def main(settings: CameraSimSettings) -> None:
@@ -158,20 +224,10 @@ def main(settings: CameraSimSettings) -> None:
             for c, payload in zip(calibrations, calib_payloads.values(), strict=True)
         ]
 
-        def on_truth(query: zenoh.Query) -> None:
-            try:
-                query.reply(
-                    query.key_expr,
-                    _truth_reply(scene, renderer.lighting, query),
-                    encoding=WIRE_ENCODING,
-                )
-            except (ValueError, KeyError, OverflowError) as error:
-                query.reply_err(
-                    f"sim/truth: {error}; parameters: t or stamp_ns, resolution, band=h_min,h_max"
-                )
-
         if settings.serve_truth:
-            queryables.append(session.declare_queryable(keys.SIM_TRUTH, on_truth))
+            queryables.append(
+                session.declare_queryable(keys.SIM_TRUTH, _answer_truth(scene, renderer.lighting))
+            )
         log.info(
             "started",
             extra={
@@ -216,7 +272,7 @@ def main(settings: CameraSimSettings) -> None:
                 last_summary = now
             stop.wait(max(0.0, next_tick - time.monotonic()))
         for queryable in queryables:
-            queryable.undeclare()
+            queryable.undeclare()  # type: ignore[no-untyped-call]
     renderer.close()
     log.info("stopped", extra={"frames": stats["published"], "skipped": stats["skipped"]})
 

@@ -16,30 +16,24 @@ import numpy as np
 import zenoh
 
 from common import keys
-from common.camera import StereoCalibration
-from common.codec import WIRE_ENCODING, CodecError, decode, encode, pack_arrays
+from common.codec import WIRE_ENCODING, encode, pack_arrays
 from common.lifecycle import stop_on_signals
 from common.logs import RateLimitedLog, setup_logging
-from common.messages import (
-    CALIB_KIND,
-    DETECTIONS_KIND,
-    STEREO_KIND,
-    TILE_KIND,
-    StereoFrameHeader,
-    TileHeader,
-)
+from common.messages import DETECTIONS_KIND, TILE_KIND, TileHeader
 from common.settings import parse_settings, startup_error
 from common.zenoh_session import open_session
-from services.depth.objects import PixelGrid, detect_objects, detections_header
-from services.depth.pipeline import DepthPipeline, to_gray
-from services.depth.settings import DepthSettings
-from services.depth.sources import (
-    InputError,
+from services.depth.intake import (
     LatestSlot,
-    check_recording,
-    load_calibration,
-    recorded_frames,
+    Rejection,
+    StereoFrame,
+    build_pipeline,
+    decode_calibration,
+    decode_stereo_frame,
 )
+from services.depth.objects import PixelGrid, detect_objects, detections_header
+from services.depth.pipeline import DepthPipeline
+from services.depth.settings import DepthSettings
+from services.depth.sources import InputError, check_recording, load_calibration, recorded_frames
 
 log = logging.getLogger("depth")
 
@@ -47,36 +41,84 @@ StopWait = Callable[[float], bool]
 """Waits up to the given seconds; True once the process is asked to stop."""
 
 
+class Counts:
+    """Every message this process receives, counted once by outcome (the health reply): frames
+    ``received`` = ``processed`` + ``skipped`` + sum of ``rejected`` + the one or two in hand."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._warn = RateLimitedLog(log)
+        self.received = 0
+        self.processed = 0
+        self.rejected: Counter[str] = Counter()
+        self.calibration_rejected: Counter[str] = Counter()
+
+    def arrived(self) -> None:
+        with self._lock:
+            self.received += 1
+
+    def done(self) -> None:
+        with self._lock:
+            self.processed += 1
+
+    def reject(self, rejection: Rejection) -> None:
+        with self._lock:
+            self.rejected[rejection.reason] += 1
+            total = sum(self.rejected.values())
+        self._warn.warning(
+            rejection.reason,
+            "frame rejected",
+            reason=rejection.reason,
+            error=rejection.detail[:200],
+            rejected=total,
+        )
+
+    def reject_calibration(self, rejection: Rejection) -> None:
+        with self._lock:
+            self.calibration_rejected[rejection.reason] += 1
+        self._warn.warning(
+            f"calibration {rejection.reason}",
+            "calibration rejected",
+            reason=rejection.reason,
+            error=rejection.detail[:300],
+        )
+
+    def snapshot(self) -> dict[str, Any]:
+        with self._lock:
+            return {
+                "received": self.received,
+                "processed": self.processed,
+                "rejected": dict(self.rejected),
+                "calibration_rejected": dict(self.calibration_rejected),
+            }
+
+
 def fetch_calibration(
-    session: zenoh.Session, settings: DepthSettings, stop_wait: StopWait
-) -> StereoCalibration | None:
-    """Ask cam/{pair}/calib until a valid answer arrives; a bad answer is logged, not fatal."""
+    session: zenoh.Session, settings: DepthSettings, counts: Counts, stop_wait: StopWait
+) -> DepthPipeline | None:
+    """Ask cam/{pair}/calib until a usable answer arrives; a bad one is counted and logged and the
+    process keeps asking (the camera box may be fixed without restarting this one)."""
     started = time.monotonic()
     while True:
         for reply in session.get(keys.calib(settings.pair), timeout=2.0):
             if reply.ok is None:
                 continue
+            calib = decode_calibration(reply.ok.payload.to_bytes())
+            if isinstance(calib, Rejection):
+                counts.reject_calibration(calib)
+                continue
             try:
-                return decode(reply.ok.payload.to_bytes(), CALIB_KIND, StereoCalibration).header
-            except CodecError as error:
-                log.error(
-                    "calibration rejected", extra={"pair": settings.pair, "error": str(error)}
-                )
+                return build_pipeline(calib, settings.pipeline_config())
+            except ValueError as error:
+                counts.reject_calibration(Rejection("unusable", str(error)))
         if settings.calib_timeout_s and time.monotonic() - started > settings.calib_timeout_s:
-            raise SystemExit(
-                f"no calibration on {keys.calib(settings.pair)} within {settings.calib_timeout_s} s"
+            startup_error(
+                f"--calib-timeout-s {settings.calib_timeout_s}: no usable calibration on "
+                f"{keys.calib(settings.pair)} (rejected: {dict(counts.calibration_rejected)})"
             )
         log.info("waiting for calibration", extra={"key": keys.calib(settings.pair)})
         if stop_wait(1.0):
             return None
-
-
-@dataclass(frozen=True)
-class Frame:
-    header: StereoFrameHeader
-    left: np.ndarray
-    right: np.ndarray
-    received_ns: int
 
 
 class TilePublisher:
@@ -141,84 +183,147 @@ class TilePublisher:
             left_margin_px=pipeline.min_disparity + pipeline.num_disparities,
             params=pipeline.config.model,
         )
-        header = detections_header(detections, self.pair, seq, stamp_ns)
-        self._objects.put(encode(DETECTIONS_KIND, header))
+        self._objects.put(
+            encode(DETECTIONS_KIND, detections_header(detections, self.pair, seq, stamp_ns))
+        )
         stage_ms["objects"] = (time.perf_counter() - started) * 1e3
         self.stage_ms_sum.update(stage_ms)
 
 
 def _recorded_loop(
-    settings: DepthSettings, pipeline: DepthPipeline, publisher: TilePublisher, stop_wait: StopWait
+    settings: DepthSettings, worker: Worker, counts: Counts, stop_wait: StopWait
 ) -> None:
     period_s = 1.0 / settings.rate_hz if settings.rate_hz else 0.0
     assert settings.images is not None
     frames: Iterator[tuple[np.ndarray, np.ndarray]] = recorded_frames(settings.images)
     for seq, (left, right) in enumerate(frames):
         try:
-            publisher.publish(pipeline, left, right, seq, time.time_ns())
-        except ValueError as error:
-            log.error("frame rejected", extra={"seq": seq, "error": str(error)})
+            worker.publisher.publish(worker.pipeline, left, right, seq, time.time_ns())
+            counts.done()
+        except Exception as error:  # one unreadable recording frame never ends the run
+            counts.reject(Rejection("processing_failed", f"frame {seq}: {error}"))
         if stop_wait(period_s):
             return
 
 
 class FrameIntake:
-    """Subscriber side: every message is decoded and checked on arrival, so each bad one is counted
-    and logged; good frames go to a one-deep slot (the worker takes the newest)."""
+    """The subscriber's callback: counts each message's arrival, decodes and checks it there
+    (intake.decode_stereo_frame), so a bad one is counted by reason and never displaces a good
+    one; good frames go to a one-deep slot, where the worker takes the newest."""
 
-    def __init__(self, pipeline: DepthPipeline, max_bytes: int) -> None:
-        self._pipeline = pipeline
+    def __init__(self, pipeline: DepthPipeline, pair: str, max_bytes: int, counts: Counts) -> None:
+        self._image_size = pipeline.calib.image_size
+        self._pair = pair
         self._max_bytes = max_bytes
-        self._lock = threading.Lock()
-        self._warn = RateLimitedLog(log)
-        self.rejected: Counter[str] = Counter()
-        self.slot: LatestSlot[Frame] = LatestSlot()
+        self._counts = counts
+        self.slot: LatestSlot[StereoFrame] = LatestSlot()
 
     def on_sample(self, sample: zenoh.Sample) -> None:
+        self._counts.arrived()
         try:
-            self.slot.put(self._parse(sample.payload.to_bytes()))
-        except (CodecError, KeyError) as error:
-            self.reject("malformed", error)
-        except (ValueError, cv2.error) as error:
-            self.reject("bad_image", error)
-
-    def _parse(self, payload: bytes) -> Frame:
-        message = decode(payload, STEREO_KIND, StereoFrameHeader, self._max_bytes)
-        if message.header.encoding == "raw":
-            left, right = message.arrays["left"], message.arrays["right"]
-        else:
-            left, right = (
-                cv2.imdecode(np.frombuffer(message.blobs[side], np.uint8), cv2.IMREAD_GRAYSCALE)
-                for side in ("left", "right")
+            frame = decode_stereo_frame(
+                sample.payload.to_bytes(), self._pair, self._image_size, self._max_bytes
             )
-            if left is None or right is None:
-                raise ValueError(f"{message.header.encoding} images do not decode")
-        # Gray 8-bit (or RGB, converted here) of the calibration's size, checked on arrival: a
-        # 16-bit or 4-channel camera driver is rejected and counted, never crashes the worker.
-        left, right = to_gray(left), to_gray(right)
-        self._pipeline.check_frame(left, right)
-        return Frame(message.header, left, right, time.time_ns())
+        except Exception as error:  # a defect in decoding: counted, never kills the callback
+            frame = Rejection("malformed", f"{type(error).__name__}: {error}")
+        if isinstance(frame, Rejection):
+            self._counts.reject(frame)
+        else:
+            self.slot.put(frame)
 
-    def reject(self, reason: str, error: Exception) -> None:
+
+class Claims:
+    """Who else holds a token on this pair (depth/{pair}/alive/*): a second depth process on the
+    same pair doubles its evidence in the map, so both say so in the log and in health."""
+
+    def __init__(self, pair: str, instance: str) -> None:
+        self._pair = pair
+        self.instance = instance
+        self._lock = threading.Lock()
+        self._others: set[str] = set()
+
+    def on_token(self, sample: zenoh.Sample) -> None:
+        try:
+            key = str(sample.key_expr)
+            if keys.pair_of(key) != self._pair:
+                return
+            other = keys.instance_of(key)
+        except ValueError:
+            return
+        if other == self.instance:
+            return
         with self._lock:
-            self.rejected[reason] += 1
-            total = sum(self.rejected.values())
-        self._warn.warning(
-            reason, "frame rejected", reason=reason, error=str(error)[:200], rejected=total
-        )
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._others.add(other)
+            else:
+                self._others.discard(other)
+        if sample.kind == zenoh.SampleKind.PUT:
+            log.warning(
+                "another depth process claims this pair",
+                extra={"pair": self._pair, "other_instance": other, "instance": self.instance},
+            )
+        else:
+            log.info(
+                "the other depth process of this pair is gone",
+                extra={"pair": self._pair, "other_instance": other},
+            )
+
+    def others(self) -> list[str]:
+        with self._lock:
+            return sorted(self._others)
 
 
-def check_search_band(pipeline: DepthPipeline) -> None:
-    """A calibration can pass validation and still describe no stereo pair this service can match
-    (a 1000 m baseline, a principal point far off the image): its disparity band would not fit the
-    image, and SGBM would try to allocate it at the first frame."""
-    width = pipeline.rectifier.size[0]
-    low, count = pipeline.min_disparity, pipeline.num_disparities
-    if low + count > width // 2:
-        raise ValueError(
-            f"the floor-to-obstacle disparities {low}…{low + count} px do not fit an image "
-            f"{width} px wide: check the baseline, focal length and poses"
-        )
+def _pipeline_from_file(settings: DepthSettings) -> DepthPipeline | None:
+    """The pipeline of ``--calib``, or one start-up line naming the file and what is wrong."""
+    if settings.calib is None:
+        return None
+    try:
+        calib = load_calibration(settings.calib)
+        return build_pipeline(calib, settings.pipeline_config())
+    except InputError as error:
+        startup_error(str(error))
+    except ValueError as error:
+        startup_error(f"--calib {settings.calib}: pair {settings.pair} is unusable: {error}")
+
+
+@dataclass(frozen=True)
+class Worker:
+    """What exists once the calibration is usable; health reads it, the frame loop uses it."""
+
+    pipeline: DepthPipeline
+    publisher: TilePublisher
+    intake: FrameIntake
+
+
+def _serve_frames(
+    session: zenoh.Session, pair: str, worker: Worker, counts: Counts, stop: threading.Event
+) -> None:
+    subscriber = session.declare_subscriber(keys.stereo(pair), worker.intake.on_sample)
+    try:
+        while not stop.is_set():
+            frame = worker.intake.slot.take(0.5)
+            if frame is None:
+                continue
+            # camera: capture → arrival here (exposure/readout, or the sim's render, and
+            # transport); queue: waiting here for the worker.
+            upstream_ms = {
+                "camera": (frame.received_ns - frame.header.stamp_ns) / 1e6,
+                "queue": (time.time_ns() - frame.received_ns) / 1e6,
+            }
+            try:
+                worker.publisher.publish(
+                    worker.pipeline,
+                    frame.left,
+                    frame.right,
+                    frame.header.seq,
+                    frame.header.stamp_ns,
+                    upstream_ms,
+                )
+                counts.done()
+            except Exception as error:  # MemoryError, numpy, OpenCV: one frame, never the loop
+                counts.reject(Rejection("processing_failed", f"{type(error).__name__}: {error}"))
+    finally:
+        subscriber.undeclare()  # type: ignore[no-untyped-call]
 
 
 def main(settings: DepthSettings) -> None:
@@ -226,95 +331,98 @@ def main(settings: DepthSettings) -> None:
     if settings.threads:
         cv2.setNumThreads(settings.threads)
     stop = stop_on_signals()
-    try:
-        calib_file = load_calibration(settings.calib) if settings.calib else None
-        if settings.images is not None:
-            check_recording(settings.images)
-    except InputError as error:
-        startup_error(str(error))
-    with open_session(settings) as session:
-        calib = calib_file or fetch_calibration(session, settings, stop.wait)
-        if calib is None:
-            return
-        if calib.pair != settings.pair:
-            log.warning(
-                "calibration names another pair",
-                extra={"calib_pair": calib.pair, "pair": settings.pair},
-            )
+    pipeline = _pipeline_from_file(settings)
+    if settings.images is not None:
         try:
-            pipeline = DepthPipeline(calib, settings.pipeline_config())
-            check_search_band(pipeline)
-        except (ValueError, cv2.error, MemoryError) as error:
-            startup_error(f"calibration of pair {settings.pair} is unusable: {error}")
-        publisher = TilePublisher(session, settings.pair)
-        intake = FrameIntake(pipeline, int(settings.max_message_mb * 1024 * 1024))
+            check_recording(settings.images)
+        except InputError as error:
+            startup_error(str(error))
+    with open_session(settings) as session:
+        counts = Counts()
+        claims = Claims(settings.pair, str(session.zid()))
+        worker: Worker | None = None
 
         def health() -> dict[str, Any]:
-            n = max(publisher.published, 1)
-            return {
+            answer: dict[str, Any] = {
                 "pair": settings.pair,
-                "tiles": publisher.published,
-                "skipped": intake.slot.replaced,
-                "rejected": dict(intake.rejected),
-                "stage_ms_mean": {k: v / n for k, v in publisher.stage_ms_sum.items()},
-                "floor_model": pipeline.floor_health(),
+                "instance": claims.instance,
+                "conflict": claims.others(),
+                "state": "waiting_for_calibration" if worker is None else "running",
+                **counts.snapshot(),
             }
+            if worker is not None:
+                published = worker.publisher.published
+                answer |= {
+                    "tiles": published,
+                    "skipped": worker.intake.slot.replaced,
+                    "stage_ms_mean": {
+                        k: v / max(published, 1) for k, v in worker.publisher.stage_ms_sum.items()
+                    },
+                    "floor_model": worker.pipeline.floor_health(),
+                }
+            return answer
 
-        token = session.liveliness().declare_token(
-            keys.depth_alive(settings.pair, str(session.zid()))
-        )
-        health_queryable = session.declare_queryable(
-            keys.depth_health(settings.pair),
+        def on_health(query: zenoh.Query) -> None:
             # On its own key: a wildcard query (depth/*/health) gets one answer per pair.
-            lambda q: q.reply(
-                keys.depth_health(settings.pair), json.dumps(health()), encoding="application/json"
-            ),
+            try:
+                payload = json.dumps(health())
+            except Exception as error:  # every query gets a reply
+                query.reply_err(f"depth/{settings.pair}/health: {type(error).__name__}: {error}")
+                return
+            query.reply(keys.depth_health(settings.pair), payload, encoding="application/json")
+
+        health_queryable = session.declare_queryable(keys.depth_health(settings.pair), on_health)
+        claims_watch = session.liveliness().declare_subscriber(
+            keys.DEPTH_ALIVE_ALL, claims.on_token, history=True
         )
+        pipeline = pipeline or fetch_calibration(session, settings, counts, stop.wait)
+        if pipeline is None:
+            return
+        if pipeline.calib.pair != settings.pair:
+            log.warning(
+                "calibration names another pair",
+                extra={"calib_pair": pipeline.calib.pair, "pair": settings.pair},
+            )
+        max_bytes = int(settings.max_message_mb * 1024 * 1024)
+        worker = Worker(
+            pipeline,
+            TilePublisher(session, settings.pair),
+            FrameIntake(pipeline, settings.pair, max_bytes, counts),
+        )
+        token = session.liveliness().declare_token(keys.depth_alive(settings.pair, claims.instance))
         log.info(
             "started",
             extra={
                 "pair": settings.pair,
+                "instance": claims.instance,
                 "disparities": f"{pipeline.min_disparity}+{pipeline.num_disparities}",
-                "baseline_m": calib.baseline_m,
+                "baseline_m": pipeline.calib.baseline_m,
                 "input": str(settings.images or keys.stereo(settings.pair)),
             },
         )
+        summary = threading.Thread(
+            target=_summaries, args=(health, settings.summary_s, stop), daemon=True
+        )
+        summary.start()
         if settings.images is not None:
-            _recorded_loop(settings, pipeline, publisher, stop.wait)
+            _recorded_loop(settings, worker, counts, stop.wait)
         else:
-            subscriber = session.declare_subscriber(keys.stereo(settings.pair), intake.on_sample)
-            last_summary = time.monotonic()
-            while not stop.is_set():
-                frame = intake.slot.take(0.5)
-                if frame is not None:
-                    # camera: capture → arrival here (exposure/readout, or the sim's render, and
-                    # transport); queue: waiting here for the worker.
-                    upstream_ms = {
-                        "camera": (frame.received_ns - frame.header.stamp_ns) / 1e6,
-                        "queue": (time.time_ns() - frame.received_ns) / 1e6,
-                    }
-                    try:
-                        publisher.publish(
-                            pipeline,
-                            frame.left,
-                            frame.right,
-                            frame.header.seq,
-                            frame.header.stamp_ns,
-                            upstream_ms,
-                        )
-                    except (ValueError, cv2.error) as error:  # one bad frame never ends the loop
-                        intake.reject("processing_failed", error)
-                if time.monotonic() - last_summary >= settings.summary_s:
-                    last_summary = time.monotonic()
-                    counters = health()
-                    stage_ms = counters.pop("stage_ms_mean")
-                    log.info(
-                        "summary", extra={**counters, **{f"{k}_ms": v for k, v in stage_ms.items()}}
-                    )
-            subscriber.undeclare()
-        health_queryable.undeclare()
-        token.undeclare()
-    log.info("stopped", extra={"tiles": publisher.published, "rejected": dict(intake.rejected)})
+            _serve_frames(session, settings.pair, worker, counts, stop)
+        stop.set()
+        summary.join(2.0)
+        for declared in (claims_watch, health_queryable, token):
+            declared.undeclare()  # type: ignore[no-untyped-call]
+    log.info("stopped", extra={"tiles": worker.publisher.published, **counts.snapshot()})
+
+
+def _summaries(
+    health: Callable[[], dict[str, Any]], period_s: float, stop: threading.Event
+) -> None:
+    """One summary log line per period, off the worker's path."""
+    while not stop.wait(period_s):
+        counters = health()
+        stage_ms = counters.pop("stage_ms_mean", {})
+        log.info("summary", extra={**counters, **{f"{k}_ms": v for k, v in stage_ms.items()}})
 
 
 def cli(argv: Sequence[str] | None = None) -> None:

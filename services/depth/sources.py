@@ -8,10 +8,8 @@ names), a folder of ``*_left.*`` / ``*_right.*`` files, or a side-by-side video 
 from __future__ import annotations
 
 import json
-import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Generic, TypeVar
 
 import cv2
 import numpy as np
@@ -19,8 +17,6 @@ import yaml
 from pydantic import ValidationError
 
 from common.camera import StereoCalibration
-
-T = TypeVar("T")
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"}
 
@@ -103,27 +99,3 @@ def recorded_frames(source: Path) -> Iterator[tuple[np.ndarray, np.ndarray]]:
             yield gray[:, :half], gray[:, half:]
     finally:
         capture.release()
-
-
-class LatestSlot(Generic[T]):
-    """One-deep mailbox: a new item replaces an unread one (counted), so a slow consumer works on
-    the newest frame and memory stays bounded."""
-
-    def __init__(self) -> None:
-        self._item: T | None = None
-        self._cond = threading.Condition()
-        self.replaced = 0
-
-    def put(self, item: T) -> None:
-        with self._cond:
-            if self._item is not None:
-                self.replaced += 1
-            self._item = item
-            self._cond.notify()
-
-    def take(self, timeout_s: float) -> T | None:
-        with self._cond:
-            if self._item is None:
-                self._cond.wait(timeout_s)
-            item, self._item = self._item, None
-            return item

@@ -1,0 +1,242 @@
+"""What reaches a depth process over Zenoh, checked once where it enters: one decode function per
+message kind turns bytes into a typed value or a named :class:`Rejection`, which the service counts
+in ``depth/{pair}/health``. Nothing past these functions sees a frame it cannot process.
+
+Pixels accepted (DESIGN.md, Key space): 8-bit gray, H×W×1, RGB and RGBA (converted to gray), and
+16-bit mono (H×W or H×W×1: machine-vision drivers deliver 10/12/16-bit pixels in 16-bit words),
+reduced to 8 bits by one shift common to both images, so left and right keep the same scale.
+Float, signed and bool pixels are rejected: they carry no agreed brightness scale.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from common.camera import StereoCalibration
+from common.codec import CodecError, decode
+from common.messages import CALIB_KIND, STEREO_KIND, StereoFrameHeader
+from services.depth.pipeline import DepthPipeline, PipelineConfig
+
+U8 = npt.NDArray[np.uint8]
+T = TypeVar("T")
+
+FRAME_REJECTIONS = (
+    "oversize",  # larger than --max-message-mb, never unpacked
+    "malformed",  # not an overgrid stereo message: bytes, envelope, header, arrays
+    "wrong_pair",  # the header names another pair than the key it came on
+    "undecodable",  # png/jpeg images that do not decode
+    "bad_pixels",  # a pixel format of no camera: float, signed, bool, 2 or 5+ channels
+    "wrong_size",  # not the calibration's image size
+    "processing_failed",  # passed every check and still failed in the pipeline (a defect)
+)
+CALIBRATION_REJECTIONS = ("malformed", "unusable")
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """Why one message was refused: ``reason`` is one of the named reasons, ``detail`` for logs."""
+
+    reason: str
+    detail: str
+
+
+@dataclass(frozen=True)
+class StereoFrame:
+    header: StereoFrameHeader
+    left: U8
+    right: U8
+    received_ns: int
+
+
+class _Refused(Exception):
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
+def decode_stereo_frame(
+    payload: bytes, pair: str, image_size: tuple[int, int], max_bytes: int
+) -> StereoFrame | Rejection:
+    """``cam/{pair}/stereo`` bytes → two gray 8-bit images of ``image_size`` (width, height)."""
+    received_ns = time.time_ns()
+    try:
+        if len(payload) > max_bytes:
+            raise _Refused("oversize", f"{len(payload)} bytes exceed the limit of {max_bytes}")
+        try:
+            message = decode(payload, STEREO_KIND, StereoFrameHeader, max_bytes)
+        except CodecError as error:
+            raise _Refused("malformed", str(error)) from None
+        header = message.header
+        if header.pair != pair:
+            raise _Refused("wrong_pair", f"header names pair {header.pair!r}, key says {pair!r}")
+        if header.encoding == "raw":
+            left, right = (_raw_image(message.arrays, side, image_size) for side in SIDES)
+        else:
+            left, right = (
+                _encoded_image(message.blobs, side, header.encoding, image_size) for side in SIDES
+            )
+        left_8, right_8 = to_mono8(left, right)
+        return StereoFrame(header, left_8, right_8, received_ns)
+    except _Refused as refused:
+        return Rejection(refused.reason, str(refused))
+
+
+SIDES = ("left", "right")
+
+
+def _raw_image(arrays: dict[str, np.ndarray], side: str, image_size: tuple[int, int]) -> np.ndarray:
+    if side not in arrays:
+        raise _Refused("malformed", f"raw frame has no {side!r} array")
+    image = arrays[side]
+    if image.ndim not in (2, 3):
+        raise _Refused("bad_pixels", f"{side} image has {image.ndim} dimensions")
+    _check_size(side, (image.shape[1], image.shape[0]), image_size)
+    return image
+
+
+def _encoded_image(
+    blobs: dict[str, bytes], side: str, encoding: str, image_size: tuple[int, int]
+) -> np.ndarray:
+    """Decoded only once its header says the calibration's size: a small PNG can declare a
+    gigapixel image."""
+    blob = blobs.get(side)
+    if blob is None:
+        raise _Refused("malformed", f"{encoding} frame has no {side!r} blob")
+    size = encoded_size(blob, encoding)
+    if size is None:
+        raise _Refused("undecodable", f"{side} blob is not a {encoding} image")
+    _check_size(side, size, image_size)
+    image = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise _Refused("undecodable", f"{side} {encoding} image does not decode")
+    _check_size(side, (image.shape[1], image.shape[0]), image_size)
+    return np.asarray(image)
+
+
+def _check_size(side: str, size: tuple[int, int], image_size: tuple[int, int]) -> None:
+    if size != image_size:
+        raise _Refused(
+            "wrong_size",
+            f"{side} image is {size[0]}×{size[1]}, calibration says {image_size[0]}×{image_size[1]}",
+        )
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+JPEG_SOF_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+"""Start-of-frame markers (baseline, progressive, …); C4/C8/CC are tables and a reserved code."""
+
+
+def encoded_size(blob: bytes, encoding: str) -> tuple[int, int] | None:
+    """(width, height) a PNG's IHDR or a JPEG's start-of-frame declares; None if it has none."""
+    if encoding == "png":
+        if blob[:8] != PNG_SIGNATURE or blob[12:16] != b"IHDR" or len(blob) < 24:
+            return None
+        return int.from_bytes(blob[16:20], "big"), int.from_bytes(blob[20:24], "big")
+    if encoding != "jpeg" or blob[:2] != b"\xff\xd8":
+        return None
+    offset = 2
+    while offset + 9 <= len(blob):
+        if blob[offset] != 0xFF:
+            return None
+        marker = blob[offset + 1]
+        if marker == 0xFF:  # fill byte
+            offset += 1
+            continue
+        if marker in JPEG_SOF_MARKERS:
+            height = int.from_bytes(blob[offset + 5 : offset + 7], "big")
+            return int.from_bytes(blob[offset + 7 : offset + 9], "big"), height
+        if marker == 0xDA:  # image data before any frame header
+            return None
+        offset += 2 + int.from_bytes(blob[offset + 2 : offset + 4], "big")
+    return None
+
+
+def to_mono8(left: np.ndarray, right: np.ndarray) -> tuple[U8, U8]:
+    """Both images as gray uint8 (see the module docstring for the formats accepted)."""
+    if left.dtype != right.dtype or left.shape != right.shape:
+        raise _Refused(
+            "bad_pixels",
+            f"left {left.dtype} {left.shape} and right {right.dtype} {right.shape} differ",
+        )
+    if left.ndim == 3:
+        channels = left.shape[2]
+        if channels not in (1, 3, 4):
+            raise _Refused("bad_pixels", f"images have {channels} channels, accepted 1, 3 or 4")
+        if channels == 1:
+            left, right = left[:, :, 0], right[:, :, 0]
+    if left.dtype == np.uint16 and left.ndim == 2:
+        bits = int(max(int(left.max()), int(right.max()))).bit_length()
+        shift = max(bits - 8, 0)
+        return (left >> shift).astype(np.uint8), (right >> shift).astype(np.uint8)
+    if left.dtype != np.uint8:
+        channels = left.shape[2] if left.ndim == 3 else 1
+        raise _Refused(
+            "bad_pixels",
+            f"pixels are {left.dtype} with {channels} channel(s): "
+            "accepted uint8 (gray, RGB, RGBA) or uint16 mono",
+        )
+    if left.ndim == 2:
+        return left, right
+    code = cv2.COLOR_RGB2GRAY if left.shape[2] == 3 else cv2.COLOR_RGBA2GRAY
+    return np.asarray(cv2.cvtColor(left, code)), np.asarray(cv2.cvtColor(right, code))
+
+
+def decode_calibration(payload: bytes) -> StereoCalibration | Rejection:
+    """A ``cam/{pair}/calib`` reply → its calibration, field-validated (common.camera)."""
+    try:
+        return decode(payload, CALIB_KIND, StereoCalibration).header
+    except CodecError as error:
+        return Rejection("malformed", str(error))
+
+
+def build_pipeline(calib: StereoCalibration, config: PipelineConfig) -> DepthPipeline:
+    """The pipeline of a calibration, or ValueError when its geometry describes no stereo pair
+    this service can match (a 1000 m baseline, k3 = 100): the floor-to-obstacle disparity band
+    must fit the image, which also bounds what SGBM allocates at the first frame."""
+    try:
+        pipeline = DepthPipeline(calib, config)
+    except (cv2.error, MemoryError, np.linalg.LinAlgError) as error:
+        raise ValueError(f"{type(error).__name__}: {' '.join(str(error).split())}") from None
+    width = pipeline.rectifier.size[0]
+    low, count = pipeline.min_disparity, pipeline.num_disparities
+    if low + count > width // 2:
+        raise ValueError(
+            f"the floor-to-obstacle disparities {low}…{low + count} px do not fit an image "
+            f"{width} px wide: check the baseline, focal length, distortion and poses"
+        )
+    return pipeline
+
+
+class LatestSlot(Generic[T]):
+    """One-deep mailbox: a new item replaces an unread one (counted), so a slow consumer works on
+    the newest frame and memory stays bounded.
+
+    Not zenoh's ``RingChannel(1)``, which does the same but cannot say how many it dropped (the
+    health's ``skipped``), and whose blocking ``recv`` neither a signal nor ``undeclare`` from
+    another thread interrupts (measured with zenoh-python 1.10): the worker would have to poll."""
+
+    def __init__(self) -> None:
+        self._item: T | None = None
+        self._cond = threading.Condition()
+        self.replaced = 0
+
+    def put(self, item: T) -> None:
+        with self._cond:
+            if self._item is not None:
+                self.replaced += 1
+            self._item = item
+            self._cond.notify()
+
+    def take(self, timeout_s: float) -> T | None:
+        with self._cond:
+            if self._item is None:
+                self._cond.wait(timeout_s)
+            item, self._item = self._item, None
+            return item
