@@ -67,7 +67,9 @@ def _data_key(topic: str, ros_type: str) -> str:
     return f"{DOMAIN}/{topic}/{package}::msg::dds_::{name}_/{cdr.type_hash('jazzy', ros_type)}"
 
 
-def _late_joiner(session: zenoh.Session, key: str) -> tuple[object, queue.Queue[zenoh.Sample]]:
+def _late_joiner(
+    session: zenoh.Session, key: str
+) -> tuple[zenoh.ext.AdvancedSubscriber[None], queue.Queue[zenoh.Sample]]:
     """Subscribed as rmw_zenoh subscribes a transient_local reader: it asks the cache."""
     samples: queue.Queue[zenoh.Sample] = queue.Queue()
     subscriber = zenoh.ext.declare_advanced_subscriber(
@@ -195,7 +197,7 @@ def test_the_router_lets_the_ros2_user_publish_the_map_and_no_more(
         forger.undeclare()
         watcher.undeclare()
         for subscriber, _ in (maps, transforms):
-            subscriber.undeclare()  # type: ignore[attr-defined]
+            subscriber.undeclare()
         rogue_ros2.close()
     finally:
         for process in processes:
