@@ -50,6 +50,38 @@ def test_a_bad_zenoh_config_file_is_named(tmp_path: Path, text: str, says: str) 
     _one_line_exit_2(_overgrid("health", "--config", str(config)), str(config), says)
 
 
+SERVICES = [("depth", "--pair", "p0"), ("camera-sim", "--frames", "1")]
+
+
+@pytest.mark.parametrize("service", SERVICES, ids=lambda s: s[0])
+@pytest.mark.parametrize(
+    ("text", "says"), [('{ mode: "bogus" }', "bogus"), ("{ mode: ", "expected")]
+)
+def test_the_services_name_a_bad_zenoh_config_file(
+    tmp_path: Path, service: tuple[str, ...], text: str, says: str
+) -> None:
+    config = tmp_path / "zenoh.json5"
+    config.write_text(text)
+    _one_line_exit_2(_overgrid(*service, "--config", str(config)), str(config), says)
+
+
+@pytest.mark.parametrize("service", SERVICES, ids=lambda s: s[0])
+def test_the_services_name_a_bad_mode_and_a_port_in_use(service: tuple[str, ...]) -> None:
+    _one_line_exit_2(_overgrid(*service, "--mode", "bogus"), "--mode", "bogus")
+    port = free_port()
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", port))
+        taken.listen()
+        result = _overgrid(*service, "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting")
+    _one_line_exit_2(result, f"127.0.0.1:{port}", "in use")
+
+
+@pytest.mark.parametrize("resolution", ["0.001", "1e-300", "nan", "inf"])
+def test_a_depth_resolution_no_camera_resolves_is_refused(resolution: str) -> None:
+    result = _overgrid("depth", "--pair", "p0", "--resolution-m", resolution)
+    _one_line_exit_2(result, "resolution", resolution)
+
+
 def test_a_missing_zenoh_config_file_is_named(tmp_path: Path) -> None:
     missing = tmp_path / "missing.json5"
     _one_line_exit_2(_overgrid("health", "--config", str(missing)), str(missing), "No such file")
@@ -74,7 +106,20 @@ def test_a_bad_scene_file_is_named(tmp_path: Path, text: str) -> None:
 
 def test_truth_queries_with_impossible_times_or_bands_get_an_error_reply(bus: Bus) -> None:
     bus.start("camera-sim", "--pair-count", "1", "--rate-hz", "1", "--frames", "60")
-    for parameters in ("t=inf", "t=nan", "stamp_ns=-5", "band=nan,1", "resolution=1e-300"):
+    for parameters, names in (
+        ("t=inf", "t=inf"),
+        ("t=nan", "t=nan"),
+        ("t=-1", "t=-1"),
+        ("t=garbage", "t='garbage'"),
+        ("t=1e300", "t=1e300"),
+        ("stamp_ns=-5", "stamp_ns='-5'"),
+        ("stamp_ns=1.5", "stamp_ns='1.5'"),
+        ("band=nan,1", "band=nan"),
+        ("band=2,1", "band=2,1"),
+        ("resolution=1e-300", "resolution=1e-300"),
+        ("resolution=x", "resolution='x'"),
+        ("colour=red", "'colour'"),
+    ):
         replies: list[zenoh.Reply] = []
         deadline = time.monotonic() + 60
         while not replies and time.monotonic() < deadline:  # until the simulator is up
@@ -83,6 +128,7 @@ def test_truth_queries_with_impossible_times_or_bands_get_an_error_reply(bus: Bu
         assert len(replies) == 1, parameters
         assert replies[0].err is not None, parameters
         assert "sim/truth" in replies[0].err.payload.to_string()
+        assert names in replies[0].err.payload.to_string(), replies[0].err.payload.to_string()
 
 
 CAMERA = "{width: 640, height: 480, K: [[554, 0, 319.5], [0, 554, 239.5], [0, 0, 1]], T_world_cam: "
@@ -120,6 +166,17 @@ def test_a_recording_that_is_not_there_is_named(tmp_path: Path) -> None:
         (lambda d: d["right"]["T_world_cam"][0].__setitem__(3, 1000.0), "disparities"),  # baseline
         (lambda d: d["left"].__setitem__("dist", [0, 0, 0, 0, 100.0]), "disparities"),  # k3
         (lambda d: d["left"]["K"][0].__setitem__(2, 1e9), "principal point"),
+        (lambda d: d["left"]["K"][0].__setitem__(0, 1e-9), "field of view"),  # focal 1e-9 px
+        (
+            lambda d: [
+                d[side].update(
+                    width=16384, height=16384, K=[[554, 0, 8191.5], [0, 554, 8191.5], [0, 0, 1]]
+                )
+                for side in ("left", "right")
+            ],
+            "pixels",
+        ),
+        (lambda d: d["left"].__setitem__("width", 1_000_000), "width"),
     ],
 )
 def test_a_calibration_of_absurd_geometry_is_refused_at_start(
@@ -132,6 +189,6 @@ def test_a_calibration_of_absurd_geometry_is_refused_at_start(
     path.write_text(yaml.safe_dump(calib))
     _one_line_exit_2(
         _overgrid("depth", "--pair", "p0", "--calib", str(path)),
-        str(path) if "principal" in says else "p0",
+        str(path),
         says,
     )
