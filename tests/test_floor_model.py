@@ -17,7 +17,7 @@ from services.camera_sim.scene import MarkingSpec, ObjectSpec, SceneSpec
 from services.camera_sim.truth import footprint_mask
 from services.depth import floor_model
 from services.depth.pipeline import DepthPipeline, PipelineConfig
-from services.depth.stereo import Rectifier
+from services.depth.stereo import DisparityChain, MatcherConfig, Rectifier
 from tests.conftest import REPO, Bus
 
 FLOOR_M = (12.0, 10.0)
@@ -222,3 +222,72 @@ def test_up_on_a_plain_floor_maps_free_floor_around_the_objects(bus: Bus, tmp_pa
     assert report["false_free_rate_static"] < 0.2, report["false_free_rate_static"]
     _meta, image = read_map_server(out / "map.yaml")
     assert (image == 254).mean() > 0.3  # nav2 trinary: free
+
+
+# -- synthetic pairs (pure numpy/OpenCV) --------------------------------------------------------
+
+SYNTHETIC_SIZE = (320, 240)
+SYNTHETIC_HEIGHT_M = 6.0
+SYNTHETIC_FOCAL_BASELINE = 277.0 * 0.5
+
+
+def _synthetic_geometry() -> floor_model.FloorGeometry:
+    """A camera 6 m up looking straight down with every ray vertical: the floor's disparity is
+    f·b / 6 m (23 px) at every pixel."""
+    width, height = SYNTHETIC_SIZE
+    ray_down = np.ones((height, width), np.float32)
+    return floor_model.FloorGeometry(
+        floor_disparity_px=ray_down * np.float32(SYNTHETIC_FOCAL_BASELINE / SYNTHETIC_HEIGHT_M),
+        ray_down=ray_down,
+        camera_height_m=SYNTHETIC_HEIGHT_M,
+        focal_baseline_px_m=SYNTHETIC_FOCAL_BASELINE,
+        nadir_px=(width / 2, height / 2),
+    )
+
+
+def _textured_pair(
+    disparity_px: np.ndarray, rng: np.random.Generator, texture: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(left, right) of ``texture`` seen at ``disparity_px`` (the right image's pixel u − d shows
+    the left's u), each with its own sensor noise."""
+    height, width = texture.shape
+    u, v = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
+    right = cv2.remap(texture, u + disparity_px, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    noisy = [image + rng.normal(0.0, 1.5, image.shape) for image in (texture, right)]
+    left_u8, right_u8 = (np.clip(image, 0, 255).astype(np.uint8) for image in noisy)
+    return left_u8, right_u8
+
+
+def test_a_disparity_offset_of_the_calibration_is_taken_off_every_measurement() -> None:
+    """A published calibration off by a small yaw between the cameras shifts every disparity by
+    the same fraction of a pixel: 0.4 px here, 10 cm of height at the floor, enough to put the
+    whole floor in the obstacle band. The model measures the offset on the floor and takes it off
+    the matcher's disparities: the floor reads at 0 and a raised textured patch at its height."""
+    rng = np.random.default_rng(7)
+    geometry = _synthetic_geometry()
+    width, height = SYNTHETIC_SIZE
+    texture = cv2.GaussianBlur(
+        rng.uniform(40, 220, (height, width)).astype(np.float32), (0, 0), 1.2
+    )
+    offset_px = 0.4
+    patch = (slice(90, 150), slice(150, 230))
+    patch_m = 0.5
+    truth_px = geometry.floor_disparity_px.copy()
+    truth_px[patch] = SYNTHETIC_FOCAL_BASELINE / (SYNTHETIC_HEIGHT_M - patch_m)
+    model = floor_model.FloorModel(geometry, 0.1)
+    chain = DisparityChain(MatcherConfig(), 16, 32)
+    for _ in range(24):
+        left, right = _textured_pair(truth_px + offset_px, rng, texture)
+        evidence = model.update(left, right, chain(left, right))
+    heights = geometry.height_m(evidence)
+    floor = np.ones((height, width), np.bool_)
+    floor[patch] = False
+    floor = _eroded(floor, 6) & (np.arange(width) >= 60)[None, :]  # the right image's view
+    floor[:10], floor[-10:] = False, False
+    with np.errstate(invalid="ignore"):
+        floor_heights = heights[floor & np.isfinite(heights)]
+        assert floor_heights.size > 0.5 * floor.sum()
+        assert abs(float(np.median(floor_heights))) < 0.03
+        assert float(np.mean(floor_heights >= 0.1)) < 0.05  # without: most of the floor
+        top = heights[patch][4:-4, 4:-4]
+        assert abs(float(np.nanmedian(top)) - patch_m) < 0.04

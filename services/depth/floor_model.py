@@ -369,6 +369,10 @@ class FloorModel:
         self._basis = np.stack([np.ones_like(u), u / width * 2 - 1, v / height * 2 - 1])
         self.residual_coef = np.zeros((2, 3), np.float64)
         """Affine calibration residual on the floor: disparity (row 0) and row offset (row 1)."""
+        self.matcher_offset_coef = np.zeros(3, np.float64)
+        self.matcher_offset_px = np.zeros((height, width), np.float32)
+        """What the matcher measures on the floor beyond the calibration's floor disparity
+        (affine, like the residual): taken off every disparity it measures."""
         self.line_of_sight = LineOfSight(self.shape, geometry.nadir_px)
         self.mean = np.zeros((2, height, width), np.float32)
         self.var = np.zeros((2, height, width), np.float32)
@@ -429,6 +433,26 @@ class FloorModel:
         row_px = np.tensordot(self.residual_coef[1].astype(np.float32), self._basis, axes=1)
         self._set_floor(self.geometry.floor_disparity_px + disparity_px, row_px)
 
+    def _fit_matcher_offset(self, disparity: F32, test: FloorTest) -> None:
+        """Fit the matcher's offset on the floor: its disparity minus the calibration's floor
+        disparity at pixels the floor test confirms as floor. Fitted on the matcher's own
+        disparities rather than taken from the floor test's fit: the two measure the same
+        residual through different biases (about 0.1 px apart on the renders)."""
+        step = 2
+        matched = disparity[::step, ::step]
+        on_floor = test.agree[::step, ::step] & np.isfinite(matched)
+        if int(on_floor.sum()) < MIN_FIT_PIXELS:
+            return
+        beyond = matched - self.geometry.floor_disparity_px[::step, ::step]
+        beyond -= self.matcher_offset_px[::step, ::step]
+        basis = self._basis[:, ::step, ::step][:, on_floor].T
+        self.matcher_offset_coef += self.config.offset_rate * robust_affine_fit(
+            basis, beyond[on_floor]
+        )
+        self.matcher_offset_px = np.tensordot(
+            self.matcher_offset_coef.astype(np.float32), self._basis, axes=1
+        ).astype(np.float32)
+
     # -- state ----------------------------------------------------------------------------------
 
     @property
@@ -471,8 +495,19 @@ class FloorModel:
             # Rule 0: near the floor, on strong texture, the floor test measures where the matcher
             # has nothing, or overrules it where it agrees with the floor (fattening on texture).
             refined = np.isfinite(near_floor) & (~valid | test.agree)
-            at_floor = valid & (np.abs(disparity - floor_now) <= cfg.floor_tolerance_px)
-        measured = np.where(refined, near_floor, disparity).astype(np.float32)
+            at_floor = valid & (
+                np.abs(disparity - self.matcher_offset_px - self.geometry.floor_disparity_px)
+                <= cfg.floor_tolerance_px
+            )
+        # The calibration's residual offsets every disparity, not only the floor's (a yaw between
+        # the cameras shifts the whole right image; 0.4 px is 10 cm at the floor): each
+        # measurement is taken back to the calibration's geometry, the floor test's by the fitted
+        # floor, the matcher's by its own offset on the floor.
+        measured = np.where(
+            refined,
+            near_floor - (floor_now - self.geometry.floor_disparity_px),
+            disparity - self.matcher_offset_px,
+        ).astype(np.float32)
 
         both_match, departed = self._match(left, warped, inside)
         matches = both_match & ~test.contradict
@@ -488,7 +523,7 @@ class FloorModel:
             low = self.geometry.height_m(measured) < self.obstacle_min_m
         carried = interpolated & low & ~matches & (test.along_baseline | ~test.textured)
         measured[carried] = np.nan
-        # Floor observations sit at height 0: the calibration's floor, not the fitted one.
+        # Floor observations sit at height 0 (measurements are corrected to the calibration's floor).
         out = np.where(observed, self.geometry.floor_disparity_px, measured).astype(np.float32)
 
         relearn = departed > cfg.relearn_share
@@ -496,6 +531,7 @@ class FloorModel:
             self._learn(left, warped, inside, test, measured, at_floor, matches, relearn)
         if self.frames % cfg.offset_every == cfg.offset_every // 2:  # not in a learning frame
             self._fit_residual(left, warped, test)
+            self._fit_matcher_offset(disparity, test)
         self.frames += 1
         return out
 
