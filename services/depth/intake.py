@@ -2,9 +2,10 @@
 message kind turns bytes into a typed value or a named :class:`Rejection`, which the service counts
 in ``depth/{pair}/health``. Nothing past these functions sees a frame it cannot process.
 
-Pixels accepted (DESIGN.md, Key space): 8-bit gray, H×W×1, RGB and RGBA (converted to gray), and
-16-bit mono (H×W or H×W×1: machine-vision drivers deliver 10/12/16-bit pixels in 16-bit words),
-reduced to 8 bits by one shift common to both images, so left and right keep the same scale.
+Pixels accepted: 8-bit gray, H×W×1, RGB and RGBA (converted to gray), and 16-bit mono (H×W or
+H×W×1: machine-vision drivers deliver 10/12/16-bit pixels in 16-bit words), reduced to 8 bits by
+the shift that keeps the frame's brightest pixel, one shift for both images so that left and right
+keep one scale (a frame-to-frame change of it is a gain step, which the floor model normalises).
 Float, signed and bool pixels are rejected: they carry no agreed brightness scale.
 """
 
@@ -36,7 +37,6 @@ FRAME_REJECTIONS = (
     "wrong_size",  # not the calibration's image size
     "processing_failed",  # passed every check and still failed in the pipeline (a defect)
 )
-CALIBRATION_REJECTIONS = ("malformed", "unusable")
 
 
 @dataclass(frozen=True)
@@ -189,7 +189,9 @@ def to_mono8(left: np.ndarray, right: np.ndarray) -> tuple[U8, U8]:
 
 
 def decode_calibration(payload: bytes) -> StereoCalibration | Rejection:
-    """A ``cam/{pair}/calib`` reply → its calibration, field-validated (common.camera)."""
+    """A ``cam/{pair}/calib`` reply → its calibration, field-validated (common.camera), or
+    ``malformed``; the service refuses a valid one :func:`build_pipeline` cannot use as
+    ``unusable``."""
     try:
         return decode(payload, CALIB_KIND, StereoCalibration).header
     except CodecError as error:
@@ -202,7 +204,7 @@ def build_pipeline(calib: StereoCalibration, config: PipelineConfig) -> DepthPip
     must fit the image, which also bounds what SGBM allocates at the first frame."""
     try:
         pipeline = DepthPipeline(calib, config)
-    except (cv2.error, MemoryError, np.linalg.LinAlgError) as error:
+    except (cv2.error, MemoryError, ArithmeticError, np.linalg.LinAlgError) as error:
         raise ValueError(f"{type(error).__name__}: {' '.join(str(error).split())}") from None
     width = pipeline.rectifier.size[0]
     low, count = pipeline.min_disparity, pipeline.num_disparities

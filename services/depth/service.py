@@ -352,12 +352,11 @@ def main(settings: DepthSettings) -> None:
             }
             if worker is not None:
                 published = worker.publisher.published
+                stage_ms_sum = dict(worker.publisher.stage_ms_sum)  # the worker adds to it
                 answer |= {
                     "tiles": published,
                     "skipped": worker.intake.slot.replaced,
-                    "stage_ms_mean": {
-                        k: v / max(published, 1) for k, v in worker.publisher.stage_ms_sum.items()
-                    },
+                    "stage_ms_mean": {k: v / max(published, 1) for k, v in stage_ms_sum.items()},
                     "floor_model": worker.pipeline.floor_health(),
                 }
             return answer
@@ -420,7 +419,11 @@ def _summaries(
 ) -> None:
     """One summary log line per period, off the worker's path."""
     while not stop.wait(period_s):
-        counters = health()
+        try:
+            counters = health()
+        except Exception:  # a summary line is not worth the thread
+            log.exception("summary failed")
+            continue
         stage_ms = counters.pop("stage_ms_mean", {})
         log.info("summary", extra={**counters, **{f"{k}_ms": v for k, v in stage_ms.items()}})
 

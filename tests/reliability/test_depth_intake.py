@@ -13,6 +13,7 @@ from common.codec import encode
 from common.messages import CALIB_KIND, STEREO_KIND, StereoFrameHeader
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.depth.intake import (
+    FRAME_REJECTIONS,
     Rejection,
     StereoFrame,
     build_pipeline,
@@ -45,6 +46,7 @@ def _decode(payload: bytes) -> StereoFrame | Rejection:
 def _reason(payload: bytes) -> str:
     result = _decode(payload)
     assert isinstance(result, Rejection), result
+    assert result.reason in FRAME_REJECTIONS
     return result.reason
 
 
