@@ -56,6 +56,9 @@ class UpSettings(ZenohSettings):
     view_port: int = Field(
         DEFAULT_HTTP_PORT, ge=1, le=65535, description="its port (if taken: any free one)"
     )
+    ros2: bool = Field(
+        False, description="also run the ROS 2 node (overgrid ros2: /map to DDS; the [ros2] extra)"
+    )
     camera_sim: CameraSimParams = Field(
         default_factory=CameraSimParams, description="the simulator (overgrid camera-sim)"
     )
@@ -116,6 +119,8 @@ def child_commands(settings: UpSettings) -> list[tuple[str, list[str]]]:
     ]
     if settings.view:
         commands.append(("viewer", ["view", "--http-port", str(settings.view_port)]))
+    if settings.ros2:
+        commands.append(("ros2", ["ros2"]))
     return [(name, [*args, *session_flags(settings)]) for name, args in commands]
 
 

@@ -98,7 +98,7 @@ def _children_of(namespace: str) -> list[str]:
 
 def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_path: Path) -> None:
     # Nested flags reach the children: each would refuse to start on a flag it does not know.
-    up = _up(bus, tmp_path / "run", "--duration-s", "12", "--depth.summary-s", "5")
+    up = _up(bus, tmp_path / "run", "--duration-s", "12", "--depth.summary-s", "5", "--ros2")
     out, _ = up.communicate(timeout=180)
     assert up.returncode == 0, out
     assert "map v" in out and "p0" in out and "p1" in out  # progress lines
@@ -125,6 +125,9 @@ def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_pa
     assert report["capture_to_map_ms"]["n"] > 5 and report["capture_to_map_ms"]["p50"] > 0
     assert {"camera", "disparity", "model"} <= set(report["stage_ms"])
     assert "moving_appear_s" in report and "moving_clear_s" in report
+    ros2_log = (tmp_path / "run" / "logs" / "ros2.log").read_text()
+    assert "msg=started" in ros2_log and "msg=stopped" in ros2_log, ros2_log  # --ros2 ran
+    assert "terminate" not in ros2_log, ros2_log  # and stopped cleanly
     assert _children_of(bus.namespace) == []
 
 

@@ -229,11 +229,12 @@ def main(settings: Ros2Settings, ros_args: Sequence[str] = ()) -> None:
     node = rclpy.create_node(settings.node_name)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
+    spinner: threading.Thread | None = None
     try:
         settings = with_ros_parameters(node, settings)
         sink = RclpySink(node, settings)
         # Spinning serves the node's parameter and graph services; publishing needs no spin.
-        spinner = threading.Thread(target=executor.spin, name="rclpy-spin", daemon=True)
+        spinner = threading.Thread(target=executor.spin, name="rclpy-spin")
         spinner.start()
         with open_session(settings) as session:
             relay = MapRelay(session, settings, sink)
@@ -246,6 +247,8 @@ def main(settings: Ros2Settings, ros_args: Sequence[str] = ()) -> None:
         log.info("stopped", extra=relay.counts)
     finally:
         executor.shutdown(timeout_sec=1.0)
+        if spinner is not None:  # a spinning thread left to die at exit aborts the process
+            spinner.join()
         node.destroy_node()
         rclpy.try_shutdown()
 
