@@ -129,6 +129,16 @@ def test_truth_queries_with_impossible_times_or_bands_get_an_error_reply(bus: Bu
         assert replies[0].err is not None, parameters
         assert "sim/truth" in replies[0].err.payload.to_string()
         assert names in replies[0].err.payload.to_string(), replies[0].err.payload.to_string()
+    # Queries on wildcards and with parameters the calibration ignores are answered too.
+    for selector in ("sim/*?resolution=0.5", "**?stamp_ns=1;resolution=0.5"):
+        replies = [
+            r
+            for r in bus.session.get(selector, timeout=5.0)
+            if str(r.ok and r.ok.key_expr) == "sim/truth"
+        ]
+        assert len(replies) == 1 and replies[0].ok is not None, selector
+    replies = list(bus.session.get("cam/*/calib?t=inf;garbage", timeout=5.0))
+    assert [str(r.ok.key_expr) for r in replies if r.ok is not None] == [keys.calib("p0")]
 
 
 CAMERA = "{width: 640, height: 480, K: [[554, 0, 319.5], [0, 554, 239.5], [0, 0, 1]], T_world_cam: "
