@@ -291,3 +291,37 @@ def test_a_disparity_offset_of_the_calibration_is_taken_off_every_measurement() 
         assert float(np.mean(floor_heights >= 0.1)) < 0.05  # without: most of the floor
         top = heights[patch][4:-4, 4:-4]
         assert abs(float(np.nanmedian(top)) - patch_m) < 0.04
+
+
+def test_a_plain_surface_of_the_floors_grey_over_a_textured_floor_is_never_floor() -> None:
+    """A plain object whose grey lies within the background's tolerance (a plain orange forklift
+    over grey concrete has the same luma) matches the background pixel by pixel; the texture the
+    background has is gone, so it is no floor observation."""
+    rng = np.random.default_rng(3)
+    geometry = _synthetic_geometry()
+    width, height = SYNTHETIC_SIZE
+    grain = cv2.GaussianBlur(rng.normal(0.0, 1.0, (height, width)).astype(np.float32), (0, 0), 0.8)
+    texture = np.float32(128.0) + grain * np.float32(
+        5.0 / float(grain.std())
+    )  # weak, like concrete
+    model = floor_model.FloorModel(geometry, 0.1)
+    chain = DisparityChain(MatcherConfig(), 16, 32)
+    for _ in range(16):
+        left, right = _textured_pair(geometry.floor_disparity_px, rng, texture)
+        model.update(left, right, chain(left, right))
+    assert model.state() == "ready"
+    patch = (slice(90, 150), slice(150, 230))
+    plain = texture.copy()
+    plain[patch] = float(texture[patch].mean())
+    left, right = _textured_pair(geometry.floor_disparity_px, rng, plain)
+    evidence = model.update(left, right, chain(left, right))
+    inner = np.zeros((height, width), np.bool_)
+    inner[patch] = True
+    inner = _eroded(inner, 6)
+    floor_observations = np.abs(evidence - geometry.floor_disparity_px) < 1e-4
+    assert float(floor_observations[inner].mean()) < 0.05
+    # The textured floor around it still is floor.
+    around = ~cv2.dilate(inner.astype(np.uint8), np.ones((31, 31), np.uint8)).astype(bool)
+    around[:, :60], around[:10], around[-10:] = False, False, False
+    with np.errstate(invalid="ignore"):
+        assert float(np.mean(np.abs(geometry.height_m(evidence)[around]) < 0.05)) > 0.8

@@ -345,6 +345,13 @@ class LineOfSight:
         return blocked
 
 
+BACKGROUND_TEXTURE_WINDOW_PX = 9
+BACKGROUND_TEXTURE_GRAY = 1.5
+"""Local standard deviation (gray levels) of a background below which it has no texture to check."""
+TEXTURE_KEPT = 0.5
+"""Share of the background's texture (regression slope) a pixel must still show to match it."""
+
+
 def _blur(image: U8 | F32, sigma_px: float) -> F32:
     blurred: F32 = np.asarray(
         cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma_px), dtype=np.float32
@@ -555,13 +562,37 @@ class FloorModel:
         modelled = self._modelled & inside
         self._gain = self._gains(left, warped, modelled)
         both = modelled.copy()
+        textured_alike = np.ones(self.shape, np.bool_)
         for side, image in ((0, left), (1, warped)):
             normalised = image * np.float32(1.0 / max(self._gain[side], 1e-3))
-            both &= np.abs(normalised - self.mean[side]) <= self.tolerance[side]
+            alike = modelled & (np.abs(normalised - self.mean[side]) <= self.tolerance[side])
+            both &= alike
+            textured_alike &= self._texture_kept(side, normalised, alike)
         count = int(np.count_nonzero(modelled))
-        if count < MIN_FIT_PIXELS:
-            return both, 0.0
-        return both, 1.0 - float(np.count_nonzero(both)) / count
+        departed = 0.0 if count < MIN_FIT_PIXELS else 1.0 - float(np.count_nonzero(both)) / count
+        return both & textured_alike, departed
+
+    def _texture_kept(self, side: int, normalised: F32, alike: Mask) -> Mask:
+        """Where the background has texture, whether the image still shows it: the slope of the
+        image regressed on the background over a window of the pixels whose grey matches it
+        (``alike``: an object's own pixels beside the floor do not count) is about 1 on the
+        floor and about 0 on a plain surface whose grey lies within the background's tolerance
+        (a plain orange forklift over grey concrete: the same luma). Where the background has
+        no texture (a plain floor), there is nothing to check."""
+        k = (BACKGROUND_TEXTURE_WINDOW_PX, BACKGROUND_TEXTURE_WINDOW_PX)
+        weight = alike.astype(np.float32)
+        background = self.mean[side] * weight
+        now = normalised * weight
+        count = cv2.blur(weight, k)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_bg = cv2.blur(background, k) / count
+            mean_now = cv2.blur(now, k) / count
+            var_bg = cv2.blur(background * self.mean[side], k) / count - mean_bg * mean_bg
+            covariance = cv2.blur(now * self.mean[side], k) / count - mean_now * mean_bg
+            slope = covariance / var_bg
+        plain = ~(var_bg >= np.float32(BACKGROUND_TEXTURE_GRAY**2))  # NaN: nothing alike
+        kept: Mask = plain | (slope >= TEXTURE_KEPT)
+        return kept
 
     def _seeds(self, test: FloorTest, at_floor: Mask, inside: Mask) -> Mask:
         # A disparity on an untextured pixel is the matcher's interpolation, not a measurement; and

@@ -140,4 +140,5 @@ class DepthPipeline:
             "relearned": model.relearned,
             "disparity_offset_px": round(float(model.residual_coef[0, 0]), 3),
             "row_offset_px": round(float(model.residual_coef[1, 0]), 3),
+            "matcher_offset_px": round(float(model.matcher_offset_coef[0]), 3),
         }
