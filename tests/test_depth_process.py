@@ -144,6 +144,13 @@ def test_recorded_images_and_calibration_file_go_through_the_same_pipeline(
             encode_png(renderer.render_gray("p0_right", 640, 480))
         )
     renderer.close()
+    # An unreadable pair and one of the wrong size are counted; the recording goes on after them.
+    (tmp_path / "left" / "0003.png").write_bytes(b"not a png")
+    (tmp_path / "right" / "0003.png").write_bytes(b"not a png")
+    for side in ("left", "right"):
+        small = encode_png(np.zeros((240, 320), np.uint8))
+        (tmp_path / side / "0004.png").write_bytes(small)
+        (tmp_path / side / "0005.png").write_bytes((tmp_path / side / "0000.png").read_bytes())
     calib_file = tmp_path / "calib.yaml"
     calib_file.write_text(yaml.safe_dump(calib.model_dump(mode="json")))
     sink = TileSink(bus.session, "cam7")
@@ -159,9 +166,9 @@ def test_recorded_images_and_calibration_file_go_through_the_same_pipeline(
         "--rate-hz",
         "2",
     )
-    wait_for(lambda: sink.count() >= 3, 60, "three tiles from recorded images")
-    assert [t.seq for t in sink.tiles[:3]] == [0, 1, 2]
-    assert all(t.cols * t.rows > 10_000 for t in sink.tiles[:3])
+    wait_for(lambda: sink.count() >= 4, 60, "four tiles from recorded images")
+    assert [t.seq for t in sink.tiles] == [0, 1, 2, 5]
+    assert all(t.cols * t.rows > 10_000 for t in sink.tiles)
 
 
 def test_one_wildcard_health_query_gets_every_pair(bus: Bus) -> None:

@@ -77,12 +77,12 @@ def decode_stereo_frame(
         if header.pair != pair:
             raise _Refused("wrong_pair", f"header names pair {header.pair!r}, key says {pair!r}")
         if header.encoding == "raw":
-            left, right = (_raw_image(message.arrays, side, image_size) for side in SIDES)
+            left, right = (_raw_image(message.arrays, side) for side in SIDES)
         else:
             left, right = (
                 _encoded_image(message.blobs, side, header.encoding, image_size) for side in SIDES
             )
-        left_8, right_8 = to_mono8(left, right)
+        left_8, right_8 = _checked(left, right, image_size)
         return StereoFrame(header, left_8, right_8, received_ns)
     except _Refused as refused:
         return Rejection(refused.reason, str(refused))
@@ -91,14 +91,10 @@ def decode_stereo_frame(
 SIDES = ("left", "right")
 
 
-def _raw_image(arrays: dict[str, np.ndarray], side: str, image_size: tuple[int, int]) -> np.ndarray:
+def _raw_image(arrays: dict[str, np.ndarray], side: str) -> np.ndarray:
     if side not in arrays:
         raise _Refused("malformed", f"raw frame has no {side!r} array")
-    image = arrays[side]
-    if image.ndim not in (2, 3):
-        raise _Refused("bad_pixels", f"{side} image has {image.ndim} dimensions")
-    _check_size(side, (image.shape[1], image.shape[0]), image_size)
-    return image
+    return arrays[side]
 
 
 def _encoded_image(
@@ -116,7 +112,6 @@ def _encoded_image(
     image = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise _Refused("undecodable", f"{side} {encoding} image does not decode")
-    _check_size(side, (image.shape[1], image.shape[0]), image_size)
     return np.asarray(image)
 
 
@@ -158,7 +153,26 @@ def encoded_size(blob: bytes, encoding: str) -> tuple[int, int] | None:
     return None
 
 
-def to_mono8(left: np.ndarray, right: np.ndarray) -> tuple[U8, U8]:
+def check_images(
+    left: np.ndarray, right: np.ndarray, image_size: tuple[int, int]
+) -> tuple[U8, U8] | Rejection:
+    """Images from any source (a frame's arrays, decoded blobs, a recording) → gray uint8 of the
+    calibration's size, or why not."""
+    try:
+        return _checked(left, right, image_size)
+    except _Refused as refused:
+        return Rejection(refused.reason, str(refused))
+
+
+def _checked(left: np.ndarray, right: np.ndarray, image_size: tuple[int, int]) -> tuple[U8, U8]:
+    for side, image in zip(SIDES, (left, right), strict=True):
+        if image.ndim not in (2, 3):
+            raise _Refused("bad_pixels", f"{side} image has {image.ndim} dimensions")
+        _check_size(side, (image.shape[1], image.shape[0]), image_size)
+    return _to_mono8(left, right)
+
+
+def _to_mono8(left: np.ndarray, right: np.ndarray) -> tuple[U8, U8]:
     """Both images as gray uint8 (see the module docstring for the formats accepted)."""
     if left.dtype != right.dtype or left.shape != right.shape:
         raise _Refused(

@@ -7,7 +7,7 @@ import logging
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,6 +27,7 @@ from services.depth.intake import (
     Rejection,
     StereoFrame,
     build_pipeline,
+    check_images,
     decode_calibration,
     decode_stereo_frame,
 )
@@ -193,15 +194,23 @@ class TilePublisher:
 def _recorded_loop(
     settings: DepthSettings, worker: Worker, counts: Counts, stop_wait: StopWait
 ) -> None:
+    """Recorded frames pass the same checks and counts as frames over Zenoh."""
     period_s = 1.0 / settings.rate_hz if settings.rate_hz else 0.0
     assert settings.images is not None
-    frames: Iterator[tuple[np.ndarray, np.ndarray]] = recorded_frames(settings.images)
-    for seq, (left, right) in enumerate(frames):
-        try:
-            worker.publisher.publish(worker.pipeline, left, right, seq, time.time_ns())
-            counts.done()
-        except Exception as error:  # one unreadable recording frame never ends the run
-            counts.reject(Rejection("processing_failed", f"frame {seq}: {error}"))
+    image_size = worker.pipeline.calib.image_size
+    for seq, recorded in enumerate(recorded_frames(settings.images)):
+        counts.arrived()
+        images = (
+            recorded if isinstance(recorded, Rejection) else check_images(*recorded, image_size)
+        )
+        if isinstance(images, Rejection):
+            counts.reject(images)
+        else:
+            try:
+                worker.publisher.publish(worker.pipeline, *images, seq, time.time_ns())
+                counts.done()
+            except Exception as error:  # one frame never ends the recording
+                counts.reject(Rejection("processing_failed", f"{type(error).__name__}: {error}"))
         if stop_wait(period_s):
             return
 

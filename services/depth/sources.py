@@ -17,6 +17,7 @@ import yaml
 from pydantic import ValidationError
 
 from common.camera import StereoCalibration
+from services.depth.intake import Rejection
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"}
 
@@ -76,15 +77,19 @@ def _image_pairs(folder: Path) -> list[tuple[Path, Path]]:
     return pairs
 
 
-def recorded_frames(source: Path) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """Stereo frames from a folder of image pairs or a side-by-side video file."""
+def recorded_frames(source: Path) -> Iterator[tuple[np.ndarray, np.ndarray] | Rejection]:
+    """Stereo frames from a folder of image pairs or a side-by-side video file; a pair that does
+    not read is a rejection, and the recording goes on."""
     if source.is_dir():
         for left_path, right_path in _image_pairs(source):
-            left = cv2.imread(str(left_path), cv2.IMREAD_GRAYSCALE)
-            right = cv2.imread(str(right_path), cv2.IMREAD_GRAYSCALE)
+            # Unchanged: 16-bit files are reduced as 16-bit frames are (colour files read as BGR
+            # swap the gray weights of red and blue, alike in both images).
+            left = cv2.imread(str(left_path), cv2.IMREAD_UNCHANGED)
+            right = cv2.imread(str(right_path), cv2.IMREAD_UNCHANGED)
             if left is None or right is None:
-                raise ValueError(f"cannot read {left_path} or {right_path}")
-            yield left, right
+                yield Rejection("undecodable", f"cannot read {left_path} or {right_path}")
+            else:
+                yield left, right
         return
     capture = cv2.VideoCapture(str(source))
     if not capture.isOpened():
