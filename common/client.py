@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -14,7 +15,7 @@ import zenoh
 
 from common import keys
 from common.camera import StereoCalibration
-from common.codec import CodecError, decode
+from common.codec import CodecError, Message, decode
 from common.messages import (
     CALIB_KIND,
     MAP_UPDATE_KIND,
@@ -115,17 +116,19 @@ def calibrations(session: zenoh.Session, timeout_s: float = 5.0) -> list[StereoC
 
 
 UPDATES_BACKLOG = 64
-"""Updates a follower holds while it applies one; older ones are dropped (the version gap then
-makes it fetch the map)."""
+"""Updates a follower keeps: waiting to be applied, and the recent ones it may replay onto a map it
+fetched (map/latest may be a little older than the newest update)."""
 
 
 class MapFollower:
     """A local copy kept current by ``map/updates``. The map's version is (epoch, version): an
     update of a new epoch (a fusion restarted, perhaps after a crash with a lower counter), a
-    missed update (version gap) or a grown map triggers one fetch of ``map/latest``.
+    missed update (version gap) or a grown map triggers a fetch of ``map/latest``.
 
-    Updates are applied on the follower's own thread (a ring channel hands them over), so the
-    fetch never blocks a Zenoh callback."""
+    It subscribes before it fetches and keeps the recent updates, so a fetched map older than the
+    newest update is brought up to date by replaying them (fusion builds ``map/latest`` snapshots
+    at a pace bounded by their cost, while updates go out at once). Updates are applied on the
+    follower's own thread (a ring channel hands them over): a fetch never blocks a Zenoh callback."""
 
     def __init__(
         self,
@@ -141,10 +144,15 @@ class MapFollower:
         self._lock = threading.Lock()
         self.refetches = 0
         self.applied = 0
-        self._map = latest(session, timeout_s=timeout_s)
+        self._recent: deque[Message[MapUpdateHeader]] = deque(maxlen=UPDATES_BACKLOG)
         self._subscriber = session.declare_subscriber(
             keys.MAP_UPDATES, zenoh.handlers.RingChannel(UPDATES_BACKLOG)
         )
+        try:
+            self._map = latest(session, timeout_s=timeout_s)
+        except MapUnavailable:
+            self._subscriber.undeclare()  # type: ignore[no-untyped-call]
+            raise
         self._thread = threading.Thread(target=self._run, name="map-follower", daemon=True)
         self._thread.start()
 
@@ -163,36 +171,58 @@ class MapFollower:
     def _on_update(self, payload: bytes, arrival_s: float) -> None:
         message = decode(payload, MAP_UPDATE_KIND, MapUpdateHeader)
         h = message.header
-        changed: OccupancyMap | None = None
         with self._lock:
-            current = self._map
-            if (h.epoch, h.version) <= current.revision:
-                return  # old news, or from a fusion run that has since been replaced
-            if (
-                h.epoch == current.epoch
-                and h.previous_version == current.version
-                and h.map_window == current.window
-            ):
-                occupancy = current.occupancy.copy()
-                occupancy[h.window.slices_in(current.window)] = message.arrays["occupancy"]
-                self._map = replace(
-                    current,
-                    occupancy=occupancy,
-                    version=h.version,
-                    stamp_ns=h.stamp_ns,
-                    logodds=None,
-                    height_m=None,
-                )
-                self.applied += 1
-                changed = self._map
-        if changed is None:
+            self._recent.append(message)
+            changed = self._replay()
+            behind = (h.epoch, h.version) > self._map.revision
+        if behind:  # a gap, a grown map or a new epoch: fetch, then replay what came since
             fresh = latest(self._session, timeout_s=self._timeout_s)
             with self._lock:
                 self.refetches += 1
                 if fresh.revision > self._map.revision:
                     self._map = changed = fresh
+                changed = self._replay() or changed
         if changed is not None and self._on_change is not None:
             self._on_change(changed, arrival_s)
+
+    def _replay(self) -> OccupancyMap | None:
+        """Apply every kept update that continues the copy (same epoch and map window, previous
+        version the copy's), into one new copy; it, if any applied. Call with the lock held."""
+        current = self._map
+        occupancy = None
+        version, stamp_ns = current.version, current.stamp_ns
+        while True:
+            following = next(
+                (
+                    m
+                    for m in self._recent
+                    if m.header.epoch == current.epoch
+                    and m.header.previous_version == version
+                    and m.header.map_window == current.window
+                ),
+                None,
+            )
+            if following is None:
+                break
+            h = following.header
+            if occupancy is None:
+                occupancy = current.occupancy.copy()
+            occupancy[h.window.slices_in(current.window)] = following.arrays["occupancy"]
+            version, stamp_ns = h.version, h.stamp_ns
+            self.applied += 1
+        if occupancy is None:
+            return None
+        self._map = replace(
+            current,
+            occupancy=occupancy,
+            version=version,
+            stamp_ns=stamp_ns,
+            logodds=None,
+            height_m=None,
+            predicted=None,
+            last_seen_s=None,
+        )
+        return self._map
 
     def close(self) -> None:
         self._subscriber.undeclare()  # type: ignore[no-untyped-call]

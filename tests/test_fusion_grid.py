@@ -4,8 +4,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from common.lattice import Window
-from common.occupancy_map import occupancy_from_logodds
-from services.fusion.grid import FusedGrid, GridParams, TileOutsideMap
+from common.occupancy_map import OCCUPIED, occupancy_from_logodds
+from services.fusion.grid import FusedGrid, GridParams, ServedAssembler, TileOutsideMap
 
 P = GridParams()
 
@@ -198,3 +198,28 @@ def test_decay_visits_only_chunks_that_may_be_stale() -> None:
     grid.take_dirty()
     assert grid.decay(now_s=103.5, elapsed_s=1.0) == 100  # the old chunk only
     assert grid.changed == {(0, 0)} and grid.take_dirty() == Window(0, 0, 64, 64)
+
+
+def test_the_served_assembler_pastes_changes_and_matches_a_full_assembly() -> None:
+    grid = FusedGrid(P)
+    assembler = ServedAssembler()
+    _integrate(grid, Window(0, 0, 300, 200), -1.0)
+    first = assembler.occupancy(grid.freeze()[0])
+    _integrate(grid, Window(100, 100, 10, 10), 3.0)
+    grid.set_predicted([(Window(5, 5, 3, 3), np.ones((3, 3), np.bool_))])
+    frozen, _ = grid.freeze()
+    np.testing.assert_array_equal(assembler.occupancy(frozen), frozen.layer("served"))
+    assert first[101, 101] < 50 and frozen.layer("served")[101, 101] > 50  # copies, not views
+    _integrate(grid, Window(1000, 0, 2, 2), 1.0)  # the map grows: assembled anew
+    frozen, _ = grid.freeze()
+    np.testing.assert_array_equal(assembler.occupancy(frozen), frozen.layer("served"))
+
+
+def test_the_predicted_layer_is_served_occupied_and_clears() -> None:
+    grid = FusedGrid(P)
+    _integrate(grid, Window(0, 0, 20, 20), -1.0)
+    assert grid.set_predicted([(Window(2, 2, 3, 3), np.ones((3, 3), np.bool_))])
+    assert grid.served_occupancy()[3, 3] == OCCUPIED and grid.layer("occupancy")[3, 3] < 50
+    assert grid.layer("predicted").sum() == 9
+    assert grid.set_predicted([]) and not grid.layer("predicted").any()
+    assert not grid.set_predicted([])  # nothing predicted: nothing to visit

@@ -164,6 +164,27 @@ class FrozenMap:
         return sum(chunk.known_cells for chunk in self.chunks.values())
 
 
+class ServedAssembler:
+    """The served occupancy of whole frozen maps, kept in one array and brought up to date by
+    pasting only the chunks that differ from the last map it saw (copy-on-write keeps unchanged
+    chunks the same objects): a snapshot of a large map costs its changes and one copy."""
+
+    def __init__(self) -> None:
+        self._served: npt.NDArray[np.int8] | None = None
+        self._from: FrozenMap | None = None
+
+    def occupancy(self, frozen: FrozenMap) -> npt.NDArray[np.int8]:
+        last = self._from
+        if self._served is None or last is None or last.window != frozen.window:
+            self._served = frozen.layer("served")
+        else:
+            for key, chunk in frozen.chunks.items():
+                if last.chunks.get(key) is not chunk:
+                    _paste(self._served, frozen.window, chunk.served, key)
+        self._from = frozen
+        return self._served.copy()
+
+
 def _paste(out: npt.NDArray[Any], window: Window, array: npt.NDArray[Any], key: ChunkKey) -> None:
     """Copy a chunk's array into ``out`` (covering ``window``) where they overlap."""
     cw = chunk_window(key)

@@ -36,13 +36,19 @@ from common.messages import MAP_UPDATE_KIND, OBJECTS_KIND, MapUpdateHeader, Obje
 from common.occupancy_map import OccupancyMap
 from common.settings import parse_settings, startup_error
 from common.zenoh_session import open_session
-from services.fusion.grid import FrozenMap, FusedGrid, TileOutsideMap, compile_rules
+from services.fusion.grid import (
+    FrozenMap,
+    FusedGrid,
+    ServedAssembler,
+    TileOutsideMap,
+    compile_rules,
+)
 from services.fusion.inbox import Delivery, Inbox
 from services.fusion.intake import Rejected, TileGate, decode_detections, decode_presence
 from services.fusion.objects import ObjectTracker
 from services.fusion.persistence import StateWriter, load_grid
 from services.fusion.settings import FusionSettings
-from services.fusion.snapshot import CONTENT_TYPES, MapSnapshot, parse_map_query
+from services.fusion.snapshot import CONTENT_TYPES, MapQuery, MapSnapshot, parse_map_query
 
 log = logging.getLogger("fusion")
 IDLE_WAIT_S = 0.1
@@ -53,7 +59,11 @@ INBOX_MESSAGES = 16384
 INBOX_LARGEST_MESSAGES = 4
 """Its byte budget, in largest messages allowed (``--max-message-mb``): a few big tiles may wait
 while one is fused; a stream the map cannot keep up with is dropped, not held in memory."""
+SNAPSHOT_COST_SHARE = 0.2
+DEFAULT_QUERY = MapQuery()
 QUERY_BACKLOG = 256
+MAP_QUERY_THREADS = 2
+"""map/latest replies are large (a whole map): while one is being sent, another is answered."""
 """Queries waiting for a worker; beyond it a query is answered "overloaded" at once."""
 
 
@@ -238,15 +248,17 @@ def update_payload(
     return encode(MAP_UPDATE_KIND, header, {"occupancy": np.ascontiguousarray(occupancy)})
 
 
-def occupancy_map_of(view: View, with_layers: bool) -> OccupancyMap:
-    """The whole map of a View, assembled from its chunks (on a query worker, not the owner)."""
+def occupancy_map_of(
+    view: View, with_layers: bool, assembler: ServedAssembler | None = None
+) -> OccupancyMap:
+    """The whole map of a View, assembled from its chunks (on a query thread, not the owner)."""
     frozen = view.frozen
 
     def layer(name: str) -> Any:
         return frozen.layer(name) if with_layers else None
 
     return OccupancyMap(
-        occupancy=frozen.layer("served"),
+        occupancy=frozen.layer("served") if assembler is None else assembler.occupancy(frozen),
         resolution_m=frozen.resolution_m,
         i0=frozen.window.i0,
         j0=frozen.window.j0,
@@ -261,22 +273,70 @@ def occupancy_map_of(view: View, with_layers: bool) -> OccupancyMap:
     )
 
 
-class SnapshotCache:
-    """The MapSnapshot of the newest View, made once per version when first asked (with layers:
-    a separate one, rarely asked), so ten clients cost one assembly and one encoding."""
+class SnapshotBuilder:
+    """The ``map/latest`` snapshots, assembled from the newest View's chunks and encoded once
+    however many clients ask, on a thread of their own: a query never waits for one (but the
+    first). A new one is made no sooner than the publish interval after the last, nor than
+    SNAPSHOT_COST_SHARE⁻¹ times what the last cost, so a huge map under a stream of tiles spends at
+    most that share of the time on snapshots; ``map/latest`` may then be that much older than
+    ``map/updates`` (followers replay the updates since). Layered snapshots (a tool's, rarely
+    asked) are made when asked, once per version."""
 
-    def __init__(self) -> None:
+    def __init__(self, newest: Callable[[], View], min_interval_s: float) -> None:
+        self._newest = newest
+        self.min_interval_s = min_interval_s
         self._lock = threading.Lock()
-        self._cached: dict[bool, tuple[tuple[int, int], MapSnapshot]] = {}
+        self._poke = threading.Event()
+        self._closing = False
+        self._current: tuple[tuple[int, int], MapSnapshot] | None = None
+        self.default_payload: bytes | None = None
+        """The newest snapshot's answer to a plain ``map/latest`` (what robots ask): ready bytes."""
+        self._layered: tuple[tuple[int, int], MapSnapshot] | None = None
+        self._cost_s = 0.0
+        self._assembler = ServedAssembler()
+        self._thread = threading.Thread(target=self._run, name="fusion-snapshots", daemon=True)
+        self._thread.start()
 
-    def get(self, view: View, with_layers: bool) -> MapSnapshot:
+    def poke(self) -> None:
+        """The map changed: make a new snapshot when the pace allows."""
+        self._poke.set()
+
+    def get(self, with_layers: bool) -> MapSnapshot:
+        if with_layers:
+            with self._lock:
+                view = self._newest()
+                if self._layered is None or self._layered[0] != view.frozen.key:
+                    self._layered = (view.frozen.key, MapSnapshot(occupancy_map_of(view, True)))
+                return self._layered[1]
+        current = self._current
+        return current[1] if current is not None else self._build()
+
+    def _build(self) -> MapSnapshot:
         with self._lock:
-            cached = self._cached.get(with_layers)
-            if cached is not None and cached[0] == view.frozen.key:
-                return cached[1]
-            snapshot = MapSnapshot(occupancy_map_of(view, with_layers))
-            self._cached[with_layers] = (view.frozen.key, snapshot)
+            view = self._newest()
+            if self._current is not None and self._current[0] == view.frozen.key:
+                return self._current[1]
+            started = time.perf_counter()
+            snapshot = MapSnapshot(occupancy_map_of(view, False, self._assembler))
+            default = snapshot.encoded(DEFAULT_QUERY)  # the answer most clients want, made once
+            self._cost_s = time.perf_counter() - started
+            self._current = (view.frozen.key, snapshot)
+            self.default_payload = default
             return snapshot
+
+    def _run(self) -> None:
+        while True:
+            self._poke.wait()
+            if self._closing:
+                return
+            self._poke.clear()
+            self._build()
+            time.sleep(max(self.min_interval_s, self._cost_s / SNAPSHOT_COST_SHARE))
+
+    def close(self) -> None:
+        self._closing = True
+        self._poke.set()
+        self._thread.join(5.0)
 
 
 OBJECT_FORMATS = {"msgpack": WIRE_ENCODING, "json": "application/json"}
@@ -341,16 +401,20 @@ def _with_overload(counts: Mapping[str, int], overload: int) -> dict[str, int]:
 
 
 class QueryWorker:
-    """Answers one kind of query on its own thread; Zenoh's callback only queues the query (a full
-    backlog is answered "overloaded" at once). Every query gets a reply: an answer, or an error
-    naming what went wrong."""
+    """Answers one kind of query on threads of its own; Zenoh's callback only queues the query (a
+    full backlog is answered "overloaded" at once). Every query gets a reply: an answer, or an
+    error naming what went wrong."""
 
-    def __init__(self, name: str, answer: Callable[[zenoh.Query], None]) -> None:
+    def __init__(self, name: str, answer: Callable[[zenoh.Query], None], threads: int = 1) -> None:
         self.name = name
         self._answer = answer
         self._queue: queue.Queue[zenoh.Query | None] = queue.Queue(QUERY_BACKLOG)
-        self._thread = threading.Thread(target=self._run, name=f"fusion-{name}", daemon=True)
-        self._thread.start()
+        self._threads = [
+            threading.Thread(target=self._run, name=f"fusion-{name}-{n}", daemon=True)
+            for n in range(threads)
+        ]
+        for thread in self._threads:
+            thread.start()
 
     def offer(self, query: zenoh.Query) -> None:
         try:
@@ -370,8 +434,10 @@ class QueryWorker:
                 finish(query)
 
     def close(self) -> None:
-        self._queue.put(None)
-        self._thread.join(5.0)
+        for _ in self._threads:
+            self._queue.put(None)
+        for thread in self._threads:
+            thread.join(5.0)
 
 
 def query_parameters(query: zenoh.Query) -> dict[str, str]:
@@ -414,7 +480,7 @@ def main(settings: FusionSettings) -> None:
         )
     inbox = Inbox(INBOX_MESSAGES, INBOX_LARGEST_MESSAGES * state.gate.max_bytes)
     writer = StateWriter(settings.state_dir)
-    snapshots = SnapshotCache()
+    snapshots = SnapshotBuilder(lambda: state.view, settings.publish_interval_s)
 
     def answer_map(query: zenoh.Query) -> None:
         try:
@@ -422,10 +488,20 @@ def main(settings: FusionSettings) -> None:
         except ValueError as error:
             query.reply_err(f"map/latest: {error}")
             return
-        snapshot = snapshots.get(state.view, bool(request.layers))
+        snapshot = snapshots.get(bool(request.layers))
         query.reply(
             query.key_expr, snapshot.encoded(request), encoding=CONTENT_TYPES[request.format]
         )
+
+    def on_map_query(query: zenoh.Query) -> None:
+        """A plain map/latest gets its ready bytes at once (a reply, nothing to compute or wait
+        for); any other asks a worker."""
+        payload = snapshots.default_payload
+        if payload is not None and query.parameters.is_empty():
+            query.reply(query.key_expr, payload, encoding=CONTENT_TYPES[DEFAULT_QUERY.format])
+            finish(query)
+        else:
+            map_worker.offer(query)
 
     def answer_objects(query: zenoh.Query) -> None:
         fmt = query_parameters(query).get("format", "msgpack")
@@ -455,7 +531,7 @@ def main(settings: FusionSettings) -> None:
         return callback
 
     workers = [
-        QueryWorker(keys.MAP_LATEST, answer_map),
+        map_worker := QueryWorker(keys.MAP_LATEST, answer_map, MAP_QUERY_THREADS),
         QueryWorker(keys.MAP_HEALTH, answer_health),
         QueryWorker(keys.MAP_OBJECTS, answer_objects),
     ]
@@ -466,7 +542,8 @@ def main(settings: FusionSettings) -> None:
             session.liveliness().declare_subscriber(
                 keys.DEPTH_ALIVE_ALL, hand_over("presence", droppable=False), history=True
             ),
-            *(session.declare_queryable(w.name, w.offer) for w in workers),
+            session.declare_queryable(keys.MAP_LATEST, on_map_query),
+            *(session.declare_queryable(w.name, w.offer) for w in workers if w is not map_worker),
         ]
         # DROP, as map/updates: a query of map/objects always gives the current list.
         objects_publisher = session.declare_publisher(
@@ -489,11 +566,14 @@ def main(settings: FusionSettings) -> None:
                 "epoch": epoch_ns,
             },
         )
-        run(settings, state, inbox, writer, stop, updates.put, objects_publisher.put)
+        run(
+            settings, state, inbox, writer, stop, updates.put, objects_publisher.put, snapshots.poke
+        )
         for entity in declared:
             entity.undeclare()
     for worker in workers:
         worker.close()
+    snapshots.close()
     state.publish()
     writer.hand_over(state.view.frozen, state.unsaved)
     writer.close()
@@ -508,6 +588,7 @@ def run(
     stop: threading.Event,
     put_update: Callable[[bytes], Any],
     put_objects: Callable[[bytes], Any],
+    published: Callable[[], None],
 ) -> None:
     """The owner's loop: messages in, then (when due) updates out, decay, a save hand-over."""
     now = time.monotonic()
@@ -534,6 +615,7 @@ def run(
             last["publish"] = now
             if payload is not None:
                 put_update(payload)
+            published()
         else:
             state.update_view()  # counters (rejections, liveliness) for health
         if now - last["save"] >= settings.save_interval_s and state.unsaved:
