@@ -27,6 +27,7 @@ from services.depth.pipeline import DepthPipeline, PipelineConfig
 
 U8 = npt.NDArray[np.uint8]
 T = TypeVar("T")
+SIDES = ("left", "right")
 
 FRAME_REJECTIONS = (
     "oversize",  # larger than --max-message-mb, never unpacked
@@ -86,9 +87,6 @@ def decode_stereo_frame(
         return StereoFrame(header, left_8, right_8, received_ns)
     except _Refused as refused:
         return Rejection(refused.reason, str(refused))
-
-
-SIDES = ("left", "right")
 
 
 def _raw_image(arrays: dict[str, np.ndarray], side: str) -> np.ndarray:
@@ -186,7 +184,7 @@ def _to_mono8(left: np.ndarray, right: np.ndarray) -> tuple[U8, U8]:
         if channels == 1:
             left, right = left[:, :, 0], right[:, :, 0]
     if left.dtype == np.uint16 and left.ndim == 2:
-        bits = int(max(int(left.max()), int(right.max()))).bit_length()
+        bits = max(int(left.max()), int(right.max())).bit_length()
         shift = max(bits - 8, 0)
         return (left >> shift).astype(np.uint8), (right >> shift).astype(np.uint8)
     if left.dtype != np.uint8:

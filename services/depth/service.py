@@ -19,7 +19,7 @@ from common import keys
 from common.codec import WIRE_ENCODING, encode, pack_arrays
 from common.lifecycle import stop_on_signals
 from common.logs import RateLimitedLog, setup_logging
-from common.messages import DETECTIONS_KIND, TILE_KIND, TileHeader
+from common.messages import DETECTIONS_KIND, TILE_KIND, StereoFrameHeader, TileHeader
 from common.settings import parse_settings, startup_error
 from common.zenoh_session import open_session
 from services.depth.intake import (
@@ -191,30 +191,6 @@ class TilePublisher:
         self.stage_ms_sum.update(stage_ms)
 
 
-def _recorded_loop(
-    settings: DepthSettings, worker: Worker, counts: Counts, stop_wait: StopWait
-) -> None:
-    """Recorded frames pass the same checks and counts as frames over Zenoh."""
-    period_s = 1.0 / settings.rate_hz if settings.rate_hz else 0.0
-    assert settings.images is not None
-    image_size = worker.pipeline.calib.image_size
-    for seq, recorded in enumerate(recorded_frames(settings.images)):
-        counts.arrived()
-        images = (
-            recorded if isinstance(recorded, Rejection) else check_images(*recorded, image_size)
-        )
-        if isinstance(images, Rejection):
-            counts.reject(images)
-        else:
-            try:
-                worker.publisher.publish(worker.pipeline, *images, seq, time.time_ns())
-                counts.done()
-            except Exception as error:  # one frame never ends the recording
-                counts.reject(Rejection("processing_failed", f"{type(error).__name__}: {error}"))
-        if stop_wait(period_s):
-            return
-
-
 class FrameIntake:
     """The subscriber's callback: counts each message's arrival, decodes and checks it there
     (intake.decode_stereo_frame), so a bad one is counted by reason and never displaces a good
@@ -304,6 +280,25 @@ class Worker:
     intake: FrameIntake
 
 
+def _process(
+    worker: Worker,
+    counts: Counts,
+    left: np.ndarray,
+    right: np.ndarray,
+    header: StereoFrameHeader,
+    upstream_ms: dict[str, float] | None = None,
+) -> None:
+    """One checked frame through the pipeline; whatever it raises (MemoryError, numpy, OpenCV) is
+    counted, and the caller's loop takes the next frame."""
+    try:
+        worker.publisher.publish(
+            worker.pipeline, left, right, header.seq, header.stamp_ns, upstream_ms
+        )
+        counts.done()
+    except Exception as error:
+        counts.reject(Rejection("processing_failed", f"{type(error).__name__}: {error}"))
+
+
 def _serve_frames(
     session: zenoh.Session, pair: str, worker: Worker, counts: Counts, stop: threading.Event
 ) -> None:
@@ -319,20 +314,30 @@ def _serve_frames(
                 "camera": (frame.received_ns - frame.header.stamp_ns) / 1e6,
                 "queue": (time.time_ns() - frame.received_ns) / 1e6,
             }
-            try:
-                worker.publisher.publish(
-                    worker.pipeline,
-                    frame.left,
-                    frame.right,
-                    frame.header.seq,
-                    frame.header.stamp_ns,
-                    upstream_ms,
-                )
-                counts.done()
-            except Exception as error:  # MemoryError, numpy, OpenCV: one frame, never the loop
-                counts.reject(Rejection("processing_failed", f"{type(error).__name__}: {error}"))
+            _process(worker, counts, frame.left, frame.right, frame.header, upstream_ms)
     finally:
         subscriber.undeclare()  # type: ignore[no-untyped-call]
+
+
+def _recorded_loop(
+    settings: DepthSettings, worker: Worker, counts: Counts, stop_wait: StopWait
+) -> None:
+    """Recorded frames pass the same checks and counts as frames over Zenoh."""
+    period_s = 1.0 / settings.rate_hz if settings.rate_hz else 0.0
+    assert settings.images is not None
+    image_size = worker.pipeline.calib.image_size
+    for seq, recorded in enumerate(recorded_frames(settings.images)):
+        counts.arrived()
+        images = (
+            recorded if isinstance(recorded, Rejection) else check_images(*recorded, image_size)
+        )
+        if isinstance(images, Rejection):
+            counts.reject(images)
+        else:
+            header = StereoFrameHeader(pair=settings.pair, seq=seq, stamp_ns=time.time_ns())
+            _process(worker, counts, *images, header)
+        if stop_wait(period_s):
+            return
 
 
 def main(settings: DepthSettings) -> None:
