@@ -162,3 +162,34 @@ def test_occupancy_on_another_window_fills_unknown() -> None:
     m = OccupancyMap(np.full((2, 3), 100, np.int8), RES, i0=5, j0=5, version=1, stamp_ns=0)
     out = metrics.occupancy_on(m, Window(4, 4, 5, 5))
     assert (out[1:3, 1:4] == 100).all() and (out == UNKNOWN).sum() == 25 - 6
+
+
+def test_error_breakdown_tells_an_edge_ring_from_floor_errors_and_names_the_objects() -> None:
+    window = Window(0, 0, 40, 40)
+    box = TruthObject(
+        name="box",
+        shape="box",
+        moving=False,
+        center_m=(1.0, 1.0, 0.5),
+        yaw_rad=0.0,
+        size_m=(0.5, 0.5, 1.0),
+    )
+    truth = footprint_mask(box, window, 0.05)
+    seen = np.ones(window.shape, np.bool_)
+    occupancy = np.zeros(window.shape, np.int8)
+    occupancy[truth] = 100
+    rows, cols = np.nonzero(truth)
+    occupancy[rows.min() - 1, cols.min() : cols.max() + 1] = 100  # a one-cell ring on one side
+    occupancy[35, 35] = 100  # a false obstacle on the open floor
+    occupancy[rows[0], cols[0]] = 0  # one cell of the box free
+    occupancy[rows[1], cols[1]] = UNKNOWN
+    result = metrics.error_breakdown(occupancy, truth, seen, [box], window, 0.05)
+    assert result["false_occupied_cells"] == {
+        "edge": int(cols.max() - cols.min() + 1),
+        "near": 0,
+        "far": 1,
+    }
+    shares = result["objects"]["box"]
+    assert shares["cells"] == int(truth.sum())
+    assert shares["free"] == pytest.approx(1 / truth.sum())
+    assert shares["unknown"] == pytest.approx(1 / truth.sum())

@@ -188,6 +188,43 @@ def cell_shares(occupancy: npt.NDArray[np.int8], cells: Mask) -> dict[str, float
     }
 
 
+EDGE_RING_CELLS = 1.5
+NEAR_RING_CELLS = 3.5
+"""Distances (cells, from the nearest truth cell's centre) that split false-occupied cells into an
+object's edge ring, its neighbourhood and the open floor."""
+
+
+def error_breakdown(
+    occupancy: npt.NDArray[np.int8],
+    truth: Mask,
+    seen: Mask,
+    objects: Sequence[TruthObject],
+    window: Window,
+    resolution_m: float,
+) -> dict[str, object]:
+    """Where the map is wrong, by cause: false-occupied seen cells by their distance from the
+    truth (``edge``: the ring an object grows by, from side faces and fattening; ``near``;
+    ``far``: the floor itself, e.g. markings or a pair whose floor reads raised), and per object
+    its seen cells mapped occupied, free and unknown (free is the error a robot drives into)."""
+    occupied = (occupancy >= OCCUPIED_MIN) & seen
+    distance = cv2.distanceTransform((~truth).astype(np.uint8), cv2.DIST_L2, 3)
+    false_occupied = occupied & ~truth
+    rings = {
+        "edge": false_occupied & (distance <= EDGE_RING_CELLS),
+        "near": false_occupied & (distance > EDGE_RING_CELLS) & (distance <= NEAR_RING_CELLS),
+        "far": false_occupied & (distance > NEAR_RING_CELLS),
+    }
+    per_object = {}
+    for obj in objects:
+        cells = footprint_mask(obj, window, resolution_m) & seen
+        if cells.any():
+            per_object[obj.name] = cell_shares(occupancy, cells)
+    return {
+        "false_occupied_cells": {name: int(np.count_nonzero(m)) for name, m in rings.items()},
+        "objects": per_object,
+    }
+
+
 ANGLE_STEPS = np.deg2rad(np.arange(0.0, 90.0, 0.25))
 
 
