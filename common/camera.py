@@ -20,6 +20,44 @@ MAX_IMAGE_PIXELS = 4096 * 4096
 16384×16384 image would have the depth process allocate gigabytes of rectification maps."""
 MAX_FIELD_OF_VIEW_DEG = 170.0
 """A pinhole model cannot see 180° across; a focal length of 1e-9 px claims it does."""
+RAY_SAMPLES = 4096
+"""Ray angles sampled between the axis and half the widest field of view when checking that the
+distortion is invertible: a step of 0.02°, finer than any fold a real lens model has."""
+
+
+def radial_distortion_fold(dist: npt.ArrayLike, corner_radius: float) -> str | None:
+    """Why the radial distortion (OpenCV's k1 k2 k3 over k4 k5 k6) is not invertible over an image
+    whose farthest corner lies ``corner_radius`` from the principal point (normalised units), or
+    None. Undistortion (what rectification does) inverts r ↦ r_d = r·(1 + k1 r² + k2 r⁴ + k3 r⁶)
+    / (1 + k4 r² + k5 r⁴ + k6 r⁶) over the image: r_d must grow with r until it reaches the corner,
+    within half the widest field of view. Otherwise pixels near the corner have no ray or two
+    (k1 = −100 folds at r_d = 0.04, well inside a 60° camera's 0.72: the maps come out empty).
+    Tangential and thin-prism terms are left out: they are small beside the radial ones in any
+    lens a calibration fits."""
+    k = np.zeros(8)
+    given = np.asarray(dist, dtype=np.float64)[:8]
+    k[: given.size] = given
+    k1, k2, _p1, _p2, k3, k4, k5, k6 = k
+    r = np.tan(np.radians(np.linspace(0.0, MAX_FIELD_OF_VIEW_DEG / 2.0, RAY_SAMPLES)))
+    r2 = r * r
+    denominator = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r_distorted = r * (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / denominator
+    growing = (np.diff(r_distorted) > 0) & (denominator[1:] > 0)
+    fold = int(np.argmin(growing)) if not growing.all() else RAY_SAMPLES - 1
+    reached = np.flatnonzero(r_distorted[: fold + 1] >= corner_radius)
+    if reached.size:
+        return None
+    where = (
+        f"stops growing at {r_distorted[fold]:.3g} (a ray {math.degrees(math.atan(r[fold])):.1f}° "
+        "off the axis)"
+        if fold < RAY_SAMPLES - 1
+        else f"reaches only {r_distorted[fold]:.3g} within {MAX_FIELD_OF_VIEW_DEG / 2:g}° of the axis"
+    )
+    return (
+        f"distortion {given.tolist()} is not invertible over the image: the distorted radius "
+        f"{where}, short of the image corner at {corner_radius:.3g}"
+    )
 
 
 def _finite(values: npt.ArrayLike, what: str) -> None:
@@ -69,7 +107,21 @@ class PinholeCamera(BaseModel):
                     f"focal length f{axis}={focal_px:g} px gives a {fov_deg:.1f}° field of view over "
                     f"{extent_px} px; a pinhole camera sees less than {MAX_FIELD_OF_VIEW_DEG:g}°"
                 )
+        fold = radial_distortion_fold(self.dist, self.corner_radius)
+        if fold is not None:
+            raise ValueError(fold)
         return self
+
+    @property
+    def corner_radius(self) -> float:
+        """How far the farthest image corner lies from the principal point, in normalised image
+        coordinates ((u − cx)/fx, (v − cy)/fy)."""
+        (fx, _, cx), (_, fy, cy) = self.K[0], self.K[1]
+        return max(
+            math.hypot((u - cx) / fx, (v - cy) / fy)
+            for u in (-0.5, self.width - 0.5)
+            for v in (-0.5, self.height - 0.5)
+        )
 
     @field_validator("dist")
     @classmethod

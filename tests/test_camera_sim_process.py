@@ -1,7 +1,9 @@
 """A real camera_sim process publishes over Zenoh on loopback; this test process receives."""
 
 import threading
+from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import zenoh
@@ -79,3 +81,26 @@ def test_sim_publishes_frames_and_answers_calib_and_truth(bus: Bus) -> None:
     assert process.wait(10) == 0
     wait_for(lambda: process.poll() is not None, 5, "camera_sim to stop")
     assert np.isfinite(calib.left.focal_px)
+
+
+def test_save_frame_saves_a_jpeg_stream_as_the_depth_process_reads_it(
+    bus: Bus, tmp_path: Path
+) -> None:
+    sim = bus.start(
+        "camera-sim",
+        "--pair-count",
+        "1",
+        "--rate-hz",
+        "2",
+        "--frames",
+        "60",
+        "--jpeg-quality",
+        "80",
+    )
+    out = tmp_path / "stereo.png"
+    saver = bus.start("save-frame", "--pair", "p0", "--out", str(out), "--timeout-s", "60")
+    assert saver.wait(90) == 0  # it ignored JPEG frames and timed out
+    image = cv2.imread(str(out), cv2.IMREAD_UNCHANGED)
+    assert image is not None and image.shape == (480, 1280) and image.std() > 10
+    sim.send_signal(2)
+    assert sim.wait(10) == 0

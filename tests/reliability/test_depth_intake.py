@@ -154,6 +154,29 @@ def test_a_calibration_over_zenoh_is_decoded_or_refused() -> None:
     assert isinstance(decoded, StereoCalibration) and decoded.model_dump() == calib.model_dump()
     rejection = decode_calibration(encode(CALIB_KIND, calib)[:-10])
     assert isinstance(rejection, Rejection) and rejection.reason == "malformed"
+    folded = calib.model_copy(
+        update={"left": calib.left.model_copy(update={"dist": [-100.0, 0, 0, 0, 0]})}
+    )  # model_copy skips validation: what a camera box with a broken calibration would send
+    rejection = decode_calibration(encode(CALIB_KIND, folded))
+    assert isinstance(rejection, Rejection) and rejection.reason == "malformed"
+    assert "not invertible" in rejection.detail
+
+
+@pytest.mark.parametrize(
+    "dist",
+    [
+        [0.0] * 5,
+        [],
+        [-0.28, 0.07, 0.0005, -0.0003, 0.0],  # a wide-angle lens: barrel, held by k2
+        [-0.1, 0.01, 0.0, 0.0, 0.0],
+        [0.1, -0.05, 0.0, 0.0, 0.01],  # pincushion
+        [2.0, 1.0, 0.0, 0.0, 0.1, 2.1, 1.1, 0.1],  # rational model as OpenCV fits it
+    ],
+)
+def test_lens_distortion_of_real_calibrations_is_accepted(dist: list[float]) -> None:
+    calib = _calibration()
+    calib["left"]["dist"] = calib["right"]["dist"] = dist
+    StereoCalibration.model_validate(calib)
 
 
 @pytest.mark.parametrize(
@@ -170,7 +193,11 @@ def test_a_calibration_over_zenoh_is_decoded_or_refused() -> None:
             ],
             "pixels",
         ),
+        (lambda d: d["left"].__setitem__("dist", [-100.0, 0, 0, 0, 0]), "not invertible"),
+        (lambda d: d["right"].__setitem__("dist", [-0.3, 0, 0, 0, 0]), "not invertible"),
+        (lambda d: d["left"].__setitem__("dist", [0, 0, 0, 0, 0, 5.0, 0, 0]), "not invertible"),
     ],
+    ids=["focal", "principal_point", "pixels", "k1_minus_100", "k1_folds_at_corner", "k4"],
 )
 def test_absurd_intrinsics_fail_field_validation(change, says: str) -> None:
     calib = _calibration()

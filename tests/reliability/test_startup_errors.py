@@ -175,6 +175,7 @@ def test_a_recording_that_is_not_there_is_named(tmp_path: Path) -> None:
     [
         (lambda d: d["right"]["T_world_cam"][0].__setitem__(3, 1000.0), "disparities"),  # baseline
         (lambda d: d["left"].__setitem__("dist", [0, 0, 0, 0, 100.0]), "disparities"),  # k3
+        (lambda d: d["left"].__setitem__("dist", [-100.0, 0, 0, 0, 0]), "not invertible"),  # k1
         (lambda d: d["left"]["K"][0].__setitem__(2, 1e9), "principal point"),
         (lambda d: d["left"]["K"][0].__setitem__(0, 1e-9), "field of view"),  # focal 1e-9 px
         (
