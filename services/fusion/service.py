@@ -60,6 +60,9 @@ INBOX_LARGEST_MESSAGES = 4
 """Its byte budget, in largest messages allowed (``--max-message-mb``): a few big tiles may wait
 while one is fused; a stream the map cannot keep up with is dropped, not held in memory."""
 SNAPSHOT_COST_SHARE = 0.2
+QUERIED_RECENTLY_S = 2.0
+STALE_LIMIT_S = 1.0
+"""A query finding a snapshot older than this (and than two paces) waits for a new one."""
 DEFAULT_QUERY = MapQuery()
 QUERY_BACKLOG = 256
 MAP_QUERY_THREADS = 2
@@ -275,31 +278,52 @@ def occupancy_map_of(
 
 class SnapshotBuilder:
     """The ``map/latest`` snapshots, assembled from the newest View's chunks and encoded once
-    however many clients ask, on a thread of their own: a query never waits for one (but the
-    first). A new one is made no sooner than the publish interval after the last, nor than
-    SNAPSHOT_COST_SHARE⁻¹ times what the last cost, so a huge map under a stream of tiles spends at
-    most that share of the time on snapshots; ``map/latest`` may then be that much older than
-    ``map/updates`` (followers replay the updates since). Layered snapshots (a tool's, rarely
-    asked) are made when asked, once per version."""
+    however many clients ask, on a thread of their own, so a query does not wait for one. While
+    clients ask (within QUERIED_RECENTLY_S), each map change makes a new one, no sooner than a pace
+    after the last: the publish interval, or SNAPSHOT_COST_SHARE⁻¹ times what the last cost. So an
+    unqueried map costs nothing, a huge map under a stream of tiles and of queries spends at most
+    that share of the time on snapshots, and ``map/latest`` may be about a pace older than
+    ``map/updates`` (followers replay the updates since). A query finding only a snapshot older
+    than STALE_LIMIT_S (the first after a quiet spell) waits for a new one. Layered snapshots (a tool's,
+    rarely asked) are made when asked, once per version."""
 
     def __init__(self, newest: Callable[[], View], min_interval_s: float) -> None:
         self._newest = newest
         self.min_interval_s = min_interval_s
         self._lock = threading.Lock()
-        self._poke = threading.Event()
+        self._changed = threading.Event()
         self._closing = False
-        self._current: tuple[tuple[int, int], MapSnapshot] | None = None
-        self.default_payload: bytes | None = None
-        """The newest snapshot's answer to a plain ``map/latest`` (what robots ask): ready bytes."""
+        self._queried_s = 0.0
+        self._current: tuple[tuple[int, int], MapSnapshot, bytes, float] | None = None
+        """(map version, snapshot, its plain msgpack answer, when it was made (monotonic s))."""
         self._layered: tuple[tuple[int, int], MapSnapshot] | None = None
         self._cost_s = 0.0
         self._assembler = ServedAssembler()
         self._thread = threading.Thread(target=self._run, name="fusion-snapshots", daemon=True)
         self._thread.start()
 
-    def poke(self) -> None:
-        """The map changed: make a new snapshot when the pace allows."""
-        self._poke.set()
+    def changed(self) -> None:
+        """The owner published a new version."""
+        self._changed.set()
+
+    def _pace_s(self) -> float:
+        return max(self.min_interval_s, self._cost_s / SNAPSHOT_COST_SHARE)
+
+    def _usable(self) -> tuple[tuple[int, int], MapSnapshot, bytes, float] | None:
+        now_s = time.monotonic()
+        self._queried_s = now_s
+        current = self._current
+        if current is None or (
+            current[0] != self._newest().frozen.key
+            and now_s - current[3] >= max(STALE_LIMIT_S, 2 * self._pace_s())
+        ):
+            return None
+        return current
+
+    def plain(self) -> bytes | None:
+        """Ready bytes for a plain ``map/latest`` (what robots ask), or None: ask :meth:`get`."""
+        current = self._usable()
+        return None if current is None else current[2]
 
     def get(self, with_layers: bool) -> MapSnapshot:
         if with_layers:
@@ -308,7 +332,7 @@ class SnapshotBuilder:
                 if self._layered is None or self._layered[0] != view.frozen.key:
                     self._layered = (view.frozen.key, MapSnapshot(occupancy_map_of(view, True)))
                 return self._layered[1]
-        current = self._current
+        current = self._usable()
         return current[1] if current is not None else self._build()
 
     def _build(self) -> MapSnapshot:
@@ -318,24 +342,25 @@ class SnapshotBuilder:
                 return self._current[1]
             started = time.perf_counter()
             snapshot = MapSnapshot(occupancy_map_of(view, False, self._assembler))
-            default = snapshot.encoded(DEFAULT_QUERY)  # the answer most clients want, made once
+            plain = snapshot.encoded(DEFAULT_QUERY)  # the answer most clients want, made once
             self._cost_s = time.perf_counter() - started
-            self._current = (view.frozen.key, snapshot)
-            self.default_payload = default
+            self._current = (view.frozen.key, snapshot, plain, time.monotonic())
             return snapshot
 
     def _run(self) -> None:
         while True:
-            self._poke.wait()
+            self._changed.wait()
             if self._closing:
                 return
-            self._poke.clear()
+            self._changed.clear()
+            if time.monotonic() - self._queried_s > QUERIED_RECENTLY_S:
+                continue  # nobody asks: the next query makes one
             self._build()
-            time.sleep(max(self.min_interval_s, self._cost_s / SNAPSHOT_COST_SHARE))
+            time.sleep(self._pace_s())
 
     def close(self) -> None:
         self._closing = True
-        self._poke.set()
+        self._changed.set()
         self._thread.join(5.0)
 
 
@@ -496,8 +521,8 @@ def main(settings: FusionSettings) -> None:
     def on_map_query(query: zenoh.Query) -> None:
         """A plain map/latest gets its ready bytes at once (a reply, nothing to compute or wait
         for); any other asks a worker."""
-        payload = snapshots.default_payload
-        if payload is not None and query.parameters.is_empty():
+        payload = snapshots.plain() if query.parameters.is_empty() else None
+        if payload is not None:
             query.reply(query.key_expr, payload, encoding=CONTENT_TYPES[DEFAULT_QUERY.format])
             finish(query)
         else:
@@ -567,7 +592,14 @@ def main(settings: FusionSettings) -> None:
             },
         )
         run(
-            settings, state, inbox, writer, stop, updates.put, objects_publisher.put, snapshots.poke
+            settings,
+            state,
+            inbox,
+            writer,
+            stop,
+            updates.put,
+            objects_publisher.put,
+            snapshots.changed,
         )
         for entity in declared:
             entity.undeclare()
