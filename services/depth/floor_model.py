@@ -345,7 +345,8 @@ class LineOfSight:
         return blocked
 
 
-BACKGROUND_TEXTURE_WINDOW_PX = 9
+BACKGROUND_TEXTURE_WINDOW_PX = 10
+TEXTURE_SAMPLE_STEP = 2
 BACKGROUND_TEXTURE_GRAY = 1.5
 """Local standard deviation (gray levels) of a background below which it has no texture to check."""
 TEXTURE_KEPT = 0.5
@@ -578,20 +579,25 @@ class FloorModel:
         (``alike``: an object's own pixels beside the floor do not count) is about 1 on the
         floor and about 0 on a plain surface whose grey lies within the background's tolerance
         (a plain orange forklift over grey concrete: the same luma). Where the background has
-        no texture (a plain floor), there is nothing to check."""
-        k = (BACKGROUND_TEXTURE_WINDOW_PX, BACKGROUND_TEXTURE_WINDOW_PX)
-        weight = alike.astype(np.float32)
-        background = self.mean[side] * weight
-        now = normalised * weight
+        no texture (a plain floor), there is nothing to check. On every other pixel of each
+        axis: a window's statistics hardly change from one pixel to the next."""
+        step = TEXTURE_SAMPLE_STEP
+        k = (BACKGROUND_TEXTURE_WINDOW_PX // step, BACKGROUND_TEXTURE_WINDOW_PX // step)
+        weight = alike[::step, ::step].astype(np.float32)
+        mean = self.mean[side, ::step, ::step]
+        background = mean * weight
+        now = normalised[::step, ::step] * weight
         count = cv2.blur(weight, k)
         with np.errstate(invalid="ignore", divide="ignore"):
             mean_bg = cv2.blur(background, k) / count
             mean_now = cv2.blur(now, k) / count
-            var_bg = cv2.blur(background * self.mean[side], k) / count - mean_bg * mean_bg
-            covariance = cv2.blur(now * self.mean[side], k) / count - mean_now * mean_bg
+            var_bg = cv2.blur(background * mean, k) / count - mean_bg * mean_bg
+            covariance = cv2.blur(now * mean, k) / count - mean_now * mean_bg
             slope = covariance / var_bg
         plain = ~(var_bg >= np.float32(BACKGROUND_TEXTURE_GRAY**2))  # NaN: nothing alike
-        kept: Mask = plain | (slope >= TEXTURE_KEPT)
+        kept_sampled = (plain | (slope >= TEXTURE_KEPT)).view(np.uint8)
+        height, width = self.shape
+        kept: Mask = cv2.resize(kept_sampled, (width, height), interpolation=cv2.INTER_NEAREST) > 0
         return kept
 
     def _seeds(self, test: FloorTest, at_floor: Mask, inside: Mask) -> Mask:
