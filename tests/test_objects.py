@@ -235,9 +235,17 @@ def test_the_predicted_layer_covers_a_mover_ahead_and_clears_behind() -> None:
     seen_ns = track.last_seen_ns
     ahead_ns = seen_ns + int(0.6e9)  # latency + one frame interval
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
-    grid.occupancy[:] = 0  # every cell seen free
+    shape = grid.window.shape
+    grid.integrate(  # every cell seen free
+        grid.window,
+        np.full(shape, -2.0, np.float32),
+        np.full(shape, np.nan, np.float32),
+        np.full(shape, 20, np.uint16),
+        seen_ns,
+    )
+    evidence = grid.layer("occupancy")
     assert grid.set_predicted(tracker.sweep(resolution, seen_ns, ahead_ns))
-    served = grid.served_occupancy()
+    served, predicted = grid.served_occupancy(), grid.layer("predicted")
     x_now = track.center_m[0]
 
     def cell(x: float, y: float) -> tuple[int, int]:
@@ -245,19 +253,20 @@ def test_the_predicted_layer_covers_a_mover_ahead_and_clears_behind() -> None:
 
     ahead = cell(x_now + 0.6 + 2.0 * 0.5, 2.0)  # its front edge 0.5 s ahead
     behind = cell(x_now - 0.8, 2.0)
-    assert served[ahead] == OCCUPIED and grid.predicted[ahead]
-    assert served[behind] == 0 and not grid.predicted[behind]
-    assert grid.occupancy[ahead] == 0  # the evidence layer is not touched
+    assert served[ahead] == OCCUPIED and predicted[ahead]
+    assert served[behind] == evidence[behind] < OCCUPIED and not predicted[behind]
+    assert grid.layer("occupancy")[ahead] == evidence[ahead]  # the evidence is not touched
 
     # The next frame sees it 1 m further on: the sweep starts there, the cells it left are clear.
     version = grid.version
     later_ns = seen_ns + FRAME_NS
     grid.set_predicted(tracker.sweep(resolution, later_ns, later_ns + int(0.6e9)))
     left = cell(x_now - 0.3, 2.0)
-    assert not grid.predicted[left] and grid.served_occupancy()[left] == 0
+    assert not grid.layer("predicted")[left]
+    assert grid.served_occupancy()[left] == evidence[left]
     assert grid.version > version and not grid.take_dirty().empty
     # The mover gone: the layer empties once, then costs nothing.
-    assert grid.set_predicted([]) and not grid.predicted.any()
+    assert grid.set_predicted([]) and not grid.layer("predicted").any()
     assert not grid.set_predicted([])
 
 
