@@ -122,6 +122,7 @@ def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_pa
     ):
         assert 0 <= report[key] < 100, key
     assert {"name", "true_length_m", "length_m", "width_m"} <= set(report["objects"][0])
+    assert set(report["error_breakdown"]["false_occupied_cells"]) == {"edge", "near", "far"}
     assert report["capture_to_map_ms"]["n"] > 5 and report["capture_to_map_ms"]["p50"] > 0
     assert {"camera", "disparity", "model"} <= set(report["stage_ms"])
     assert "moving_appear_s" in report and "moving_clear_s" in report

@@ -235,6 +235,17 @@ class Evaluator:
         occupancy = metrics.occupancy_on(occupancy_map, self.window)
         return metrics.score_cells(occupancy, self.static_occupied, self.seen).false_free_rate
 
+    def error_breakdown(self, occupancy_map: OccupancyMap, truth: Truth) -> dict[str, object]:
+        """Where the map is wrong, by cause (metrics.error_breakdown), at the map's capture time."""
+        return metrics.error_breakdown(
+            metrics.occupancy_on(occupancy_map, self.window),
+            truth.occupied,
+            self.seen,
+            truth.header.objects,
+            self.window,
+            self.resolution_m,
+        )
+
     def static_cells(self, occupancy_map: OccupancyMap) -> dict[str, float]:
         """How the map calls the seen cells of static objects: occupied, free or unknown."""
         occupancy = metrics.occupancy_on(occupancy_map, self.window)
@@ -424,6 +435,7 @@ def report(
             for s in sizes
         ],
         "objects_missed": [s.name for s in sizes if not s.found],
+        "error_breakdown": evaluator.error_breakdown(occupancy_map, truth),
         **evaluator.tracked_objects(truth),
     }
     if recorder is not None:
