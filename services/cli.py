@@ -6,6 +6,8 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from common.lifecycle import catch_stop_signals
+
 COMMANDS = {
     "up": ("services.up", "run everything on this box on the simulated scene; save the map"),
     "camera-sim": ("services.camera_sim.service", "simulated overhead stereo pairs (MuJoCo)"),
@@ -42,6 +44,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         lines = [f"  {name:<{width}}  {help_text}" for name, (_, help_text) in COMMANDS.items()]
         print("usage: overgrid COMMAND [options]\n\ncommands:\n" + "\n".join(lines))
         raise SystemExit(0 if args and args[0] in ("-h", "--help") else 2)
+    catch_stop_signals()  # before the heavy imports: a stop while starting is a clean exit
     module = importlib.import_module(COMMANDS[args[0]][0])
     entry = {"map": "map_cli", "health": "health_cli", "objects": "objects_cli"}.get(args[0], "cli")
     getattr(module, entry)(args[1:])

@@ -1,4 +1,5 @@
-"""Every service stops cleanly on SIGTERM within 2 s and leaves no process behind."""
+"""Every service stops cleanly (exit 0) on SIGTERM or SIGINT within 2 s, busy or still starting,
+and leaves no process behind."""
 
 import os
 import re
@@ -34,9 +35,11 @@ def _running_in_group(pgid: int) -> bool:
     return bool(result.stdout.split())
 
 
-def _terminate_and_time(process: subprocess.Popen[bytes]) -> float:
+def _terminate_and_time(
+    process: subprocess.Popen[bytes], signum: signal.Signals = signal.SIGTERM
+) -> float:
     started = time.monotonic()
-    process.send_signal(signal.SIGTERM)
+    process.send_signal(signum)
     process.wait(30)
     return time.monotonic() - started
 
@@ -51,8 +54,9 @@ def _terminate_and_time(process: subprocess.Popen[bytes]) -> float:
     ],
     ids=lambda v: v if isinstance(v, str) else v[0],
 )
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=lambda s: s.name)
 def test_sigterm_stops_the_service_within_2_s(
-    bus: Bus, tmp_path: Path, service: list[str], ready: str
+    bus: Bus, tmp_path: Path, service: list[str], ready: str, signum: signal.Signals
 ) -> None:
     args = [a.format(port=free_port(), tmp=tmp_path) for a in service]
     if ready == "depth":
@@ -66,11 +70,35 @@ def test_sigterm_stops_the_service_within_2_s(
             marker = b"msg=started"
             wait_for(lambda: marker in log.read_bytes(), 60, f"{ready} started")
             time.sleep(1.0)  # running, not just started
-        elapsed = _terminate_and_time(process)
-        print(f"{ready}: stopped {elapsed:.2f} s after SIGTERM")
+        elapsed = _terminate_and_time(process, signum)
+        print(f"{ready}: stopped {elapsed:.2f} s after {signum.name}")
         assert process.returncode == 0, log.read_text()
         assert elapsed <= STOP_WITHIN_S
         assert b"stopped" in log.read_bytes()
+        assert not _running_in_group(process.pid)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=lambda s: s.name)
+@pytest.mark.parametrize(
+    "service", [["depth", "--pair", "p0"], ["camera-sim"], ["fusion"]], ids=lambda s: s[0]
+)
+def test_a_stop_while_starting_is_a_clean_exit(
+    bus: Bus, tmp_path: Path, service: list[str], signum: signal.Signals
+) -> None:
+    """Signalled while it still imports OpenCV/MuJoCo: it died by SIGTERM or printed a
+    KeyboardInterrupt traceback."""
+    log = tmp_path / "service.log"
+    state = ["--state-dir", str(tmp_path / "state")] if service[0] == "fusion" else []
+    process = _start([*service, *state, *bus.flags()], log)
+    try:
+        time.sleep(0.3)
+        _terminate_and_time(process, signum)
+        assert process.returncode == 0, log.read_text()
+        assert "Traceback" not in log.read_text()
         assert not _running_in_group(process.pid)
     finally:
         if process.poll() is None:
