@@ -62,11 +62,16 @@ class FusionParams(OvergridParams):
 
     @model_validator(mode="after")
     def _bounds_within_cell_limit(self) -> FusionParams:
-        window = self.bounds_window()
-        if window is not None and window.cols * window.rows > self.grid.max_cells:
+        if not self.bounds:
+            return self
+        # In floats, before any lattice index: 1e300 m would wrap int64 cell indices into a
+        # window of 0×0 cells, which passes any limit.
+        x0, y0, x1, y1 = (float(v) / self.grid.resolution_m for v in self.bounds)
+        if (x1 - x0) * (y1 - y0) > self.grid.max_cells or max(map(abs, (x0, y0, x1, y1))) > 2**62:
             raise ValueError(
-                f"--bounds cover {window.cols}×{window.rows} cells at {self.grid.resolution_m} m, "
-                f"over --max-cells {self.grid.max_cells}"
+                f"--bounds cover {x1 - x0:.4g}×{y1 - y0:.4g} cells at {self.grid.resolution_m} m "
+                f"(corner cells {x0:.4g}, {y0:.4g}), over --max-cells {self.grid.max_cells} or "
+                "the lattice's reach"
             )
         return self
 
