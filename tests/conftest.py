@@ -119,7 +119,7 @@ def bus() -> Iterator[Bus]:
         yield bus
     finally:
         bus.stop_all()
-        session.close()
+        session.close()  # type: ignore[no-untyped-call]
 
 
 def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:

@@ -129,7 +129,7 @@ def test_jpeg_frames_decode_where_the_depth_service_takes_them() -> None:
     payload = frame_payload({"pair": "p0", "seq": 0, "stamp_ns": 1}, left, right, encode_jpeg)
     assert len(payload) < left.nbytes  # compressed
     decoded = cv2.imdecode(np.frombuffer(encode_jpeg(left), np.uint8), cv2.IMREAD_GRAYSCALE)
-    assert decoded.shape == left.shape
+    assert decoded is not None and decoded.shape == left.shape
     assert np.abs(decoded.astype(int) - left.astype(int)).mean() < 3.0
 
 

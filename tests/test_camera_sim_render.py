@@ -1,17 +1,22 @@
 """Real MuJoCo renders (EGL on CPU) agree with the scene geometry and the published calibration."""
 
+from collections.abc import Iterator
+
 import numpy as np
 import pytest
 
+from common.camera import StereoCalibration
 from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import ObjectSpec, SceneSpec, generate_scene
+
+Rendered = tuple[SceneSpec, list[StereoCalibration], SceneRenderer]
 
 BOX = ObjectSpec(name="box_a", shape="box", center_xy_m=(3.3, 2.7), size_m=(1.0, 0.8, 1.25))
 
 
 @pytest.fixture(scope="module")
-def rendered() -> tuple[SceneSpec, list, SceneRenderer]:
+def rendered() -> Iterator[Rendered]:
     scene = SceneSpec(objects=[BOX])
     calibrations = layout_pairs(RigSpec(), scene.floor_size_m)
     renderer = SceneRenderer(scene, calibrations)
@@ -20,7 +25,7 @@ def rendered() -> tuple[SceneSpec, list, SceneRenderer]:
     renderer.close()
 
 
-def test_floor_depth_matches_camera_height(rendered) -> None:
+def test_floor_depth_matches_camera_height(rendered: Rendered) -> None:
     _, calibrations, renderer = rendered
     calib = calibrations[0]
     depth = renderer.render_depth("p0_left", 640, 480)
@@ -29,7 +34,9 @@ def test_floor_depth_matches_camera_height(rendered) -> None:
     assert depth[round(v), round(u)] == pytest.approx(6.0, abs=2e-3)
 
 
-def test_box_top_appears_at_its_height_where_the_calibration_projects_it(rendered) -> None:
+def test_box_top_appears_at_its_height_where_the_calibration_projects_it(
+    rendered: Rendered,
+) -> None:
     _, calibrations, renderer = rendered
     calib = calibrations[0]
     depth = renderer.render_depth("p0_left", 640, 480)
@@ -47,7 +54,7 @@ def test_box_top_appears_at_its_height_where_the_calibration_projects_it(rendere
     assert depth[round(v), round(u)] > 6.0 - top + 0.05
 
 
-def test_right_camera_sees_the_same_box_shifted_by_the_disparity(rendered) -> None:
+def test_right_camera_sees_the_same_box_shifted_by_the_disparity(rendered: Rendered) -> None:
     _, calibrations, renderer = rendered
     calib = calibrations[0]
     point = (BOX.center_xy_m[0], BOX.center_xy_m[1], 1.25)

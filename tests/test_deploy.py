@@ -18,10 +18,10 @@ import zenoh.ext
 
 from common.client import MapUnavailable, latest
 from common.lattice import Window
-from common.settings import parse_settings
-from services.camera_sim.service import CameraSimSettings
-from services.depth.service import DepthSettings
-from services.fusion.service import FusionSettings
+from common.settings import ZenohSettings, parse_settings
+from services.camera_sim.settings import CameraSimSettings
+from services.depth.settings import DepthSettings
+from services.fusion.settings import FusionSettings
 from services.ros2 import cdr
 from services.ros2.settings import RmwZenohSettings
 from services.router import RouterSettings
@@ -29,7 +29,7 @@ from tests.conftest import PROCESS_LIFETIME_S, REPO, free_port, wait_for
 from tests.reliability.test_security import PASSWORDS, _client_config, certs  # noqa: F401
 from tests.tiles import tile_payload
 
-SETTINGS = {
+SETTINGS: dict[str, type[ZenohSettings]] = {
     "router": RouterSettings,
     "fusion": FusionSettings,
     "depth": DepthSettings,
@@ -193,16 +193,16 @@ def test_the_router_lets_the_ros2_user_publish_the_map_and_no_more(
         replies = [r.ok.payload.to_bytes() for r in robot.get("map/latest", timeout=2) if r.ok]
         assert replies and b"forged" not in replies
         for token in intruders:
-            token.undeclare()
-        forger.undeclare()
-        watcher.undeclare()
+            token.undeclare()  # type: ignore[no-untyped-call]
+        forger.undeclare()  # type: ignore[no-untyped-call]
+        watcher.undeclare()  # type: ignore[no-untyped-call]
         for subscriber, _ in (maps, transforms):
-            subscriber.undeclare()
-        rogue_ros2.close()
+            subscriber.undeclare()  # type: ignore[no-untyped-call]
+        rogue_ros2.close()  # type: ignore[no-untyped-call]
     finally:
         for process in processes:
             process.terminate()
             process.wait(10)
         for each in (robot, rogue_robot, depth):
-            each.close()
-        router.close()
+            each.close()  # type: ignore[no-untyped-call]
+        router.close()  # type: ignore[no-untyped-call]

@@ -1,14 +1,16 @@
 """Real renders → real OpenCV stereo → tiles, checked against MuJoCo's depth buffer and the scene."""
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 
+from common.camera import StereoCalibration
 from common.lattice import cell_of
 from services.camera_sim import truth
 from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import ObjectSpec, SceneSpec, generate_scene
-from services.depth.pipeline import DepthPipeline, PipelineConfig
+from services.depth.pipeline import DepthPipeline, FrameResult, PipelineConfig
 from services.depth.stereo import Rectifier
 
 BOX = ObjectSpec(
@@ -16,7 +18,15 @@ BOX = ObjectSpec(
 )
 
 
-def _render(scene: SceneSpec, pair_count: int = 1, pair_index: int = 0):
+Frames = tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8], npt.NDArray[np.float32]]
+"""Left and right grey images and the left camera's MuJoCo depth (m)."""
+
+BoxScene = tuple[SceneSpec, StereoCalibration, npt.NDArray[np.float32], FrameResult]
+
+
+def _render(
+    scene: SceneSpec, pair_count: int = 1, pair_index: int = 0
+) -> tuple[StereoCalibration, Frames]:
     calibrations = layout_pairs(RigSpec(pair_count=pair_count), scene.floor_size_m)
     calib = calibrations[pair_index]
     renderer = SceneRenderer(scene, calibrations)
@@ -32,7 +42,7 @@ def _render(scene: SceneSpec, pair_count: int = 1, pair_index: int = 0):
 
 
 @pytest.fixture(scope="module")
-def box_scene():
+def box_scene() -> BoxScene:
     scene = SceneSpec(objects=[BOX])
     calib, (left, right, depth) = _render(scene)
     result = DepthPipeline(calib, PipelineConfig()).process(left, right)
@@ -64,7 +74,7 @@ def test_floor_depth_error_against_mujoco_depth_buffer() -> None:
     assert np.median(np.abs(depth[floor] - truth_small[floor])) <= 0.03
 
 
-def test_object_top_depth_error_against_mujoco_depth_buffer(box_scene) -> None:
+def test_object_top_depth_error_against_mujoco_depth_buffer(box_scene: BoxScene) -> None:
     # A cardboard box's top: weak texture, where SGBM's own sub-pixel fit locks to whole pixels;
     # the chain's sub-pixel stage (tests/test_stereo.py) undoes that. (The generated scene's plain
     # crate has no texture at all: stereo cannot measure it, and tops there say nothing of this.)
@@ -79,7 +89,7 @@ def test_object_top_depth_error_against_mujoco_depth_buffer(box_scene) -> None:
     assert np.median(np.abs(depth[tops] - farthest[tops])) <= 0.008
 
 
-def test_tile_is_on_the_lattice(box_scene) -> None:
+def test_tile_is_on_the_lattice(box_scene: BoxScene) -> None:
     _, _, _, result = box_scene
     tile = result.tile
     assert tile.logodds.shape == tile.window.shape == tile.count.shape == tile.height_m.shape
@@ -91,7 +101,7 @@ def test_tile_is_on_the_lattice(box_scene) -> None:
     assert np.all(tile.logodds[tile.count == 0] == 0)
 
 
-def test_box_is_occupied_and_the_floor_around_it_free(box_scene) -> None:
+def test_box_is_occupied_and_the_floor_around_it_free(box_scene: BoxScene) -> None:
     scene, _, _, result = box_scene
     tile = result.tile
     r = tile.resolution_m
@@ -120,7 +130,7 @@ def test_box_is_occupied_and_the_floor_around_it_free(box_scene) -> None:
     assert np.median(tops) == pytest.approx(BOX.size_m[2], abs=0.04)
 
 
-def test_floor_far_from_objects_is_free(box_scene) -> None:
+def test_floor_far_from_objects_is_free(box_scene: BoxScene) -> None:
     _scene, _, _, result = box_scene
     tile = result.tile
     x, y = tile.window.cell_centers(tile.resolution_m)
@@ -130,7 +140,7 @@ def test_floor_far_from_objects_is_free(box_scene) -> None:
     assert (tile.logodds[far] < 0).mean() > 0.995
 
 
-def test_wrong_image_size_is_a_clear_error(box_scene) -> None:
+def test_wrong_image_size_is_a_clear_error(box_scene: BoxScene) -> None:
     _, calib, _, _ = box_scene
     pipeline = DepthPipeline(calib, PipelineConfig())
     small = np.zeros((240, 320), np.uint8)

@@ -1,6 +1,7 @@
 """The scoring of ``overgrid eval`` on hand-made maps whose errors are known exactly."""
 
 import math
+from typing import cast
 
 import numpy as np
 import pytest
@@ -16,7 +17,9 @@ RES = 0.05
 WINDOW = Window(0, 0, 80, 60)  # 4 m × 3 m
 
 
-def _box(name: str, x: float, y: float, length: float, width: float, yaw: float = 0.0):
+def _box(
+    name: str, x: float, y: float, length: float, width: float, yaw: float = 0.0
+) -> TruthObject:
     return TruthObject(
         name=name,
         shape="box",
@@ -189,7 +192,7 @@ def test_error_breakdown_tells_an_edge_ring_from_floor_errors_and_names_the_obje
         "near": 0,
         "far": 1,
     }
-    shares = result["objects"]["box"]
+    shares = cast(dict[str, dict[str, float]], result["objects"])["box"]
     assert shares["cells"] == int(truth.sum())
     assert shares["free"] == pytest.approx(1 / truth.sum())
     assert shares["unknown"] == pytest.approx(1 / truth.sum())

@@ -4,9 +4,11 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 from common.mapfiles import read_map_server
@@ -87,17 +89,23 @@ def test_floor_test_flags_a_raised_textured_patch_and_not_the_floor() -> None:
     right_rect[rows, cols.start - shift : cols.stop - shift] = patch
     config = model.config
     blurred = floor_model._blur(left_rect, config.blur_sigma_px)
-    warped = cv2.remap(
-        floor_model._blur(right_rect, config.blur_sigma_px),
-        *model._warp_maps,
-        cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=-1.0,
+    warped = cast(
+        npt.NDArray[np.float32],
+        cv2.remap(
+            floor_model._blur(right_rect, config.blur_sigma_px),
+            *model._warp_maps,
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=-1.0,
+        ),
     )
     test = floor_model.floor_test(blurred, warped, warped >= 0, config)
     raised = np.zeros(left_rect.shape, np.bool_)
     raised[rows, cols] = True
-    inner, floor = _eroded(raised), ~cv2.dilate(raised.astype(np.uint8), np.ones((9, 9))) > 0
+    inner, floor = (
+        _eroded(raised),
+        ~cast(npt.NDArray[np.uint8], cv2.dilate(raised.astype(np.uint8), np.ones((9, 9)))) > 0,
+    )
     floor[:, :40] = False  # the right image's view ends there
     floor[:10], floor[-10:], floor[:, -10:] = False, False, False  # rectification's borders
     # Left of the patch the right image shows the patch where the left sees floor (occlusion).
@@ -112,6 +120,7 @@ def test_floor_test_flags_a_raised_textured_patch_and_not_the_floor() -> None:
 
 def _floor_height_share(pipeline: DepthPipeline, evidence: np.ndarray, where: np.ndarray) -> float:
     """Share of ``where`` whose evidence is the floor (within 5 cm of height 0)."""
+    assert pipeline.floor_model is not None
     with np.errstate(invalid="ignore"):
         height = pipeline.floor_model.geometry.height_m(evidence)[where]
         return float(np.mean(np.abs(height) < 0.05))
@@ -148,6 +157,7 @@ def test_background_flags_an_inserted_object_and_ignores_a_brightness_change() -
 def test_a_textureless_box_standing_since_start_up_is_never_marked_free() -> None:
     pair = Pair(SceneSpec(floor="plain", objects=[PLAIN_BOX], markings=LANES))
     pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
+    assert pipeline.floor_model is not None
     truth = next(o for o in SceneSpec(objects=[PLAIN_BOX]).truth_objects(0) if o.name == "crate")
     crate_px = _eroded(pair.depth_small() < float(CALIB.left.position_world[2]) - 0.3, 2)
     for _ in range(16):
@@ -181,9 +191,10 @@ def test_shadows_on_a_textured_floor_do_not_flag() -> None:
     shaded.close()
     on_floor = depth > float(CALIB.left.position_world[2]) - 0.01
     # Shadow mapping changes MuJoCo's light overall: a shadow is darker than the rest of the floor.
-    ratio = cv2.resize(ratio, (320, 240))
+    ratio = cast(npt.NDArray[np.float32], cv2.resize(ratio, (320, 240)))
     shadow = _eroded(on_floor & (ratio < 0.85 * np.median(ratio[on_floor])), 3)
     assert shadow.sum() > 300, "the scene casts no shadow to test"
+    assert pipeline.floor_model is not None
     with np.errstate(invalid="ignore"):
         heights = pipeline.floor_model.geometry.height_m(result.evidence_disparity_px)[shadow]
     seen = np.isfinite(heights)

@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -17,7 +19,7 @@ def _map() -> OccupancyMap:
     )
 
 
-def test_nav2_pgm_yaml_round_trip(tmp_path) -> None:
+def test_nav2_pgm_yaml_round_trip(tmp_path: Path) -> None:
     paths = write_map(_map(), tmp_path / "map.yaml")
     assert [p.name for p in paths] == ["map.yaml", "map.pgm"]
     meta, image = read_map_server(tmp_path / "map.yaml")
@@ -38,7 +40,7 @@ def test_nav2_pgm_yaml_round_trip(tmp_path) -> None:
     assert (image == PGM_UNKNOWN).sum() == 21
 
 
-def test_png_picture_is_y_up_and_readable(tmp_path) -> None:
+def test_png_picture_is_y_up_and_readable(tmp_path: Path) -> None:
     write_map(_map(), tmp_path / "map.png")
     image = decode_png((tmp_path / "map.png").read_bytes())
     assert image.ndim == 3 and image.shape[1] >= 800
@@ -51,7 +53,7 @@ def test_png_picture_is_y_up_and_readable(tmp_path) -> None:
     assert picture(_map()).shape == image.shape
 
 
-def test_npz_and_unknown_suffix(tmp_path) -> None:
+def test_npz_and_unknown_suffix(tmp_path: Path) -> None:
     write_map(_map(), tmp_path / "map.npz")
     with np.load(tmp_path / "map.npz") as data:
         np.testing.assert_array_equal(data["occupancy"], _map().occupancy)

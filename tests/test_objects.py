@@ -286,7 +286,9 @@ def test_partial_flag_reaches_the_object(partial: bool) -> None:
     assert obj.partial is partial
 
 
-def _truth(name: str, center: tuple[float, float], moving: bool, v=(0.0, 0.0)) -> TruthObject:
+def _truth(
+    name: str, center: tuple[float, float], moving: bool, v: tuple[float, float] = (0.0, 0.0)
+) -> TruthObject:
     return TruthObject(
         name=name,
         shape="box",
@@ -298,7 +300,9 @@ def _truth(name: str, center: tuple[float, float], moving: bool, v=(0.0, 0.0)) -
     )
 
 
-def _track(id_: int, center: tuple[float, float], moving: bool, v=(0.0, 0.0)) -> TrackedObject:
+def _track(
+    id_: int, center: tuple[float, float], moving: bool, v: tuple[float, float] = (0.0, 0.0)
+) -> TrackedObject:
     return TrackedObject(
         id=id_,
         object_class="moving" if moving else "static",

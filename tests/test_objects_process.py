@@ -18,6 +18,7 @@ from common.messages import (
     DetectionRecord,
     DetectionsHeader,
     ObjectsHeader,
+    TrackedObject,
 )
 from tests.conftest import REPO, Bus, wait_for
 
@@ -33,7 +34,7 @@ def _detections(seq: int, stamp_ns: int) -> bytes:
     )
 
 
-def _tracked(bus: Bus) -> list:
+def _tracked(bus: Bus) -> list[TrackedObject]:
     try:
         return list(objects(bus.session, timeout_s=2).objects)
     except MapUnavailable:
@@ -61,7 +62,7 @@ def test_fusion_serves_tracked_objects(bus: Bus, tmp_path: Path) -> None:
     assert people["objects"][0]["class"] == "static"
     assert people["objects"][0]["id"] == obj.id
     wait_for(lambda: any(p.objects for p in puts), 5, "a put on map/objects")
-    subscriber.undeclare()
+    subscriber.undeclare()  # type: ignore[no-untyped-call]
 
     table = subprocess.run(
         [sys.executable, "-m", "services.cli", "objects", *bus.flags()],

@@ -129,7 +129,7 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
     assert (stamped.header.frame_id, stamped.child_frame_id) == ("map", "overgrid_world")
     moved = stamped.transform.translation
     assert (moved.x, moved.y, moved.z) == (1.5, -2.0, 0.0)
-    late_tf.undeclare()
+    late_tf.undeclare()  # type: ignore[no-untyped-call]
 
     sample = maps.get(timeout=10)
     assert str(sample.key_expr) == MAP_KEY + map_hash
@@ -168,8 +168,8 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
         return bool(np.array_equal(copy, target))
 
     wait_for(copy_is_current, 10, "the copy kept by /map_updates to equal map/latest")
-    late.undeclare()
-    updates_subscriber.undeclare()
+    late.undeclare()  # type: ignore[no-untyped-call]
+    updates_subscriber.undeclare()  # type: ignore[no-untyped-call]
 
     # The height layer follows as a 32FC1 image on /map's cells, which rclpy reads as well.
     raw_image = bytes(heights.get(timeout=10).payload.to_bytes())
@@ -182,7 +182,7 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
     metres = np.frombuffer(bytes(image.data), "<f4").reshape(image.height, image.width)
     assert metres[0, 0] == pytest.approx(0.7)  # the first tile's top, at the origin cell
     assert _rclpy_reads_and_writes(tmp_path, raw_image, cdr.IMAGE)
-    heights_subscriber.undeclare()
+    heights_subscriber.undeclare()  # type: ignore[no-untyped-call]
 
     # A map/objects put becomes a MarkerArray: a DELETEALL, then a CUBE per tracked object.
     marker_hash = cdr.type_hash("jazzy", cdr.MARKER_ARRAY)
@@ -202,7 +202,7 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
         return [marker.id for marker in received if marker.type == cdr.MARKER_CUBE]
 
     wait_for(lambda: cubes() == [5], 10, "the tracked object as a cube")
-    markers_subscriber.undeclare()
+    markers_subscriber.undeclare()  # type: ignore[no-untyped-call]
 
     # Stopped, it leaves the robots' graph: its tokens go with it.
     native.send_signal(signal.SIGINT)

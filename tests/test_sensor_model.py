@@ -6,6 +6,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from common.sensor_model import (
+    FloatArray,
     SensorModelParams,
     cell_occupancy_probability,
     depth_from_disparity,
@@ -22,7 +23,9 @@ PARAMS = SensorModelParams()
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_normal_cdf_table_matches_erf(dtype: type) -> None:
-    x = np.concatenate([np.linspace(-8, 8, 20001), [-1e9, 1e9, -6.0, 6.0]]).astype(dtype)
+    x: FloatArray = np.concatenate([np.linspace(-8, 8, 20001), [-1e9, 1e9, -6.0, 6.0]]).astype(
+        dtype
+    )
     exact = np.array([0.5 * (1 + math.erf(float(v) / math.sqrt(2))) for v in x])
     assert np.abs(normal_cdf(x) - exact).max() < 1e-6
 

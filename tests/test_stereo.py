@@ -2,6 +2,7 @@
 OpenCV on synthetic pairs whose disparity is known exactly."""
 
 import dataclasses
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -31,7 +32,7 @@ def textured_pair(disparity_px: float, contrast: float) -> tuple[np.ndarray, np.
         rng.normal(0, 1, (height, width + 2 * pad)).astype(np.float32), (0, 0), 1.0
     )
     texture = texture / texture.std() * contrast + 128
-    shift = np.float32([[1, 0, disparity_px], [0, 1, 0]])
+    shift = np.array([[1, 0, disparity_px], [0, 1, 0]], np.float32)
     right = cv2.warpAffine(
         texture, shift, texture.shape[::-1], flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP
     )
@@ -170,7 +171,7 @@ def test_search_band_covers_the_ground_truth() -> None:
     assert search_band(gt) == (6, 64)
 
 
-def test_ground_truth_files(tmp_path) -> None:
+def test_ground_truth_files(tmp_path: Path) -> None:
     gt = np.arange(12, dtype=np.float32).reshape(3, 4) + 1.5
     gt[0, 0] = np.inf
     pfm = tmp_path / "disp0.pfm"

@@ -11,7 +11,7 @@ import pytest
 
 from common.mapfiles import PICTURE_COLORS, read_map_server
 from common.png import decode_png
-from common.settings import OvergridParams, OvergridSettings, parse_settings
+from common.settings import OvergridParams, ZenohSettings, parse_settings
 from services.camera_sim.settings import CameraSimParams, CameraSimSettings
 from services.depth.settings import DepthParams, DepthSettings
 from services.fusion.settings import FusionParams, FusionSettings
@@ -44,7 +44,7 @@ def _up(bus: Bus, out: Path, *args: str) -> subprocess.Popen[str]:
     )
 
 
-CHILDREN: dict[str, tuple[type[OvergridSettings], type[OvergridParams], str]] = {
+CHILDREN: dict[str, tuple[type[ZenohSettings], type[OvergridParams], str]] = {
     "camera-sim": (CameraSimSettings, CameraSimParams, "camera_sim"),
     "depth": (DepthSettings, DepthParams, "depth"),
     "fusion": (FusionSettings, FusionParams, "fusion"),

@@ -127,7 +127,7 @@ def test_frames_carry_exact_cells_and_heights() -> None:
 
 
 def test_height_follows_the_map_window() -> None:
-    assert list(height_mm(np.array([np.nan, -0.01, 0.5, 99.0], np.float32), (4,))) == [
+    assert list(height_mm(np.array([[np.nan, -0.01, 0.5, 99.0]], np.float32), (1, 4))[0]) == [
         NO_HEIGHT_MM,
         0,
         500,
@@ -574,7 +574,7 @@ def test_the_page_reconnects_to_a_restarted_viewer(
         "map/objects", lambda query: query.reply("map/objects", payload)
     )
     page.wait_for_selector('#objects:has-text("2 tracked, 1 moving: 7 (0.5 m/s)")')
-    queryable.undeclare()
+    queryable.undeclare()  # type: ignore[no-untyped-call]
     bus.kill(viewer)
     page.wait_for_selector('#banner[data-kind="disconnected"]', timeout=10_000)
     assert "reconnecting" in page.inner_text("#banner")

@@ -25,7 +25,7 @@ def test_fifty_clients_while_tiles_stream(bus: Bus, tmp_path: Path) -> None:
     wait_for(lambda: "map" in health(bus.session, timeout_s=5), 30, "fusion up")
     publisher = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
     stop = threading.Event()
-    replies = [[] for _ in range(CLIENTS)]
+    replies: list[list[float]] = [[] for _ in range(CLIENTS)]
     errors: list[str] = []
 
     def client(index: int) -> None:

@@ -1,0 +1,1 @@
+"""The test suite as one package, so each test module has one name (mypy, pytest and `from tests.conftest import ...` agree)."""
