@@ -76,7 +76,7 @@ def test_sim_publishes_frames_and_answers_calib_and_truth(bus: Bus) -> None:
     assert bad is not None and bad.err is not None
     assert "resolution" in bad.err.payload.to_string()
 
-    subscriber.undeclare()
+    subscriber.undeclare()  # type: ignore[no-untyped-call]
     process.send_signal(2)
     assert process.wait(10) == 0
     wait_for(lambda: process.poll() is not None, 5, "camera_sim to stop")

@@ -2,6 +2,8 @@
 into gray 8-bit images of the calibration's size or refused with a named reason, never raised."""
 
 import time
+from collections.abc import Callable
+from typing import Any
 
 import cv2
 import msgpack
@@ -30,7 +32,7 @@ GRAY = RNG.integers(0, 256, (SIZE[1], SIZE[0]), dtype=np.uint8)
 
 
 def _header(pair: str = "p0", encoding: str = "raw") -> StereoFrameHeader:
-    return StereoFrameHeader(pair=pair, seq=1, stamp_ns=time.time_ns(), encoding=encoding)  # type: ignore[arg-type]
+    return StereoFrameHeader(pair=pair, seq=1, stamp_ns=time.time_ns(), encoding=encoding)
 
 
 def _raw(left: np.ndarray, right: np.ndarray | None = None, pair: str = "p0") -> bytes:
@@ -142,7 +144,7 @@ def test_png_and_jpeg_frames_are_checked_before_they_are_decoded() -> None:
     assert _reason(_encoded("png", small)) == "wrong_size"
 
 
-def _calibration() -> dict:
+def _calibration() -> dict[str, Any]:
     calib = layout_pairs(RigSpec(pair_count=1), (12.0, 10.0))[0].model_dump()
     calib["right"]["dist"] = calib["left"]["dist"] = [0.0] * 5
     return calib
@@ -199,7 +201,9 @@ def test_lens_distortion_of_real_calibrations_is_accepted(dist: list[float]) -> 
     ],
     ids=["focal", "principal_point", "pixels", "k1_minus_100", "k1_folds_at_corner", "k4"],
 )
-def test_absurd_intrinsics_fail_field_validation(change, says: str) -> None:
+def test_absurd_intrinsics_fail_field_validation(
+    change: Callable[[dict[str, Any]], object], says: str
+) -> None:
     calib = _calibration()
     change(calib)
     with pytest.raises(ValueError, match=says):
@@ -215,7 +219,7 @@ def test_absurd_intrinsics_fail_field_validation(change, says: str) -> None:
     ],
     ids=["baseline", "k3", "focal"],
 )
-def test_absurd_geometry_builds_no_pipeline(change) -> None:
+def test_absurd_geometry_builds_no_pipeline(change: Callable[[dict[str, Any]], object]) -> None:
     calib = _calibration()
     change(calib)
     with pytest.raises(ValueError, match="disparities"):
