@@ -26,6 +26,7 @@ import tempfile
 import threading
 import time
 import uuid
+from typing import cast
 
 import numpy as np
 import zenoh
@@ -132,7 +133,7 @@ def clients(endpoint: str, namespace: str, count: int, seconds: float, rate_hz: 
 def _ingest_rate(session: zenoh.Session, seconds: float) -> float:
     start = health(session, timeout_s=10)["tiles_accepted"]
     time.sleep(seconds)
-    return (health(session, timeout_s=10)["tiles_accepted"] - start) / seconds
+    return cast(float, (health(session, timeout_s=10)["tiles_accepted"] - start) / seconds)
 
 
 def orchestrate(client_count: int, seconds: float, rate_hz: float) -> None:
@@ -209,7 +210,7 @@ def orchestrate(client_count: int, seconds: float, rate_hz: float) -> None:
         finally:
             fusion.send_signal(signal.SIGINT)
             fusion.wait(30)
-            router.close()
+            router.close()  # type: ignore[no-untyped-call]
     answer = json.loads(out.strip().splitlines()[-1])
     times = np.array(answer["times_ms"])
     result = {

@@ -5,7 +5,9 @@ import signal
 import subprocess
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any, cast
 
 import msgpack
 import numpy as np
@@ -42,10 +44,10 @@ class TileSink:
             return len(self.tiles)
 
 
-def _health(session: zenoh.Session, pair: str) -> dict:
+def _health(session: zenoh.Session, pair: str) -> dict[str, Any]:
     for reply in session.get(keys.depth_health(pair), timeout=3.0):
         if reply.ok is not None:
-            return json.loads(reply.ok.payload.to_string())
+            return cast(dict[str, Any], json.loads(reply.ok.payload.to_string()))
     return {}
 
 
@@ -190,7 +192,7 @@ def _calibration_file(tmp_path: Path, pair: str = "p0") -> Path:
     return path
 
 
-def _health_answers(session: zenoh.Session, pair: str) -> list[dict]:
+def _health_answers(session: zenoh.Session, pair: str) -> list[dict[str, Any]]:
     """Every process's answer: two on one key would be consolidated into one by default."""
     replies = session.get(
         keys.depth_health(pair), timeout=3.0, consolidation=zenoh.ConsolidationMode.NONE
@@ -220,7 +222,11 @@ def test_two_depth_processes_on_one_pair_see_each_other(bus: Bus, tmp_path: Path
     assert _health_answers(bus.session, "p1")[0]["conflict"] == []  # another pair is no claim
     owners = set()
     for log in logs:
-        wait_for(lambda log=log: "claims this pair" in log.read_text(), 10, "the warning")
+        wait_for(
+            cast(Callable[[], bool], lambda log=log: "claims this pair" in log.read_text()),
+            10,
+            "the warning",
+        )
         [warning] = [line for line in log.read_text().splitlines() if "claims this pair" in line]
         fields = dict(f.split("=", 1) for f in warning.split() if "=" in f)
         assert fields["level"] == "warning"
@@ -251,7 +257,7 @@ def test_an_unusable_calibration_over_zenoh_is_counted_and_a_good_one_later_used
     queryable = bus.session.declare_queryable(keys.calib("p0"), on_calib)
     depth = bus.start("depth", "--pair", "p0")
 
-    def state() -> dict:
+    def state() -> dict[str, Any]:
         answers = _health_answers(bus.session, "p0")
         return answers[0] if answers else {}
 
@@ -270,4 +276,4 @@ def test_an_unusable_calibration_over_zenoh_is_counted_and_a_good_one_later_used
     answer["payload"] = encode(CALIB_KIND, good)
     wait_for(lambda: state().get("state") == "running", 30, "the good calibration used")
     assert "p0" in _alive(bus.session)
-    queryable.undeclare()
+    queryable.undeclare()  # type: ignore[no-untyped-call]

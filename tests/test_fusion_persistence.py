@@ -1,3 +1,5 @@
+from pathlib import Path
+
 import numpy as np
 
 from common.lattice import Window
@@ -32,7 +34,7 @@ def _same(restored: FusedGrid, grid: FusedGrid) -> None:
         np.testing.assert_array_equal(restored.layer(name), grid.layer(name))
 
 
-def test_restart_restores_the_map_bit_for_bit_with_a_new_epoch(tmp_path) -> None:
+def test_restart_restores_the_map_bit_for_bit_with_a_new_epoch(tmp_path: Path) -> None:
     grid = _grid()
     save_now(grid, tmp_path)
     restored = load_grid(GridParams(), tmp_path, epoch_ns=42)
@@ -41,7 +43,7 @@ def test_restart_restores_the_map_bit_for_bit_with_a_new_epoch(tmp_path) -> None
     assert not list(tmp_path.glob(".*tmp"))  # the compacted log was renamed into place
 
 
-def test_saves_append_the_changed_chunks_and_a_torn_tail_is_dropped(tmp_path) -> None:
+def test_saves_append_the_changed_chunks_and_a_torn_tail_is_dropped(tmp_path: Path) -> None:
     grid = _grid()
     big = Window(-256, -256, 512, 512)  # 64 chunks
     grid.integrate(
@@ -78,7 +80,7 @@ def test_saves_append_the_changed_chunks_and_a_torn_tail_is_dropped(tmp_path) ->
     _same(load_grid(GridParams(), tmp_path, 1), grid)
 
 
-def test_corrupt_state_is_set_aside_not_fatal(tmp_path) -> None:
+def test_corrupt_state_is_set_aside_not_fatal(tmp_path: Path) -> None:
     (tmp_path / CHUNK_LOG).write_bytes(b"not a state log")
     grid = load_grid(GridParams(), tmp_path, 1)
     assert grid.version == 0 and not grid.chunks
@@ -86,12 +88,12 @@ def test_corrupt_state_is_set_aside_not_fatal(tmp_path) -> None:
     assert len(list(tmp_path.glob(f"{CHUNK_LOG}.corrupt-*"))) == 1
 
 
-def test_state_of_another_resolution_is_set_aside(tmp_path) -> None:
+def test_state_of_another_resolution_is_set_aside(tmp_path: Path) -> None:
     save_now(_grid(), tmp_path)
     assert not load_grid(GridParams(resolution_m=0.1), tmp_path, 1).chunks
 
 
-def test_state_beyond_new_bounds_keeps_what_lies_inside(tmp_path) -> None:
+def test_state_beyond_new_bounds_keeps_what_lies_inside(tmp_path: Path) -> None:
     grid = _grid()
     save_now(grid, tmp_path)
     bounds = Window(0, 0, 40, 40)

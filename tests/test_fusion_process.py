@@ -5,6 +5,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -34,7 +35,7 @@ def _start_fusion(bus: Bus, state_dir: Path) -> subprocess.Popen[bytes]:
     )
 
 
-def _health(bus: Bus) -> dict:
+def _health(bus: Bus) -> dict[str, Any]:
     return health(bus.session, timeout_s=10)
 
 
@@ -83,6 +84,7 @@ def test_fusion_serves_map_and_health_and_survives_bad_tiles(bus: Bus, tmp_path:
     assert occupancy_map.value_at(0.3, 0.3) == 92  # 4 × +1.0 clamps at 2.5: p 0.924
     assert 0 <= occupancy_map.value_at(3.4, 2.4) <= 20  # only p1's free evidence
     overlap = occupancy_map.crop((1.55, 1.05, 1.95, 1.45))
+    assert overlap.logodds is not None
     np.testing.assert_allclose(
         overlap.logodds, 2.5, atol=1e-6
     )  # exact stitching: 4·(+1) + 3·(-0.5)

@@ -4,7 +4,9 @@ numpy, OpenCV) is counted as processing_failed and the loop takes the next frame
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from types import SimpleNamespace
+from typing import cast
 
 import numpy as np
 import zenoh
@@ -52,7 +54,11 @@ def test_the_frame_loop_counts_any_exception_of_one_frame_and_goes_on() -> None:
             header = StereoFrameHeader(pair="p0", seq=seq, stamp_ns=time.time_ns())
             payload = encode(STEREO_KIND, header, {"left": image, "right": image})
             session.put(keys.stereo("p0"), payload, encoding=WIRE_ENCODING)
-            wait_for(lambda seq=seq: publisher.calls == seq + 1, 5, f"frame {seq} taken")
+            wait_for(
+                cast(Callable[[], bool], lambda seq=seq: publisher.calls == seq + 1),
+                5,
+                f"frame {seq} taken",
+            )
         stop.set()
         loop.join(5)
         assert not loop.is_alive()

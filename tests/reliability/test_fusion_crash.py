@@ -10,6 +10,7 @@ import pytest
 from common.client import MapFollower, health, latest
 from common.codec import WIRE_ENCODING
 from common.lattice import Window
+from common.occupancy_map import OccupancyMap
 from tests.conftest import Bus, wait_for
 from tests.tiles import tile_payload
 
@@ -25,7 +26,7 @@ def _window(k: int) -> Window:
     return Window(4 * (k % 50), 4 * (k // 50), 4, 4)
 
 
-def _landed(occupancy_map, k: int) -> bool:
+def _landed(occupancy_map: OccupancyMap, k: int) -> bool:
     """Tile k's cells are in the map: observed (decay may have faded their occupancy since)."""
     w = _window(k)
     if occupancy_map.last_seen_s is None:
@@ -34,7 +35,7 @@ def _landed(occupancy_map, k: int) -> bool:
     return bool((seen > 0).all())
 
 
-def _layered(bus: Bus):
+def _layered(bus: Bus) -> OccupancyMap:
     return latest(bus.session, layers=("last_seen",), timeout_s=10)
 
 

@@ -4,6 +4,7 @@ and a second depth process claiming a pair is reported."""
 
 import time
 from pathlib import Path
+from typing import Any, cast
 
 import pytest
 import zenoh
@@ -19,7 +20,7 @@ pytestmark = pytest.mark.process
 W = Window(0, 0, 20, 20)
 
 
-def _health(bus: Bus) -> dict:
+def _health(bus: Bus) -> dict[str, Any]:
     return health(bus.session, timeout_s=10)
 
 
@@ -78,7 +79,7 @@ def test_a_flood_is_dropped_and_counted_as_overload_and_queries_still_answer(
 
     def counted() -> int:
         answer = _health(bus)
-        return answer["tiles_accepted"] + sum(answer["tiles_rejected"].values())
+        return cast(int, answer["tiles_accepted"] + sum(answer["tiles_rejected"].values()))
 
     wait_for(lambda: counted() == sent, 60, "every tile fused or counted")
     answer = _health(bus)
@@ -98,8 +99,8 @@ def test_two_processes_claiming_one_pair_are_reported(bus: Bus, tmp_path: Path) 
     wait_for(lambda: _health(bus)["pairs"]["p0"]["conflict"], 10, "the conflict reported")
     assert _health(bus)["pairs"]["p0"]["processes"] == ["a1", "b2"]
     assert "a second depth process claims the pair" in log_path.read_text()
-    first.undeclare()
+    first.undeclare()  # type: ignore[no-untyped-call]
     wait_for(lambda: not _health(bus)["pairs"]["p0"]["conflict"], 10, "one process left")
     assert _health(bus)["pairs"]["p0"]["alive"]  # alive while any of its processes is
-    second.undeclare()
+    second.undeclare()  # type: ignore[no-untyped-call]
     wait_for(lambda: not _health(bus)["pairs"]["p0"]["alive"], 10, "p0 gone")

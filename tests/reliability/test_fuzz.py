@@ -7,6 +7,7 @@ import random
 import time
 from collections import Counter
 from pathlib import Path
+from typing import Any, cast
 
 import cv2
 import msgpack
@@ -175,10 +176,10 @@ def test_fuzzed_stereo_frames_are_each_counted_and_the_depth_process_lives(
         log_path=tmp_path / "depth.log",
     )
 
-    def depth_health() -> dict:
+    def depth_health() -> dict[str, Any]:
         for reply in bus.session.get(keys.depth_health("p0"), timeout=5.0):
             if reply.ok is not None:
-                return json.loads(reply.ok.payload.to_string())
+                return cast(dict[str, Any], json.loads(reply.ok.payload.to_string()))
         return {}
 
     wait_for(lambda: depth_health().get("state") == "running", 60, "the depth process up")
@@ -197,8 +198,8 @@ def test_fuzzed_stereo_frames_are_each_counted_and_the_depth_process_lives(
         expected[outcome] += 1
         publisher.put(payload)
 
-    def accounted(health: dict) -> int:
-        return health["processed"] + health["skipped"] + sum(health["rejected"].values())
+    def accounted(health: dict[str, Any]) -> int:
+        return cast(int, health["processed"] + health["skipped"] + sum(health["rejected"].values()))
 
     wait_for(lambda: accounted(depth_health()) >= FRAMES, 60, "every frame accounted for")
     health = depth_health()

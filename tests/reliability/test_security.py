@@ -7,6 +7,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import zenoh
@@ -57,7 +58,7 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(params=["tcp", "tls"])
-def site(request: pytest.FixtureRequest, certs: Path, tmp_path: Path) -> Iterator[dict]:
+def site(request: pytest.FixtureRequest, certs: Path, tmp_path: Path) -> Iterator[dict[str, Any]]:
     """The ACL router (in this process) and a fusion process connected as the fusion user."""
     endpoint = (
         f"tls/localhost:{free_port()}" if request.param == "tls" else f"tcp/127.0.0.1:{free_port()}"
@@ -92,11 +93,11 @@ def site(request: pytest.FixtureRequest, certs: Path, tmp_path: Path) -> Iterato
         robot = session("robot", PASSWORDS["robot"])
         wait_for(lambda: _answers(robot), 30, "fusion to answer through the router")
         yield {"session": session, "robot": robot}
-        robot.close()
+        robot.close()  # type: ignore[no-untyped-call]
     finally:
         fusion.terminate()
         fusion.wait(10)
-        router.close()
+        router.close()  # type: ignore[no-untyped-call]
 
 
 def _answers(session: zenoh.Session) -> bool:
@@ -106,7 +107,7 @@ def _answers(session: zenoh.Session) -> bool:
         return False
 
 
-def test_only_the_depth_role_changes_the_map(site: dict) -> None:
+def test_only_the_depth_role_changes_the_map(site: dict[str, Any]) -> None:
     robot = site["robot"]
     depth = site["session"]("depth", PASSWORDS["depth"])
     rogue = site["session"]("robot", PASSWORDS["robot"])  # valid credentials, wrong role
@@ -126,6 +127,8 @@ def test_only_the_depth_role_changes_the_map(site: dict) -> None:
 
 
 @pytest.mark.parametrize("user, password", [("depth", "wrong"), (None, None)])
-def test_wrong_or_no_credentials_cannot_connect(site: dict, user, password) -> None:
+def test_wrong_or_no_credentials_cannot_connect(
+    site: dict[str, Any], user: str | None, password: str | None
+) -> None:
     with pytest.raises(zenoh.ZError):
         site["session"](user, password)
