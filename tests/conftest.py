@@ -129,3 +129,14 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str) -> None
             return
         time.sleep(0.05)
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+def assert_one_line_exit_2(result: subprocess.CompletedProcess[str], *names: str) -> None:
+    """A start-up error: exit 2 and one line on stderr naming each of ``names``, no traceback."""
+    assert result.returncode == 2, result.stderr
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    for name in names:
+        assert name in lines[0], lines[0]
+    assert "/.cargo/" not in lines[0]  # no build paths of the Zenoh library

@@ -14,7 +14,7 @@ from common.client import health, latest
 from common.codec import WIRE_ENCODING
 from common.lattice import Window
 from services.fusion.persistence import CHUNK_LOG
-from tests.conftest import REPO, Bus, wait_for
+from tests.conftest import REPO, Bus, assert_one_line_exit_2, wait_for
 from tests.tiles import tile_payload
 
 pytestmark = pytest.mark.process
@@ -28,15 +28,6 @@ def _fusion(*args: str) -> subprocess.CompletedProcess[str]:
         text=True,
         timeout=60,
     )
-
-
-def _one_line_exit_2(result: subprocess.CompletedProcess[str], *names: str) -> None:
-    assert result.returncode == 2, result.stderr
-    assert "Traceback" not in result.stderr
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, result.stderr
-    for name in names:
-        assert name in lines[0], lines[0]
 
 
 @pytest.fixture
@@ -63,17 +54,23 @@ def read_only(tmp_path: Path) -> Iterator[Path]:
 def test_a_state_dir_that_is_a_file_is_named(tmp_path: Path) -> None:
     path = tmp_path / "state"
     path.write_text("not a directory")
-    _one_line_exit_2(_fusion("--state-dir", str(path)), f"--state-dir {path}", "not a directory")
-    _one_line_exit_2(_fusion("--state-dir", str(path / "below")), f"--state-dir {path / 'below'}")
+    assert_one_line_exit_2(
+        _fusion("--state-dir", str(path)), f"--state-dir {path}", "not a directory"
+    )
+    assert_one_line_exit_2(
+        _fusion("--state-dir", str(path / "below")), f"--state-dir {path / 'below'}"
+    )
 
 
 def test_a_read_only_state_dir_with_a_corrupt_state_is_named(read_only: Path) -> None:
-    _one_line_exit_2(_fusion("--state-dir", str(read_only)), f"--state-dir {read_only}", "writable")
+    assert_one_line_exit_2(
+        _fusion("--state-dir", str(read_only)), f"--state-dir {read_only}", "writable"
+    )
 
 
 def test_bounds_over_the_cell_limit_are_a_start_up_error(tmp_path: Path) -> None:
     result = _fusion("--state-dir", str(tmp_path), "--bounds", "0,0,500,500")  # 10⁸ cells
-    _one_line_exit_2(result, "--bounds", "--max-cells")
+    assert_one_line_exit_2(result, "--bounds", "--max-cells")
 
 
 def test_a_corrupt_state_is_set_aside_and_the_map_starts_empty(bus: Bus, tmp_path: Path) -> None:

@@ -15,7 +15,7 @@ import zenoh
 
 from common import keys
 from services.camera_sim.rig import RigSpec, layout_pairs
-from tests.conftest import REPO, Bus, free_port
+from tests.conftest import REPO, Bus, assert_one_line_exit_2, free_port
 
 pytestmark = pytest.mark.process
 
@@ -30,16 +30,6 @@ def _overgrid(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
-def _one_line_exit_2(result: subprocess.CompletedProcess[str], *names: str) -> None:
-    assert result.returncode == 2, result.stderr
-    assert "Traceback" not in result.stderr
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, result.stderr
-    for name in names:
-        assert name in lines[0], lines[0]
-    assert "/.cargo/" not in lines[0]  # no build paths of the Zenoh library
-
-
 @pytest.mark.parametrize(
     ("text", "says"),
     [('{ mode: "bogus" }', "bogus"), ("{ mode: ", "expected"), ("{ connect: 7 }", "")],
@@ -47,7 +37,7 @@ def _one_line_exit_2(result: subprocess.CompletedProcess[str], *names: str) -> N
 def test_a_bad_zenoh_config_file_is_named(tmp_path: Path, text: str, says: str) -> None:
     config = tmp_path / "zenoh.json5"
     config.write_text(text)
-    _one_line_exit_2(_overgrid("health", "--config", str(config)), str(config), says)
+    assert_one_line_exit_2(_overgrid("health", "--config", str(config)), str(config), says)
 
 
 SERVICES = [("depth", "--pair", "p0"), ("camera-sim", "--frames", "1")]
@@ -62,46 +52,50 @@ def test_the_services_name_a_bad_zenoh_config_file(
 ) -> None:
     config = tmp_path / "zenoh.json5"
     config.write_text(text)
-    _one_line_exit_2(_overgrid(*service, "--config", str(config)), str(config), says)
+    assert_one_line_exit_2(_overgrid(*service, "--config", str(config)), str(config), says)
 
 
 @pytest.mark.parametrize("service", SERVICES, ids=lambda s: s[0])
 def test_the_services_name_a_bad_mode_and_a_port_in_use(service: tuple[str, ...]) -> None:
-    _one_line_exit_2(_overgrid(*service, "--mode", "bogus"), "--mode", "bogus")
+    assert_one_line_exit_2(_overgrid(*service, "--mode", "bogus"), "--mode", "bogus")
     port = free_port()
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", port))
         taken.listen()
         result = _overgrid(*service, "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting")
-    _one_line_exit_2(result, f"127.0.0.1:{port}", "in use")
+    assert_one_line_exit_2(result, f"127.0.0.1:{port}", "in use")
 
 
 @pytest.mark.parametrize("resolution", ["0.001", "1e-300", "nan", "inf"])
 def test_a_depth_resolution_no_camera_resolves_is_refused(resolution: str) -> None:
     result = _overgrid("depth", "--pair", "p0", "--resolution-m", resolution)
-    _one_line_exit_2(result, "resolution", resolution)
+    assert_one_line_exit_2(result, "resolution", resolution)
 
 
 def test_a_missing_zenoh_config_file_is_named(tmp_path: Path) -> None:
     missing = tmp_path / "missing.json5"
-    _one_line_exit_2(_overgrid("health", "--config", str(missing)), str(missing), "No such file")
+    assert_one_line_exit_2(
+        _overgrid("health", "--config", str(missing)), str(missing), "No such file"
+    )
 
 
 def test_a_malformed_endpoint_and_a_port_in_use_are_reported() -> None:
-    _one_line_exit_2(_overgrid("health", "--connect", "nonsense"), "nonsense")
+    assert_one_line_exit_2(_overgrid("health", "--connect", "nonsense"), "nonsense")
     port = free_port()
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", port))
         taken.listen()
         result = _overgrid("router", "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting")
-    _one_line_exit_2(result, f"127.0.0.1:{port}", "in use")
+    assert_one_line_exit_2(result, f"127.0.0.1:{port}", "in use")
 
 
 @pytest.mark.parametrize("text", ["objects: [", "floor: marble", "objects: 3"])
 def test_a_bad_scene_file_is_named(tmp_path: Path, text: str) -> None:
     scene = tmp_path / "scene.yaml"
     scene.write_text(text)
-    _one_line_exit_2(_overgrid("camera-sim", "--scene", str(scene), "--frames", "1"), str(scene))
+    assert_one_line_exit_2(
+        _overgrid("camera-sim", "--scene", str(scene), "--frames", "1"), str(scene)
+    )
 
 
 def test_truth_queries_with_impossible_times_or_bands_get_an_error_reply(bus: Bus) -> None:
@@ -159,15 +153,19 @@ CAMERA = "{width: 640, height: 480, K: [[554, 0, 319.5], [0, 554, 239.5], [0, 0,
 def test_a_bad_calibration_file_is_named(tmp_path: Path, text: str, says: str) -> None:
     calib = tmp_path / "calib.yaml"
     calib.write_text(text)
-    _one_line_exit_2(_overgrid("depth", "--pair", "p0", "--calib", str(calib)), str(calib), says)
+    assert_one_line_exit_2(
+        _overgrid("depth", "--pair", "p0", "--calib", str(calib)), str(calib), says
+    )
     missing = tmp_path / "missing.yaml"
-    _one_line_exit_2(_overgrid("depth", "--pair", "p0", "--calib", str(missing)), str(missing))
+    assert_one_line_exit_2(
+        _overgrid("depth", "--pair", "p0", "--calib", str(missing)), str(missing)
+    )
 
 
 def test_a_recording_that_is_not_there_is_named(tmp_path: Path) -> None:
     for source in (tmp_path / "nonexistent", tmp_path):  # missing; a folder without image pairs
         result = _overgrid("depth", "--pair", "p0", "--images", str(source))
-        _one_line_exit_2(result, f"--images {source}")
+        assert_one_line_exit_2(result, f"--images {source}")
 
 
 @pytest.mark.parametrize(
@@ -198,7 +196,7 @@ def test_a_calibration_of_absurd_geometry_is_refused_at_start(
     change(calib)
     path = tmp_path / "calib.yaml"
     path.write_text(yaml.safe_dump(calib))
-    _one_line_exit_2(
+    assert_one_line_exit_2(
         _overgrid("depth", "--pair", "p0", "--calib", str(path)),
         str(path),
         says,
