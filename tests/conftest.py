@@ -131,6 +131,17 @@ def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str) -> None
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
 
 
+def run_overgrid(*args: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
+    """``overgrid ARGS`` to its end (at most 60 s), its output captured as text."""
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+
+
 def assert_one_line_exit_2(result: subprocess.CompletedProcess[str], *names: str) -> None:
     """A start-up error: exit 2 and one line on stderr naming each of ``names``, no traceback."""
     assert result.returncode == 2, result.stderr

@@ -1,11 +1,8 @@
 """Attacks of issue 14 that no other reliability test covers, each against a real process."""
 
-import subprocess
-import sys
-
 import pytest
 
-from tests.conftest import REPO
+from tests.conftest import assert_one_line_exit_2, run_overgrid
 
 pytestmark = pytest.mark.process
 
@@ -14,24 +11,10 @@ pytestmark = pytest.mark.process
 def test_bounds_past_the_lattice_are_a_start_up_error(bounds: str) -> None:
     """1e300 m wrapped the int64 cell indices into a 0×0 window that passed the cell limit: fusion
     started with a map no tile could land in."""
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "services.cli",
-            "fusion",
-            f"--bounds={bounds}",
-            "--no-multicast-scouting",
-            "--namespace",
-            "attacks-bounds",
-            "--connect",
-            "tcp/127.0.0.1:9",
-        ],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
+    result = run_overgrid(
+        "fusion",
+        f"--bounds={bounds}",
+        "--no-multicast-scouting",
+        *("--namespace", "attacks-bounds", "--connect", "tcp/127.0.0.1:9"),
     )
-    assert result.returncode == 2, result.stderr
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and "--bounds" in lines[0], result.stderr
+    assert_one_line_exit_2(result, "--bounds")

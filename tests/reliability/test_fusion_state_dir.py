@@ -4,7 +4,6 @@ starts empty and the error is logged."""
 
 import os
 import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -14,20 +13,14 @@ from common.client import health, latest
 from common.codec import WIRE_ENCODING
 from common.lattice import Window
 from services.fusion.persistence import CHUNK_LOG
-from tests.conftest import REPO, Bus, assert_one_line_exit_2, wait_for
+from tests.conftest import Bus, assert_one_line_exit_2, run_overgrid, wait_for
 from tests.tiles import tile_payload
 
 pytestmark = pytest.mark.process
 
 
 def _fusion(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", "fusion", "--no-multicast-scouting", *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    return run_overgrid("fusion", "--no-multicast-scouting", *args)
 
 
 @pytest.fixture

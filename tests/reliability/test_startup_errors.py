@@ -2,8 +2,6 @@
 bad queries to the simulator get an error reply, never silence."""
 
 import socket
-import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -15,19 +13,9 @@ import zenoh
 
 from common import keys
 from services.camera_sim.rig import RigSpec, layout_pairs
-from tests.conftest import REPO, Bus, assert_one_line_exit_2, free_port
+from tests.conftest import Bus, assert_one_line_exit_2, free_port, run_overgrid
 
 pytestmark = pytest.mark.process
-
-
-def _overgrid(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
 
 
 @pytest.mark.parametrize(
@@ -37,7 +25,7 @@ def _overgrid(*args: str) -> subprocess.CompletedProcess[str]:
 def test_a_bad_zenoh_config_file_is_named(tmp_path: Path, text: str, says: str) -> None:
     config = tmp_path / "zenoh.json5"
     config.write_text(text)
-    assert_one_line_exit_2(_overgrid("health", "--config", str(config)), str(config), says)
+    assert_one_line_exit_2(run_overgrid("health", "--config", str(config)), str(config), says)
 
 
 SERVICES = [("depth", "--pair", "p0"), ("camera-sim", "--frames", "1")]
@@ -52,40 +40,44 @@ def test_the_services_name_a_bad_zenoh_config_file(
 ) -> None:
     config = tmp_path / "zenoh.json5"
     config.write_text(text)
-    assert_one_line_exit_2(_overgrid(*service, "--config", str(config)), str(config), says)
+    assert_one_line_exit_2(run_overgrid(*service, "--config", str(config)), str(config), says)
 
 
 @pytest.mark.parametrize("service", SERVICES, ids=lambda s: s[0])
 def test_the_services_name_a_bad_mode_and_a_port_in_use(service: tuple[str, ...]) -> None:
-    assert_one_line_exit_2(_overgrid(*service, "--mode", "bogus"), "--mode", "bogus")
+    assert_one_line_exit_2(run_overgrid(*service, "--mode", "bogus"), "--mode", "bogus")
     port = free_port()
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", port))
         taken.listen()
-        result = _overgrid(*service, "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting")
+        result = run_overgrid(
+            *service, "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"
+        )
     assert_one_line_exit_2(result, f"127.0.0.1:{port}", "in use")
 
 
 @pytest.mark.parametrize("resolution", ["0.001", "1e-300", "nan", "inf"])
 def test_a_depth_resolution_no_camera_resolves_is_refused(resolution: str) -> None:
-    result = _overgrid("depth", "--pair", "p0", "--resolution-m", resolution)
+    result = run_overgrid("depth", "--pair", "p0", "--resolution-m", resolution)
     assert_one_line_exit_2(result, "resolution", resolution)
 
 
 def test_a_missing_zenoh_config_file_is_named(tmp_path: Path) -> None:
     missing = tmp_path / "missing.json5"
     assert_one_line_exit_2(
-        _overgrid("health", "--config", str(missing)), str(missing), "No such file"
+        run_overgrid("health", "--config", str(missing)), str(missing), "No such file"
     )
 
 
 def test_a_malformed_endpoint_and_a_port_in_use_are_reported() -> None:
-    assert_one_line_exit_2(_overgrid("health", "--connect", "nonsense"), "nonsense")
+    assert_one_line_exit_2(run_overgrid("health", "--connect", "nonsense"), "nonsense")
     port = free_port()
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", port))
         taken.listen()
-        result = _overgrid("router", "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting")
+        result = run_overgrid(
+            "router", "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"
+        )
     assert_one_line_exit_2(result, f"127.0.0.1:{port}", "in use")
 
 
@@ -94,7 +86,7 @@ def test_a_bad_scene_file_is_named(tmp_path: Path, text: str) -> None:
     scene = tmp_path / "scene.yaml"
     scene.write_text(text)
     assert_one_line_exit_2(
-        _overgrid("camera-sim", "--scene", str(scene), "--frames", "1"), str(scene)
+        run_overgrid("camera-sim", "--scene", str(scene), "--frames", "1"), str(scene)
     )
 
 
@@ -154,17 +146,17 @@ def test_a_bad_calibration_file_is_named(tmp_path: Path, text: str, says: str) -
     calib = tmp_path / "calib.yaml"
     calib.write_text(text)
     assert_one_line_exit_2(
-        _overgrid("depth", "--pair", "p0", "--calib", str(calib)), str(calib), says
+        run_overgrid("depth", "--pair", "p0", "--calib", str(calib)), str(calib), says
     )
     missing = tmp_path / "missing.yaml"
     assert_one_line_exit_2(
-        _overgrid("depth", "--pair", "p0", "--calib", str(missing)), str(missing)
+        run_overgrid("depth", "--pair", "p0", "--calib", str(missing)), str(missing)
     )
 
 
 def test_a_recording_that_is_not_there_is_named(tmp_path: Path) -> None:
     for source in (tmp_path / "nonexistent", tmp_path):  # missing; a folder without image pairs
-        result = _overgrid("depth", "--pair", "p0", "--images", str(source))
+        result = run_overgrid("depth", "--pair", "p0", "--images", str(source))
         assert_one_line_exit_2(result, f"--images {source}")
 
 
@@ -197,7 +189,7 @@ def test_a_calibration_of_absurd_geometry_is_refused_at_start(
     path = tmp_path / "calib.yaml"
     path.write_text(yaml.safe_dump(calib))
     assert_one_line_exit_2(
-        _overgrid("depth", "--pair", "p0", "--calib", str(path)),
+        run_overgrid("depth", "--pair", "p0", "--calib", str(path)),
         str(path),
         says,
     )
