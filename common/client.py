@@ -115,6 +115,8 @@ def calibrations(session: zenoh.Session, timeout_s: float = 5.0) -> list[StereoC
     return [found[pair] for pair in sorted(found)]
 
 
+CATCH_UP_LIMIT_S = 5.0
+"""How long a follower behind the newest update keeps fetching ``map/latest`` to reach it."""
 UPDATES_BACKLOG = 64
 """Updates a follower keeps: waiting to be applied, and the recent ones it may replay onto a map it
 fetched (map/latest may be a little older than the newest update)."""
@@ -174,16 +176,31 @@ class MapFollower:
         with self._lock:
             self._recent.append(message)
             changed = self._replay()
-            behind = (h.epoch, h.version) > self._map.revision
+            behind = h.revision > self._map.revision
         if behind:  # a gap, a grown map or a new epoch: fetch, then replay what came since
+            changed = self._catch_up() or changed
+        if changed is not None and self._on_change is not None:
+            self._on_change(changed, arrival_s)
+
+    def _catch_up(self) -> OccupancyMap | None:
+        """Fetch ``map/latest`` until the copy reaches the newest update seen. A snapshot may be
+        older than an update that grew the map (no replay crosses a new window), and when the stream
+        then goes quiet no later update would trigger another fetch: fetched once, the copy would
+        stay behind for good. Gives up after CATCH_UP_LIMIT_S; the next update tries again."""
+        changed = None
+        deadline = time.monotonic() + CATCH_UP_LIMIT_S
+        while True:
             fresh = latest(self._session, timeout_s=self._timeout_s)
             with self._lock:
                 self.refetches += 1
                 if fresh.revision > self._map.revision:
                     self._map = changed = fresh
                 changed = self._replay() or changed
-        if changed is not None and self._on_change is not None:
-            self._on_change(changed, arrival_s)
+                newest = max(m.header.revision for m in self._recent)
+                caught_up = self._map.revision >= newest
+            if caught_up or time.monotonic() + RETRY_PERIOD_S > deadline:
+                return changed
+            time.sleep(RETRY_PERIOD_S)
 
     def _replay(self) -> OccupancyMap | None:
         """Apply every kept update that continues the copy (same epoch and map window, previous

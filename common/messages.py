@@ -152,6 +152,11 @@ class MapUpdateHeader(_OnLattice):
     def map_window(self) -> Window:
         return Window(self.map_i0, self.map_j0, self.map_cols, self.map_rows)
 
+    @property
+    def revision(self) -> tuple[int, int]:
+        """(epoch, version), as :attr:`OccupancyMap.revision`."""
+        return (self.epoch, self.version)
+
 
 DETECTIONS_KIND = "detections"
 OBJECTS_KIND = "objects"
