@@ -202,6 +202,62 @@ def test_shadows_on_a_textured_floor_do_not_flag() -> None:
     assert np.mean(heights[seen] >= 0.1) < 0.02  # the shadow is no obstacle
 
 
+def test_a_wall_face_along_the_baseline_puts_no_ring_of_obstacles_before_it() -> None:
+    """A wall parallel to the baseline, seen at a slant: its face's pixels get heights the matcher
+    carries in from the top and the floor (rules 6, 7), which put them before the wall at band
+    heights: a row of false obstacles along every wall of the default scene (208 and 234 cells
+    on the two walls along x) before the row rules."""
+    wall = ObjectSpec(
+        name="wall",
+        shape="box",
+        center_xy_m=(6.0, 3.4),
+        size_m=(5.0, 0.2, 1.2),
+        rgba=(0.8, 0.8, 0.78, 1.0),
+    )
+    scene = SceneSpec(floor="concrete", objects=[wall], markings=[])
+    pair = Pair(scene)
+    pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
+    for _ in range(12):
+        tile = pipeline.process(*pair.next()).tile
+    pair.close()
+    inside = footprint_mask(scene.truth_objects(0)[0], tile.window, tile.resolution_m)
+    outside_cells = cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, 3)
+    ring = ~inside & (outside_cells <= 1.5)
+    occupied = (tile.count > 0) & (tile.logodds > 0)
+    assert (occupied & ring).sum() < 0.2 * ring.sum()  # without rules 6 and 7: 41 %
+    assert (occupied & inside).sum() > 0.6 * inside.sum()
+
+
+def test_row_support_vouches_only_for_what_the_measurements_bounding_a_run_agree_on() -> None:
+    """Rules 6 and 7 on hand-made rows: anchors are the measured pixels."""
+    nan = np.nan
+    height = np.array(
+        [
+            [1.0, nan, 1.02, nan, nan, 0.98, 0.0],  # a plain top between two edges at 1 m
+            [1.0, nan, 0.2, nan, nan, 0.0, 0.0],  # a face between its top and the floor
+            [nan, nan, 0.5, nan, nan, nan, nan],  # nothing measured within reach
+        ],
+        np.float32,
+    )
+    anchors = np.array(
+        [
+            [True, False, False, False, False, True, True],
+            [True, False, False, False, False, True, True],
+            [False] * 7,
+        ]
+    )
+    support = floor_model.row_support(height, anchors, reach_px=6, tolerance_m=0.1)
+    assert support.consistent[0, 2] and not support.consistent[1, 2]  # 0.2 m agrees with neither
+    assert support.anchored[:2].all() and not support.anchored[2].any()
+    bridged = np.isfinite(support.bridge_m)
+    assert bridged[0, :6].all() and not bridged[1, 1:5].any()  # 1 m and 0 m do not bridge
+    assert support.bridge_m[0, 3] == pytest.approx(1.0 - 0.02 * 3 / 5, abs=1e-5)
+    assert not np.isfinite(support.bridge_m[2]).any()
+    # Beyond reach an anchor vouches for nothing.
+    far = floor_model.row_support(height, anchors, reach_px=1, tolerance_m=0.1)
+    assert not far.anchored[0, 3] and not np.isfinite(far.bridge_m[0, 3])
+
+
 @pytest.mark.process
 def test_up_on_a_plain_floor_maps_free_floor_around_the_objects(bus: Bus, tmp_path: Path) -> None:
     out = tmp_path / "run"

@@ -8,13 +8,10 @@ once (bench/fusion.py measures it)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import TypeVar, cast
-
-import numba
 import numpy as np
 import numpy.typing as npt
 
+from common.compiled import compiled
 from common.occupancy_map import (
     OCCUPANCY_LUT,
     OCCUPANCY_LUT_OFFSET,
@@ -23,39 +20,27 @@ from common.occupancy_map import (
     OCCUPIED,
 )
 
-Function = TypeVar("Function", bound=Callable[..., object])
 
-
-def _compiled(function: Function) -> Function:
-    """numba's ``njit``, typed for mypy. Cached on disk (beside this file, in the user's cache or in
-    ``NUMBA_CACHE_DIR``) so a restart does not compile again; where none is writable, numba refuses
-    to cache and each process compiles once instead (under a second)."""
-    try:
-        return cast(Function, numba.njit(cache=True, nogil=True)(function))
-    except RuntimeError:  # "cannot cache function …: no locator available"
-        return cast(Function, numba.njit(nogil=True)(function))
-
-
-@_compiled
+@compiled
 def add_logodds_clamped(logodds: float, update: float, low: float, high: float) -> float:
     """Bayesian update L ← clamp(L + ΔL, L_min, L_max) (OctoMap's clamping)."""
     return min(max(logodds + update, low), high)
 
 
-@_compiled
+@compiled
 def height_with_max(height: float, tile_height: float) -> float:
     """Highest top seen over pairs: the seed's "pixel-wise minimum depth" stitching (NaN: none yet)."""
     return height if height >= tile_height else tile_height
 
 
-@_compiled
+@compiled
 def occupancy_of(logodds: float) -> int:
     """nav_msgs occupancy of one cell: the table and index of ``occupancy_from_logodds``."""
     clipped = min(max(float(logodds), -OCCUPANCY_LUT_RANGE), OCCUPANCY_LUT_RANGE)
     return int(OCCUPANCY_LUT[int(clipped * OCCUPANCY_LUT_SCALE + OCCUPANCY_LUT_OFFSET)])
 
 
-@_compiled
+@compiled
 def combine_tile(
     logodds: npt.NDArray[np.float32],
     height_m: npt.NDArray[np.float32],

@@ -1,0 +1,182 @@
+"""The whole pipeline offline, for iterating on accuracy: the simulator's frames of every pair, one
+depth pipeline per pair, one fused grid, scored against the truth as ``overgrid eval`` scores the
+live map. Same code as the services (camera model, published calibration, depth pipeline and floor
+model, fusion rules), no processes and no Zenoh: every pair captures at every instant, so it is
+deterministic and movers are seen without the live system's latency (their figures here are an
+upper bound; the live figures come from ``overgrid up``).
+
+Prints the cell scores (IoU, precision, recall, false-free overall and over static objects,
+unknown), the false-occupied cells by cause, and each object's seen cells; ``--picture`` writes the
+map with its errors coloured (false-occupied red, false-free blue, missed-unknown yellow). The last
+line is a JSON object with the figures.
+
+    .venv/bin/python bench/map_accuracy.py [--seed 0] [--pairs 4] [--floor concrete]
+        [--duration-s 20] [--rate-hz 2] [--ideal-cameras] [--plain-objects] [--picture out.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from common.lattice import Window, reframe
+from common.occupancy_map import UNKNOWN
+from services.camera_sim import truth as scene_truth
+from services.camera_sim.capture import StereoCapture
+from services.camera_sim.render import SceneRenderer
+from services.camera_sim.rig import layout_pairs
+from services.camera_sim.settings import CameraSimParams
+from services.depth.pipeline import DepthPipeline
+from services.depth.settings import DepthParams
+from services.evaluation import metrics
+from services.evaluation.service import OBSTACLE_BAND_M
+from services.fusion.grid import FusedGrid
+from services.fusion.params import GridParams
+
+START_S = 1_700_000_000.0
+"""Scene time of the first capture (movers' poses are a function of it)."""
+
+
+def truth_window(sim: CameraSimParams, resolution_m: float) -> Window:
+    scene = sim.scene_spec()
+    margin = scene.wall_thickness_m
+    x1, y1 = scene.floor_size_m
+    return Window.covering(-margin, -margin, x1 + margin, y1 + margin, resolution_m)
+
+
+Arrays = tuple[npt.NDArray[np.int8], npt.NDArray[np.bool_], npt.NDArray[np.bool_]]
+
+
+def run(
+    sim: CameraSimParams, depth: DepthParams, duration_s: float, rate_hz: float
+) -> tuple[dict[str, object], Arrays]:
+    """The figures, and (map occupancy, truth, seen) on the truth's window."""
+    scene = sim.scene_spec()
+    true_calibrations = layout_pairs(sim.rig, scene.floor_size_m)
+    renderer = SceneRenderer(scene, true_calibrations, sim.shadows, sim.lighting())
+    captures = [StereoCapture(renderer, c, sim.camera_model(), sim.seed) for c in true_calibrations]
+    config = depth.pipeline_config()
+    pipelines = [DepthPipeline(capture.calibration, config) for capture in captures]
+    grid = FusedGrid(GridParams(resolution_m=config.resolution_m))
+    frames = max(1, round(duration_s * rate_hz))
+    started = time.perf_counter()
+    stamp_ns = 0
+    for k in range(frames):
+        stamp_ns = int((START_S + k / rate_hz) * 1e9)
+        renderer.set_time(stamp_ns / 1e9)
+        for capture, pipeline in zip(captures, pipelines, strict=True):
+            tile = pipeline.process(*capture.capture(stamp_ns)).tile
+            if tile.window.cols:
+                grid.integrate(tile.window, tile.logodds, tile.height_m, tile.count, stamp_ns)
+        if (k + 1) % 10 == 0:
+            print(f"  {k + 1}/{frames} instants, {time.perf_counter() - started:.0f} s", flush=True)
+    renderer.close()
+
+    window = truth_window(sim, config.resolution_m)
+    r = config.resolution_m
+    objects = scene.truth_objects(stamp_ns / 1e9)
+    static = [o for o in objects if not o.moving]
+    published = [capture.calibration for capture in captures]
+    seen = metrics.seen_by_cameras(
+        published, window, r, scene_truth.top_heights(static, window, r), blockers=static
+    )
+    truth = scene_truth.occupancy(objects, window, r, OBSTACLE_BAND_M).astype(np.bool_)
+    static_truth = scene_truth.occupancy(static, window, r, OBSTACLE_BAND_M).astype(np.bool_)
+    occupancy = reframe(grid.served_occupancy(), grid.window, window, UNKNOWN)
+    scores = metrics.score_cells(occupancy, truth, seen)
+    static_scores = metrics.score_cells(occupancy, static_truth, seen)
+    breakdown = metrics.error_breakdown(occupancy, truth, seen, objects, window, r)
+    figures: dict[str, object] = {
+        "iou": scores.iou,
+        "precision": scores.precision,
+        "recall": scores.recall,
+        "false_free_rate": scores.false_free_rate,
+        "iou_static": static_scores.iou,
+        "precision_static": static_scores.precision,
+        "false_free_rate_static": static_scores.false_free_rate,
+        "unknown_fraction": scores.unknown_fraction,
+        "false_occupied_cells": breakdown["false_occupied_cells"],
+        "objects": breakdown["objects"],
+        "seconds": time.perf_counter() - started,
+    }
+    return figures, (occupancy, truth, seen)
+
+
+def picture(
+    occupancy: npt.NDArray[np.int8], truth: npt.NDArray[np.bool_], seen: npt.NDArray[np.bool_]
+) -> npt.NDArray[np.uint8]:
+    """The map as map.png draws it (free white, occupied black, unknown grey), with its errors in
+    colour over the seen cells; y up, 4 pixels a cell."""
+    image = np.full((*occupancy.shape, 3), 180, np.uint8)
+    image[(occupancy >= 0) & (occupancy <= metrics.FREE_MAX)] = 255
+    occupied = occupancy >= metrics.OCCUPIED_MIN
+    image[occupied] = 0
+    image[occupied & ~truth & seen] = (0, 0, 230)  # BGR: false occupied, red
+    image[(occupancy >= 0) & (occupancy <= metrics.FREE_MAX) & truth & seen] = (230, 80, 0)
+    image[(occupancy == UNKNOWN) & truth & seen] = (0, 200, 230)
+    image[~seen & (image == 180).all(axis=2)] = 120
+    big = cv2.resize(image[::-1], None, fx=4, fy=4, interpolation=cv2.INTER_NEAREST)
+    return np.asarray(big, np.uint8)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--pairs", type=int, default=4)
+    parser.add_argument("--floor", default="concrete", choices=["concrete", "speckle", "plain"])
+    parser.add_argument("--plain-objects", action="store_true")
+    parser.add_argument("--ideal-cameras", action="store_true")
+    parser.add_argument("--no-floor-model", action="store_true")
+    parser.add_argument("--duration-s", type=float, default=20.0)
+    parser.add_argument("--rate-hz", type=float, default=2.0)
+    parser.add_argument("--picture", type=Path, default=None)
+    parser.add_argument(
+        "--sim", type=json.loads, default={}, help="more camera-sim settings, as JSON"
+    )
+    parser.add_argument("--depth", type=json.loads, default={}, help="depth settings, as JSON")
+    args = parser.parse_args()
+    sim = CameraSimParams.model_validate(
+        {
+            "seed": args.seed,
+            "floor": args.floor,
+            "plain_objects": args.plain_objects,
+            "ideal_cameras": args.ideal_cameras,
+            "rig": {"pair_count": args.pairs},
+        }
+        | args.sim
+    )
+    depth = DepthParams.model_validate({"floor_model": not args.no_floor_model} | args.depth)
+    cv2.setNumThreads(1)
+    result, (occupancy, truth, seen) = run(sim, depth, args.duration_s, args.rate_hz)
+    if args.picture is not None:
+        cv2.imwrite(str(args.picture), picture(occupancy, truth, seen))
+    for name in (
+        "iou",
+        "precision",
+        "recall",
+        "false_free_rate",
+        "iou_static",
+        "precision_static",
+        "false_free_rate_static",
+        "unknown_fraction",
+    ):
+        print(f"{name:24s} {result[name]:.4f}")
+    print("false occupied by cause  ", result["false_occupied_cells"])
+    for name, shares in result["objects"].items():  # type: ignore[attr-defined]
+        print(
+            f"  {name:16s} occupied {shares['occupied']:.2f} free {shares['free']:.2f} "
+            f"unknown {shares['unknown']:.2f} of {shares['cells']}"
+        )
+    print(json.dumps({"args": vars(args) | {"picture": str(args.picture)}, **result}))
+    sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()
