@@ -15,6 +15,7 @@ from services.depth.stereo import (
     MatcherConfig,
     compute_disparity,
     equiangular_fraction,
+    guided_weighted_median,
     invalidate_depth_edges,
     neighbourhood_mean,
     stage_variants,
@@ -119,7 +120,7 @@ def test_stage_variants_toggle_one_stage_each() -> None:
     variants = stage_variants(configured)
     assert variants["configured"] == configured
     assert variants["sgbm"] == dataclasses.replace(
-        configured, full_width=False, edge_filter_px=0.0, subpixel=False
+        configured, full_width=False, guided_median_px=0, edge_filter_px=0.0, subpixel=False
     )
     for stage in OPTIONAL_STAGES:
         toggled = variants[f"-{stage}"]
@@ -186,3 +187,35 @@ def test_ground_truth_files(tmp_path: Path) -> None:
     npz = tmp_path / "disp.npz"
     np.savez(npz, disparity=gt)
     np.testing.assert_array_equal(read_disparity(npz, 2.0), gt * 2)
+
+
+def test_the_guided_median_puts_a_fattened_edge_back_on_the_image_edge() -> None:
+    """A bright top (30 px) over a darker floor (22 px) whose disparity the matcher dragged 3 px
+    over the floor on every side: the spilled pixels take the floor's disparity, the top and the
+    floor keep their own sub-pixel values, and a floor pixel of the top's grey is left alone only
+    where its grey says top (the median weighs neighbours by grey likeness)."""
+    rng = np.random.default_rng(5)
+    gray = np.full((60, 80), 90.0) + rng.normal(0.0, 1.0, (60, 80))
+    truth = np.full((60, 80), 22.13, np.float32) + rng.normal(0.0, 0.05, (60, 80)).astype(
+        np.float32
+    )
+    top = (slice(20, 40), slice(30, 50))
+    gray[top] = 170.0
+    truth[top] = 30.37
+    fattened = truth.copy()
+    fattened[17:43, 27:53] = 30.37  # 3 px of spill on every side
+    fattened[fattened > 30] += rng.normal(0.0, 0.05, (26, 26)).astype(np.float32).ravel()
+    refined = guided_weighted_median(fattened, np.clip(gray, 0, 255).astype(np.uint8), 7)
+    spill = np.zeros((60, 80), np.bool_)
+    spill[17:43, 27:53] = True
+    spill[top] = False
+    assert np.abs(refined[spill] - 22.13).max() < 0.3  # back on the floor
+    assert np.array_equal(refined[top], fattened[top])  # the top untouched, sub-pixel and all
+    far = np.ones((60, 80), np.bool_)
+    far[10:50, 20:60] = False
+    assert np.array_equal(refined[far], fattened[far])  # away from the edge: nothing looked at
+    assert np.isnan(
+        guided_weighted_median(
+            np.full((8, 8), np.nan, np.float32), gray[:8, :8].astype(np.uint8), 7
+        )
+    ).all()
