@@ -392,3 +392,51 @@ def test_a_plain_surface_of_the_floors_grey_over_a_textured_floor_is_never_floor
     around[:, :60], around[:10], around[-10:] = False, False, False
     with np.errstate(invalid="ignore"):
         assert float(np.mean(np.abs(geometry.height_m(evidence)[around]) < 0.05)) > 0.8
+
+
+def test_a_plain_raised_top_of_the_floors_grey_is_filled_from_its_measured_outline() -> None:
+    """Rule 8: a plain top 0.8 m up whose grey is the floor's (a plain forklift over concrete),
+    showing one edge (a seam on its right side): the matcher measures that edge and leaves the
+    rest empty, and its left edge lies beside the occlusion, so no row bridges it (rule 7). The
+    inside departs from the learned background (the floor's texture is gone) and takes the
+    measured edge's height."""
+    rng = np.random.default_rng(11)
+    geometry = _synthetic_geometry()
+    width, height = SYNTHETIC_SIZE
+    grain = cv2.GaussianBlur(rng.normal(0.0, 1.0, (height, width)).astype(np.float32), (0, 0), 0.8)
+    texture = np.float32(128.0) + grain * np.float32(5.0 / float(grain.std()))
+    model = floor_model.FloorModel(geometry, 0.1)
+    chain = DisparityChain(MatcherConfig(), 16, 32)
+    for _ in range(16):
+        left, right = _textured_pair(geometry.floor_disparity_px, rng, texture)
+        model.update(left, right, chain(left, right))
+    top_m = 0.8
+    patch = (slice(90, 150), slice(150, 230))
+    disparity = geometry.floor_disparity_px.copy()
+    disparity[patch] = SYNTHETIC_FOCAL_BASELINE / (SYNTHETIC_HEIGHT_M - top_m)
+    plain = texture.copy()
+    plain[patch] = float(texture[patch].mean())
+    plain[patch[0], patch[1].stop - 3 : patch[1].stop] -= 40.0  # a seam: the one edge it shows
+    # Each pixel of the right image sees the top where the top lands, shifted by its disparity.
+    top_px = float(disparity[patch][0, 0])
+    u, v = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
+    left = plain
+    top_in_right = np.zeros((height, width), np.bool_)
+    top_in_right[patch[0], round(patch[1].start - top_px) : round(patch[1].stop - top_px)] = True
+    right = np.where(
+        top_in_right,
+        cv2.remap(
+            plain, u + np.float32(top_px), v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+        ),
+        cv2.remap(texture, u + geometry.floor_disparity_px, v, cv2.INTER_LINEAR),
+    )
+    noisy = [image + rng.normal(0.0, 1.5, image.shape) for image in (left, right)]
+    left_u8, right_u8 = (np.clip(image, 0, 255).astype(np.uint8) for image in noisy)
+    evidence = model.update(left_u8, right_u8, chain(left_u8, right_u8))
+    inner = np.zeros((height, width), np.bool_)
+    inner[patch] = True
+    inner = _eroded(inner, 6)
+    with np.errstate(invalid="ignore"):
+        heights = geometry.height_m(evidence)[inner]
+    assert float(np.mean(np.abs(heights - top_m) < 0.15)) > 0.8  # without rule 8: 6 %
+    assert float(np.mean(np.abs(heights) < 0.05)) < 0.02  # never floor
