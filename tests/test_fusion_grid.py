@@ -5,7 +5,16 @@ from hypothesis import strategies as st
 
 from common.lattice import Window
 from common.occupancy_map import OCCUPIED, occupancy_from_logodds
-from services.fusion.grid import FusedGrid, GridParams, ServedAssembler, TileOutsideMap
+from services.fusion.grid import (
+    FusedGrid,
+    GridParams,
+    ServedAssembler,
+    TileOutsideMap,
+    chunk_aligned,
+    chunk_keys,
+    chunk_window,
+    update_parts,
+)
 
 P = GridParams()
 
@@ -223,3 +232,75 @@ def test_the_predicted_layer_is_served_occupied_and_clears() -> None:
     assert grid.layer("predicted").sum() == 9
     assert grid.set_predicted([]) and not grid.layer("predicted").any()
     assert not grid.set_predicted([])  # nothing predicted: nothing to visit
+
+
+def test_chunk_aligned_is_integer_exact_at_any_lattice_index() -> None:
+    """A float division rounded cell 2**62 + 1 down and made a 1×1 window 0×0."""
+    far = 2**62 + 1
+    assert chunk_aligned(Window(far, far, 1, 1)) == Window(2**62, 2**62, 64, 64)
+    assert chunk_aligned(Window(-65, -1, 2, 1)) == Window(-128, -64, 128, 64)
+
+
+@pytest.mark.parametrize("corner", [2**62, 10**7, -(10**7), 20_001])
+def test_tiles_beyond_the_site_extent_are_refused_and_change_nothing(corner: int) -> None:
+    grid = FusedGrid(P)  # ±1 km around the origin: cells -20000 … 19999
+    with pytest.raises(TileOutsideMap) as refused:
+        _integrate(grid, Window(corner, corner, 1, 1), 1.0)
+    assert refused.value.reason == "outside_extent"
+    assert grid.window.empty and not grid.chunks and grid.version == 0
+    _integrate(grid, Window(0, 0, 10, 10), 1.0)  # the real site is not locked out
+    assert grid.window == Window(0, 0, 64, 64)
+
+
+def test_a_tile_across_the_site_edge_keeps_its_part_inside() -> None:
+    grid = FusedGrid(GridParams(max_extent_m=10.0))  # cells -200 … 199
+    assert _integrate(grid, Window(190, 0, 20, 4), 1.0) == Window(190, 0, 10, 4)
+
+
+def test_updates_are_the_changed_groups_not_their_bounding_box() -> None:
+    grid = FusedGrid(P)
+    _integrate(grid, Window(0, 0, 20, 20), 1.0)
+    _integrate(grid, Window(4900, 4900, 20, 20), 1.0)
+    parts = update_parts(grid.take_dirty_parts())
+    assert sorted(parts, key=lambda w: w.i0) == [Window(0, 0, 20, 20), Window(4900, 4900, 20, 20)]
+    _integrate(grid, Window(10, 10, 300, 200), 1.0)  # one tile over 24 chunks: one part
+    assert update_parts(grid.take_dirty_parts()) == [Window(10, 10, 300, 200)]
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.integers(-3000, 3000), st.integers(-3000, 3000), st.integers(1, 150)),
+        min_size=1,
+        max_size=40,
+    ),
+    st.integers(4, 12),
+)
+def test_update_parts_are_few_and_cover_every_changed_cell(
+    tiles: list[tuple[int, int, int]], limit: int
+) -> None:
+    dirty: dict[tuple[int, int], Window] = {}
+    for i0, j0, size in tiles:
+        window = Window(i0, j0, size, size)
+        for key in chunk_keys(window):
+            cells = window.intersect(chunk_window(key))
+            dirty[key] = dirty.get(key, Window(0, 0, 0, 0)).union(cells)
+    parts = update_parts(dirty, limit)
+    assert 1 <= len(parts) <= limit
+    for cells in dirty.values():  # each chunk's changed cells lie in one part
+        assert any(part.contains(cells) for part in parts)
+
+
+def test_restore_leaves_out_what_lies_beyond_the_limits_not_everything() -> None:
+    saved = FusedGrid(GridParams(max_extent_m=1e6, max_cells=10**12))
+    _integrate(saved, Window(0, 0, 200, 200), 1.0)
+    _integrate(saved, Window(30_000, 30_000, 1, 1), 1.0)  # 1.5 km: beyond today's extent
+    _integrate(saved, Window(9_000, 9_000, 1, 1), 1.0)  # within it, past the cell limit
+    frozen, _ = saved.freeze()
+    chunks = {key: chunk.layers for key, chunk in frozen.chunks.items()}
+    restored = FusedGrid(P)
+    assert restored.restore(chunks) == 2
+    assert restored.window == Window(0, 0, 256, 256)
+    np.testing.assert_array_equal(
+        restored.layer("logodds"), saved.window_of("logodds", restored.window)
+    )

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from common.lattice import Window
+from services.fusion.grid import GridParams
 from services.fusion.intake import FUTURE_TOLERANCE_S, Rejected, TileGate
 from tests.tiles import tile_arrays, tile_payload
 
@@ -103,3 +104,16 @@ def test_a_stamp_is_kept_only_once_the_map_took_the_tile() -> None:
     now = time.time_ns()
     gate.admit(tile_payload("p0", W, 0.5, stamp_ns=now), now, "depth/p0/tile")  # refused later
     _admit(gate, tile_payload("p0", W, 0.5, stamp_ns=now - 1000), now)
+
+
+def test_a_tile_beyond_the_site_is_rejected_at_the_edge() -> None:
+    site = GridParams().site_window()  # ±1 km around the origin
+    gate = TileGate(resolution_m=0.05, max_age_s=2.0, max_bytes=1_000_000, site=site)
+    for corner in (2**62, 10**7, -(10**7)):
+        assert _reason(tile_payload("p0", Window(corner, corner, 1, 1), 1.0), gate) == (
+            "outside_extent"
+        )
+    gate.admit(tile_payload("p0", Window(19_990, 0, 20, 5), 1.0), time.time_ns(), "depth/p0/tile")
+    bounds = Window(0, 0, 100, 100)
+    bounded = TileGate(0.05, 2.0, 1_000_000, site=bounds, bounded=True)
+    assert _reason(tile_payload("p0", Window(500, 0, 5, 5), 1.0), bounded) == "outside_map"

@@ -1,10 +1,13 @@
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pytest
 
 from common.lattice import Window
-from services.fusion.grid import FusedGrid, GridParams
-from services.fusion.persistence import CHUNK_LOG, StateWriter, load_grid, save_now
+from services.fusion import persistence
+from services.fusion.grid import Chunk, FusedGrid, GridParams
+from services.fusion.persistence import CHUNK_LOG, StateWriter, load_grid, read_log, save_now
 
 LAYERS = ("logodds", "height_m", "known", "last_seen_s", "occupancy")
 
@@ -101,3 +104,96 @@ def test_state_beyond_new_bounds_keeps_what_lies_inside(tmp_path: Path) -> None:
     assert restored.window == bounds
     inside = bounds.slices_in(grid.window)
     np.testing.assert_array_equal(restored.layer("logodds"), grid.layer("logodds")[inside])
+
+
+def _fuse(grid: FusedGrid, window: Window, value: float, stamp_ns: int) -> None:
+    grid.integrate(
+        window,
+        np.full(window.shape, value, np.float32),
+        np.zeros(window.shape, np.float32),
+        np.ones(window.shape, np.uint16),
+        stamp_ns,
+    )
+
+
+def test_the_epoch_is_saved_and_a_start_never_goes_below_it(tmp_path: Path) -> None:
+    """A clock stepped back at a restart made the new epoch lower than the last: followers then
+    took the new map for an old one."""
+    grid = FusedGrid(GridParams(), epoch_ns=5_000)
+    frozen, _ = grid.freeze()
+    StateWriter(tmp_path, start=frozen).close()  # a start with nothing to save: the epoch is
+    assert load_grid(GridParams(), tmp_path, epoch_ns=4_000).epoch_ns == 5_001
+    assert load_grid(GridParams(), tmp_path, epoch_ns=9_000).epoch_ns == 9_000
+
+
+def test_a_torn_tail_is_cut_off_so_later_appends_are_read(tmp_path: Path) -> None:
+    grid = _grid()
+    save_now(grid, tmp_path)
+    with open(tmp_path / CHUNK_LOG, "ab") as handle:
+        handle.write(b"OGC1\x00\x10\x00\x00partial")
+    restored = load_grid(GridParams(), tmp_path, 1)
+    writer = StateWriter(tmp_path, start=restored.freeze()[0])
+    writer._needs_full = False  # appends, as a running writer past its first save
+    _fuse(restored, Window(500, 500, 4, 4), 1.0, 10**11)
+    writer.hand_over(*restored.freeze())
+    writer.close()
+    again = load_grid(GridParams(), tmp_path, 2)
+    _same(again, restored)
+    assert not read_log(tmp_path / CHUNK_LOG, 0.05).torn
+
+
+def test_a_compaction_keeps_appending_what_is_handed_over_meanwhile(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Compacting a large map takes seconds: the changes of those seconds go to the live log
+    between its records (a crash then loses no more than at any other time), and into the new
+    log before it replaces the old."""
+    grid = FusedGrid(GridParams())
+    _fuse(grid, Window(0, 0, 64 * 10, 64 * 8), -0.5, 10**9)  # 80 chunks: two records
+    save_now(grid, tmp_path)
+    first, _ = grid.freeze()
+    _fuse(grid, Window(2000, 2000, 4, 4), 2.0, 2 * 10**9)
+    later, changed = grid.freeze()
+    writer = StateWriter(tmp_path)  # its first save compacts
+    live_during_compaction: list[set[tuple[int, int]]] = []
+    real = persistence.encode_records
+
+    def watched(frozen: Any, keys: Any, full: bool) -> Any:
+        for n, record in enumerate(real(frozen, keys, full)):
+            if full and n == 0:  # handed over while the compaction's first record is made
+                writer.hand_over(later, changed)
+            if full and n == 1:  # the compaction goes on: is that hand-over saved already?
+                live_during_compaction.append(set(read_log(writer.path, 0.05).chunks))
+            yield record
+
+    monkeypatch.setattr(persistence, "encode_records", watched)
+    writer.hand_over(first, set(first.chunks))
+    writer.close()
+    assert changed <= live_during_compaction[0]
+    assert writer.saved_version == later.version
+    _same(load_grid(GridParams(), tmp_path, 1), grid)
+
+
+def test_a_saved_map_with_a_stray_far_chunk_keeps_the_real_map(tmp_path: Path) -> None:
+    """A 1×1 tile at cell 2**62, saved by an older fusion: the saved map then exceeded
+    --max-cells and the whole state was set aside as corrupt."""
+    grid = _grid()
+    stray = (2**56, 2**56)
+    grid.chunks[stray] = Chunk()
+    grid.chunks[stray].known[0, 0] = True
+    grid.changed.add(stray)
+    save_now(grid, tmp_path)
+    restored = load_grid(GridParams(), tmp_path, 1)
+    assert stray not in restored.chunks and set(restored.chunks) == set(grid.chunks) - {stray}
+    for name in LAYERS:
+        np.testing.assert_array_equal(restored.layer(name), grid.window_of(name, restored.window))
+    assert not list(tmp_path.glob(f"{CHUNK_LOG}.corrupt-*"))
+
+
+def test_layers_are_deflated_only_where_it_pays() -> None:
+    """Noise barely shrinks, for most of a save's CPU; repeated values (the clamp, NaN heights,
+    a tile's stamp) shrink many-fold. Both read back bit for bit (``_same`` above)."""
+    noise = np.random.default_rng(0).uniform(-1, 1, (64, 64)).astype(np.float32)
+    floor = np.full((64, 64), -1.5, np.float32)
+    assert len(persistence._packed(noise)) > noise.nbytes  # stored
+    assert len(persistence._packed(floor)) < floor.nbytes / 50  # deflated

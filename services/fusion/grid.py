@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
+from itertools import pairwise
 from types import MappingProxyType
 from typing import Any
 
@@ -43,9 +44,16 @@ ChunkKey = tuple[int, int]
 """(ci, cj): the chunk holding cells i ∈ [ci·64, ci·64+64), j ∈ [cj·64, cj·64+64)."""
 
 
+MAX_UPDATE_PARTS = 8
+"""Most ``map/updates`` messages one publish sends: changed chunks far apart go as separate
+rectangles (two small tiles at opposite corners of a large map are two small messages, not their
+bounding box), and beyond this many groups neighbouring groups are merged."""
+
+
 class TileOutsideMap(ValueError):
-    """A tile the map cannot take: ``reason`` is ``outside_map`` (beyond fixed bounds) or
-    ``growth`` (it would grow the map past the cell limit)."""
+    """A tile the map cannot take: ``reason`` is ``outside_map`` (beyond fixed bounds),
+    ``outside_extent`` (beyond the site's extent around the origin) or ``growth`` (it would grow
+    the map past the cell limit)."""
 
     def __init__(self, reason: str, detail: str) -> None:
         super().__init__(detail)
@@ -67,11 +75,62 @@ def chunk_keys(window: Window) -> Iterator[ChunkKey]:
 
 
 def chunk_aligned(window: Window) -> Window:
-    """The smallest window of whole chunks covering ``window``."""
+    """The smallest window of whole chunks covering ``window``. Integer arithmetic: a float
+    division rounds cell 2**62 + 1 to 2**62 and made that 1×1 window a 0×0 one."""
     c = CHUNK_CELLS
-    i0, j0 = math.floor(window.i0 / c) * c, math.floor(window.j0 / c) * c
-    i1, j1 = math.ceil(window.i1 / c) * c, math.ceil(window.j1 / c) * c
+    i0, j0 = window.i0 // c * c, window.j0 // c * c
+    i1, j1 = -(-window.i1 // c) * c, -(-window.j1 // c) * c
     return Window(i0, j0, i1 - i0, j1 - j0)
+
+
+def update_parts(dirty: Mapping[ChunkKey, Window], limit: int = MAX_UPDATE_PARTS) -> list[Window]:
+    """Rectangles covering the changed cells ``dirty`` (per chunk), each to be one ``map/updates``
+    message: runs of adjacent changed chunks along a chunk row, stacked while the next row has the
+    same run (a tile's chunks make one rectangle), each cut down to the cells that changed in it.
+    More than ``limit`` of them are merged by quadtree cells of doubling size, so the count stays
+    bounded and what is merged lies close. Rectangles may overlap: every one carries the cells'
+    values of the same version, so overlap costs bytes, never correctness."""
+    if limit < 4:
+        raise ValueError("at least 4 parts: the coarsest quadtree level has 4 cells")
+    rows: dict[int, list[int]] = {}
+    for ci, cj in dirty:
+        rows.setdefault(cj, []).append(ci)
+    blocks: list[list[int]] = []
+    """[ci0, ci1, cj0, cj1) in chunks."""
+    above: dict[tuple[int, int], int] = {}
+    for cj in sorted(rows):
+        cis = sorted(rows[cj])
+        runs, start = [], cis[0]
+        for previous, ci in pairwise(cis):
+            if ci != previous + 1:
+                runs.append((start, previous + 1))
+                start = ci
+        runs.append((start, cis[-1] + 1))
+        here = {}
+        for run in runs:
+            k = above.get(run)
+            if k is None or blocks[k][3] != cj:
+                k = len(blocks)
+                blocks.append([run[0], run[1], cj, cj])
+            blocks[k][3] = cj + 1
+            here[run] = k
+        above = here
+    parts: list[tuple[int, int, Window]] = []
+    for ci0, ci1, cj0, cj1 in blocks:
+        cells = Window(0, 0, 0, 0)
+        for cj in range(cj0, cj1):
+            for ci in range(ci0, ci1):
+                cells = cells.union(dirty[(ci, cj)])
+        parts.append((ci0, cj0, cells))
+    scale = 1
+    while len(parts) > limit:
+        scale *= 2
+        merged: dict[tuple[int, int], Window] = {}
+        for ci, cj, cells in parts:
+            cell = (ci // scale * scale, cj // scale * scale)
+            merged[cell] = merged.get(cell, Window(0, 0, 0, 0)).union(cells)
+        parts = [(ci, cj, cells) for (ci, cj), cells in merged.items()]
+    return [cells for _, _, cells in parts if not cells.empty]
 
 
 class Chunk:
@@ -203,24 +262,32 @@ class FusedGrid:
         self.version = 0
         """Change counter within the epoch; restored from the saved state at start."""
         self.stamp_ns = 0
-        self.dirty = Window(0, 0, 0, 0)
-        """Cells changed since :meth:`take_dirty` was last called (the next ``map/updates``)."""
+        self.dirty: dict[ChunkKey, Window] = {}
+        """Cells changed since they were last taken (the next ``map/updates``), per chunk."""
         self.changed: set[ChunkKey] = set()
         """Chunks changed since the last :meth:`freeze`."""
         self._predicted: set[ChunkKey] = set()
         self._frozen = FrozenMap(epoch_ns, 0, 0, params.resolution_m, self.window, {})
 
     def _admit(self, tile_window: Window) -> Window:
-        """The part of a tile the map takes; grows the window (chunk-aligned) within the limit."""
+        """The part of a tile the map takes: what lies in the fixed bounds, or within the site's
+        extent; grows the window (chunk-aligned) within the cell limit."""
         bounds = self.params.bounds
-        if bounds is not None:
-            part = tile_window.intersect(bounds)
-            if part.empty:
+        site = self.params.site_window()
+        part = tile_window.intersect(site)
+        if part.empty:
+            if bounds is not None:
                 raise TileOutsideMap(
                     "outside_map", f"tile {tile_window} lies outside the map bounds {bounds}"
                 )
+            raise TileOutsideMap(
+                "outside_extent",
+                f"tile {tile_window} lies beyond the site extent {site} "
+                f"(±{self.params.max_extent_m:g} m around the origin, --max-extent-m)",
+            )
+        if bounds is not None:
             return part
-        target = chunk_aligned(self.window.union(tile_window))
+        target = chunk_aligned(self.window.union(part))
         if target.cols * target.rows > self.params.max_cells:
             raise TileOutsideMap(
                 "growth",
@@ -228,7 +295,7 @@ class FusedGrid:
                 f"over the limit of {self.params.max_cells}",
             )
         self.window = target
-        return tile_window
+        return part
 
     def integrate(
         self,
@@ -262,10 +329,13 @@ class FusedGrid:
             )
             chunk.decay_check_s = min(chunk.decay_check_s, stamp_s)
             self.changed.add(key)
+            self._mark(key, sub)
         self.stamp_ns = max(self.stamp_ns, stamp_ns)
         self.version += 1
-        self.dirty = self.dirty.union(part)
         return part
+
+    def _mark(self, key: ChunkKey, cells: Window) -> None:
+        self.dirty[key] = self.dirty.get(key, Window(0, 0, 0, 0)).union(cells)
 
     def decay(self, now_s: float, elapsed_s: float) -> int:
         """Cells unobserved for ``decay_after_s`` drift toward unknown; returns how many changed.
@@ -289,7 +359,7 @@ class FusedGrid:
                     chunk.logodds[stale], chunk.known[stale]
                 )
                 self.changed.add(key)
-                self.dirty = self.dirty.union(chunk_window(key).intersect(self.window))
+                self._mark(key, chunk_window(key).intersect(self.window))
                 changed += count
             known_seen = chunk.last_seen_s[chunk.known]
             chunk.decay_check_s = float(known_seen.min()) if known_seen.size else math.inf
@@ -321,7 +391,7 @@ class FusedGrid:
                 continue
             self._writable(key).predicted = new
             self.changed.add(key)
-            self.dirty = self.dirty.union(chunk_window(key).intersect(self.window))
+            self._mark(key, chunk_window(key).intersect(self.window))
             changed = True
         self._predicted = {key for key, mask in masks.items() if mask.any()}
         if changed:
@@ -359,9 +429,17 @@ class FusedGrid:
         """What clients read: the evidence, with the predicted layer's cells occupied."""
         return self.layer("served")
 
-    def take_dirty(self) -> Window:
-        dirty, self.dirty = self.dirty, Window(0, 0, 0, 0)
+    def take_dirty_parts(self) -> dict[ChunkKey, Window]:
+        """The cells changed since last taken, per chunk (see :func:`update_parts`)."""
+        dirty, self.dirty = self.dirty, {}
         return dirty
+
+    def take_dirty(self) -> Window:
+        """The bounding window of the cells changed since last taken."""
+        bounding = Window(0, 0, 0, 0)
+        for cells in self.take_dirty_parts().values():
+            bounding = bounding.union(cells)
+        return bounding
 
     def freeze(self) -> tuple[FrozenMap, set[ChunkKey]]:
         """An immutable copy of the map now, and the chunks changed since the last one; costs
@@ -381,34 +459,47 @@ class FusedGrid:
         return self._frozen, changed
 
     def restore(self, chunks: Mapping[ChunkKey, Mapping[str, npt.NDArray[Any]]]) -> int:
-        """Put saved evidence layers back (chunks outside fixed bounds, or beyond the cell limit,
-        are left out); returns how many chunks were restored."""
-        keys = sorted(chunks)
-        bounds = self.params.bounds
-        if bounds is not None:
-            keys = [k for k in keys if not chunk_window(k).intersect(bounds).empty]
-        window = self.window
-        for key in keys:
-            window = chunk_aligned(window.union(chunk_window(key))) if bounds is None else window
-        if bounds is None and window.cols * window.rows > self.params.max_cells:
-            raise ValueError(
-                f"saved map of {window.cols}×{window.rows} cells exceeds --max-cells "
-                f"{self.params.max_cells}"
-            )
-        self.window = window
+        """Put saved evidence layers back; returns how many chunks were left out. Left out: cells
+        outside the fixed bounds or the site's extent (a state saved before the limit, or under
+        other settings); and, when what remains needs a map over ``max_cells``, the chunks
+        farthest from the median chunk (the bulk of the map: a stray far chunk goes, the site
+        stays). Never the whole state for a few bad chunks."""
+        site = self.params.site_window()
+        keys = sorted(k for k in chunks if not chunk_window(k).intersect(site).empty)
+        if self.params.bounds is None and keys:
+            keys = _within_cell_limit(keys, self.params.max_cells)
+            window = Window(0, 0, 0, 0)
+            for key in keys:
+                window = window.union(chunk_window(key))
+            self.window = chunk_aligned(window)
         for key in keys:
             layers = dict(chunks[key])
-            if bounds is not None:  # cells outside the bounds are not part of this map
-                outside = np.ones((CHUNK_CELLS, CHUNK_CELLS), np.bool_)
-                part = chunk_window(key).intersect(bounds)
-                outside[part.slices_in(chunk_window(key))] = False
-                layers["known"] = layers["known"] & ~outside
+            cw = chunk_window(key)
+            if not site.contains(cw):  # cells beyond the site are not part of this map
+                inside = np.zeros((CHUNK_CELLS, CHUNK_CELLS), np.bool_)
+                inside[cw.intersect(site).slices_in(cw)] = True
+                layers["known"] = layers["known"] & inside
             known = layers["known"]
             layers["logodds"] = np.where(known, layers["logodds"], np.float32(0.0))
             layers["occupancy"] = occupancy_from_logodds(layers["logodds"], known)
             self.chunks[key] = Chunk(layers)
             self.changed.add(key)
-        return len(keys)
+        return len(chunks) - len(keys)
+
+
+def _within_cell_limit(keys: list[ChunkKey], max_cells: int) -> list[ChunkKey]:
+    """The chunks kept when their map must not exceed ``max_cells``: nearest the median first
+    (Chebyshev distance in chunks), each kept if the map still fits."""
+    ci_median = sorted(k[0] for k in keys)[len(keys) // 2]
+    cj_median = sorted(k[1] for k in keys)[len(keys) // 2]
+    kept: list[ChunkKey] = []
+    window = Window(0, 0, 0, 0)
+    for key in sorted(keys, key=lambda k: (max(abs(k[0] - ci_median), abs(k[1] - cj_median)), k)):
+        grown = window.union(chunk_window(key))
+        if grown.cols * grown.rows <= max_cells:
+            kept.append(key)
+            window = grown
+    return sorted(kept)
 
 
 def compile_rules() -> None:

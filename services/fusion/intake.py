@@ -27,9 +27,13 @@ REASONS = (
     "out_of_order",
     "pair",
     "outside_map",
+    "outside_extent",
     "growth",
     "overload",
+    "internal",
 )
+"""``internal``: fusing the message raised something unforeseen (a bug): counted and logged with
+the exception, and the owner's loop goes on with the next message."""
 FUTURE_TOLERANCE_S = 0.25
 """A capture stamp this far ahead of fusion's clock is clock skew between boxes; further is a
 forged or broken clock: rejected, and its stamp not kept (it would lock the pair's later tiles
@@ -79,10 +83,22 @@ def check_stamp(stamp_ns: int, now_ns: int, max_age_ns: int) -> None:
 class TileGate:
     """Decodes and checks tiles; remembers each pair's newest capture stamp to drop reordering."""
 
-    def __init__(self, resolution_m: float, max_age_s: float, max_bytes: int) -> None:
+    def __init__(
+        self,
+        resolution_m: float,
+        max_age_s: float,
+        max_bytes: int,
+        site: Window | None = None,
+        bounded: bool = False,
+    ) -> None:
         self.resolution_m = resolution_m
         self.max_age_ns = int(max_age_s * 1e9)
         self.max_bytes = max_bytes
+        self.site = site
+        """Where a tile may land (GridParams.site_window); None: anywhere (tools)."""
+        self.bounded = bounded
+        """The site is the fixed ``--bounds`` (a tile beyond is ``outside_map``), else the extent
+        around the origin (``outside_extent``)."""
         self.newest_stamp_ns: dict[str, int] = {}
 
     def admit(self, payload: bytes, now_ns: int, key: str) -> AcceptedTile:
@@ -99,6 +115,12 @@ class TileGate:
             raise Rejected(
                 "resolution",
                 f"tile resolution {h.resolution_m} m ≠ map resolution {self.resolution_m} m",
+            )
+        if self.site is not None and h.window.intersect(self.site).empty:
+            raise Rejected(
+                "outside_map" if self.bounded else "outside_extent",
+                f"tile at cells {h.window} lies beyond the site {self.site}"
+                + ("" if self.bounded else " (--max-extent-m around the origin)"),
             )
         layers = {}
         for name, dtype in (

@@ -3,6 +3,8 @@ and the fusion settings nest them (``--grid.logodds-min`` / ``OVERGRID_GRID__LOG
 
 from __future__ import annotations
 
+import math
+
 from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass
 from pydantic_settings import CliSuppress
@@ -39,6 +41,24 @@ class GridParams:
         default=0.05, gt=0.0, description="|log-odds| under which a decaying cell is unknown again"
     )
     max_cells: int = Field(default=25_000_000, gt=0, description="largest map allowed, in cells")
+    max_extent_m: float = Field(
+        default=1000.0,
+        gt=0.0,
+        le=1e6,
+        description="without --bounds, tiles must lie within this distance (x and y) of the world "
+        "origin; the rest are rejected as outside_extent",
+    )
+    """The site's reach, in the world frame the cameras are calibrated in (a site's origin lies on
+    it): 1 km each way is a generous site, and a tile beyond is a broken or forged header (a cell
+    at 2**62, or at 500 km), never a place to grow the map to. Anchored at the origin, not at the
+    first tile, so a far first tile cannot lock the real site out."""
     bounds: CliSuppress[Window | None] = None
     """Fixed map window; None grows the map to cover the tiles, up to ``max_cells``. Given in
     metres as the fusion setting ``--bounds`` (a window needs the resolution)."""
+
+    def site_window(self) -> Window:
+        """Where tiles may land: the fixed bounds, or ±``max_extent_m`` around the origin."""
+        if self.bounds is not None:
+            return self.bounds
+        extent_cells = math.ceil(self.max_extent_m / self.resolution_m)
+        return Window(-extent_cells, -extent_cells, 2 * extent_cells, 2 * extent_cells)

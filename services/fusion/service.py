@@ -18,6 +18,7 @@ import os
 import queue
 import threading
 import time
+import traceback
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -42,6 +43,7 @@ from services.fusion.grid import (
     ServedAssembler,
     TileOutsideMap,
     compile_rules,
+    update_parts,
 )
 from services.fusion.inbox import Delivery, Inbox
 from services.fusion.intake import Rejected, TileGate, decode_detections, decode_presence
@@ -98,6 +100,8 @@ class FusionState:
             settings.resolution_m,
             settings.max_tile_age_s,
             int(settings.max_message_mb * 1024 * 1024),
+            site=grid.params.site_window(),
+            bounded=grid.params.bounds is not None,
         )
         self.accepted: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
@@ -120,7 +124,9 @@ class FusionState:
         return {pair for pair, instances in self.processes.items() if instances}
 
     def handle(self, delivery: Delivery) -> None:
-        """One message from the inbox; a bad one is counted by reason, never raised."""
+        """One message from the inbox; a bad one is counted by reason, never raised. Whatever
+        else fusing it raises (a bug, memory) is counted as ``internal`` and logged with the
+        exception: the owner's loop, and with it the map, outlives any one message."""
         try:
             if delivery.kind == "tile":
                 self._tile(delivery)
@@ -129,18 +135,25 @@ class FusionState:
             else:
                 self._presence(delivery)
         except Rejected as rejection:
-            counters = {
-                "tile": self.rejected,
-                "detections": self.detections_rejected,
-            }.get(delivery.kind, self.liveliness_rejected)
-            counters[rejection.reason] += 1
-            self.warn.warning(
-                f"{delivery.kind}_{rejection.reason}",
-                f"{delivery.kind} rejected",
-                reason=rejection.reason,
-                on=delivery.key,
-                error=str(rejection)[:200],
-            )
+            self._count(delivery, rejection.reason, str(rejection))
+        except Exception as error:
+            frames = traceback.extract_tb(error.__traceback__)
+            where = f" at {Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else ""
+            self._count(delivery, "internal", f"{type(error).__name__}: {error}{where}")
+
+    def _count(self, delivery: Delivery, reason: str, detail: str) -> None:
+        counters = {
+            "tile": self.rejected,
+            "detections": self.detections_rejected,
+        }.get(delivery.kind, self.liveliness_rejected)
+        counters[reason] += 1
+        self.warn.warning(
+            f"{delivery.kind}_{reason}",
+            f"{delivery.kind} rejected",
+            reason=reason,
+            on=delivery.key,
+            error=detail[:200],
+        )
 
     def _tile(self, delivery: Delivery) -> None:
         tile = self.gate.admit(delivery.payload, delivery.arrival_ns, delivery.key)
@@ -201,18 +214,33 @@ class FusionState:
         )
         return self.objects_header
 
-    def publish(self) -> bytes | None:
+    def publish(self) -> list[bytes]:
         """Freeze the changes (copy-on-write of the changed chunks) for readers; returns the
-        ``map/updates`` payload of the changed window, if any."""
+        ``map/updates`` payloads of the changed cells: one per group of changed chunks
+        (:func:`update_parts`), so their size follows the change, not its bounding box.
+
+        The messages of one publish form a chain (previous_version → version, each continuing
+        the last): a follower applies them in turn with nothing new to learn, and reaches the
+        version ``map/latest`` serves after the last. The counter jumps ahead to make room for the
+        chain when fewer tiles than messages came (versions only count up; they are not tiles)."""
         previous = self.view.frozen
-        dirty = self.grid.take_dirty()
+        parts = [
+            part.intersect(self.grid.window) for part in update_parts(self.grid.take_dirty_parts())
+        ]
+        parts = [part for part in parts if not part.empty]
+        if self.grid.version != previous.version:
+            self.grid.version = max(self.grid.version, previous.version + len(parts))
         frozen, changed = self.grid.freeze()
         self.unsaved |= changed
         self.update_view(frozen)
-        part = dirty.intersect(frozen.window)
-        if part.empty or frozen.version == previous.version:
-            return None
-        return update_payload(frozen, part, previous.version, self.grid.window_of("served", part))
+        if not parts or frozen.version == previous.version:
+            return []
+        payloads = []
+        for k, part in enumerate(parts):
+            version = frozen.version if k == len(parts) - 1 else previous.version + k + 1
+            occupancy = self.grid.window_of("served", part)
+            payloads.append(update_payload(frozen, part, previous.version + k, occupancy, version))
+        return payloads
 
     def update_view(self, frozen: FrozenMap | None = None) -> None:
         """A new View with the counters as they are now."""
@@ -231,10 +259,14 @@ class FusionState:
 
 
 def update_payload(
-    frozen: FrozenMap, part: Window, previous_version: int, occupancy: np.ndarray
+    frozen: FrozenMap,
+    part: Window,
+    previous_version: int,
+    occupancy: np.ndarray,
+    version: int | None = None,
 ) -> bytes:
     header = MapUpdateHeader(
-        version=frozen.version,
+        version=frozen.version if version is None else version,
         previous_version=previous_version,
         epoch=frozen.epoch_ns,
         stamp_ns=frozen.stamp_ns,
@@ -495,8 +527,7 @@ def main(settings: FusionSettings) -> None:
     params = settings.grid_params()
     check_state_dir(settings.state_dir)
     compile_rules()
-    epoch_ns = time.time_ns()
-    grid = load_grid(params, settings.state_dir, epoch_ns)
+    grid = load_grid(params, settings.state_dir, time.time_ns())
     state = FusionState(settings, grid)
     if grid.version:
         log.info(
@@ -504,7 +535,8 @@ def main(settings: FusionSettings) -> None:
             extra={"version": grid.version, "cols": grid.window.cols, "rows": grid.window.rows},
         )
     inbox = Inbox(INBOX_MESSAGES, INBOX_LARGEST_MESSAGES * state.gate.max_bytes)
-    writer = StateWriter(settings.state_dir)
+    # Its first act, before anyone sees this epoch: saving it, so no later start goes below it.
+    writer = StateWriter(settings.state_dir, start=state.view.frozen)
     snapshots = SnapshotBuilder(lambda: state.view, settings.publish_interval_s)
 
     def answer_map(query: zenoh.Query) -> None:
@@ -588,7 +620,7 @@ def main(settings: FusionSettings) -> None:
             extra={
                 "resolution_m": settings.resolution_m,
                 "state_dir": str(settings.state_dir),
-                "epoch": epoch_ns,
+                "epoch": grid.epoch_ns,
             },
         )
         run(
@@ -643,9 +675,9 @@ def run(
             state.grid.version != state.view.frozen.version
             and now - last["publish"] >= settings.publish_interval_s
         ):
-            payload = state.publish()
+            payloads = state.publish()
             last["publish"] = now
-            if payload is not None:
+            for payload in payloads:
                 put_update(payload)
             published()
         else:

@@ -1,6 +1,7 @@
 """Trust and limits at a real fusion process: the pair comes from the key, a future stamp locks
-nobody out, growth past the cell limit is refused and never saved, a flood is dropped and counted,
-and a second depth process claiming a pair is reported."""
+nobody out, a tile beyond the site's extent is refused at the edge (and a far first tile locks the
+real site out of nothing, nor costs the saved map), growth past the cell limit is refused and never
+saved, a flood is dropped and counted, and a second depth process claiming a pair is reported."""
 
 import time
 from pathlib import Path
@@ -43,15 +44,39 @@ def test_the_pair_is_the_keys_and_a_future_stamp_locks_nobody_out(bus: Bus, tmp_
     assert answer["pairs"]["p0"]["tiles"] == 1 and "p1" not in answer["pairs"]
 
 
+def test_far_first_tiles_are_refused_and_the_real_map_survives_a_restart(
+    bus: Bus, tmp_path: Path
+) -> None:
+    """A 1×1 tile at cell 2**62 was taken into an empty map as a 0×0 window, saved, and at the
+    next start the saved map exceeded --max-cells: the whole state was set aside as corrupt. A
+    first tile at cell 1e7 (500 km) made every real tile fail as growth, restart after restart."""
+    args = ("--save-interval-s", "0.2")  # the default cell limit and extent
+    _start(bus, tmp_path / "state", *args)
+    p0 = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
+    p0.put(tile_payload("p0", Window(2**62, 2**62, 1, 1), 1.0, seq=0))
+    p0.put(tile_payload("p0", Window(10**7, 10**7, 1, 1), 1.0, seq=1))
+    wait_for(lambda: _health(bus)["tiles_rejected"].get("outside_extent") == 2, 10, "both refused")
+    p0.put(tile_payload("p0", W, 3.0, seq=2))  # the real site
+    wait_for(lambda: _health(bus)["tiles_accepted"] == 1, 10, "the real tile")
+    wait_for(lambda: _health(bus)["state"]["saved_version"] >= 1, 10, "a save")
+    bus.stop_all()
+    _start(bus, tmp_path / "state", *args)
+    restored = latest(bus.session)
+    assert restored.window == Window(0, 0, 64, 64)
+    assert restored.occupancy[W.slices_in(restored.window)].min() > 50  # the real tile's cells
+    assert not list((tmp_path / "state").glob("*.corrupt-*"))
+
+
 def test_growth_past_the_cell_limit_is_refused_counted_and_never_saved(
     bus: Bus, tmp_path: Path
 ) -> None:
-    args = ("--max-cells", "200000", "--save-interval-s", "0.2")
+    args = ("--save-interval-s", "0.2")  # the default --max-cells (25 M)
     _start(bus, tmp_path / "state", *args)
     p0 = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
     p0.put(tile_payload("p0", W, 1.0, seq=0))
     wait_for(lambda: _health(bus)["tiles_accepted"] == 1, 10, "a first tile")
-    p0.put(tile_payload("p0", Window(4900, 4900, 1, 1), 1.0, seq=1))  # would need 24 M cells
+    # 750 m away: within the site's extent (1 km), but the map would need 226 M cells
+    p0.put(tile_payload("p0", Window(15000, 15000, 1, 1), 1.0, seq=1))
     wait_for(lambda: _health(bus)["tiles_rejected"].get("growth") == 1, 10, "growth refused")
     p0.put(tile_payload("p0", Window(20, 0, 20, 20), 1.0, seq=2))  # the pair goes on
     wait_for(lambda: _health(bus)["tiles_accepted"] == 2, 10, "the next tile")

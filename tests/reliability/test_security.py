@@ -1,5 +1,6 @@
 """The shipped router config (deploy/zenoh/router.json5: credentials and access control, TLS with
-client certificates) in front of a real fusion process: only the depth role changes the map."""
+client certificates) in front of a real fusion process: only the depth role changes the map, and
+each pair's depth user only its own pair's keys."""
 
 import json
 import subprocess
@@ -14,13 +15,20 @@ import zenoh
 
 from common.client import MapUnavailable, health, latest
 from common.lattice import Window
+from common.occupancy_map import UNKNOWN
 from tests.conftest import PROCESS_LIFETIME_S, REPO, free_port, wait_for
 from tests.tiles import tile_payload
 
 pytestmark = pytest.mark.process
 
 DEPLOY = REPO / "deploy"
-PASSWORDS = {"camera": "pw-camera", "depth": "pw-depth", "fusion": "pw-fusion", "robot": "pw-robot"}
+PASSWORDS = {
+    "camera": "pw-camera",
+    "depth-p0": "pw-depth-p0",
+    "depth-p1": "pw-depth-p1",
+    "fusion": "pw-fusion",
+    "robot": "pw-robot",
+}
 TILE = Window(0, 0, 20, 20)
 
 
@@ -109,7 +117,7 @@ def _answers(session: zenoh.Session) -> bool:
 
 def test_only_the_depth_role_changes_the_map(site: dict[str, Any]) -> None:
     robot = site["robot"]
-    depth = site["session"]("depth", PASSWORDS["depth"])
+    depth = site["session"]("depth-p0", PASSWORDS["depth-p0"])
     rogue = site["session"]("robot", PASSWORDS["robot"])  # valid credentials, wrong role
     rogue.put("depth/p9/tile", tile_payload("p9", TILE, 3.0))
     rogue.declare_queryable("map/latest", lambda q: q.reply("map/latest", b"forged"))
@@ -126,7 +134,24 @@ def test_only_the_depth_role_changes_the_map(site: dict[str, Any]) -> None:
     rogue.close()
 
 
-@pytest.mark.parametrize("user, password", [("depth", "wrong"), (None, None)])
+def test_a_pairs_depth_user_cannot_write_as_another_pair(site: dict[str, Any]) -> None:
+    """One depth box's credential speaks for its own pair only: p1's cannot put p0's tiles, nor
+    hold p0's liveliness token (fusion would report p0 alive, or two processes claiming it)."""
+    robot = site["robot"]
+    p1 = site["session"]("depth-p1", PASSWORDS["depth-p1"])
+    p1.put("depth/p0/tile", tile_payload("p0", TILE, 3.0))
+    token = p1.liveliness().declare_token("depth/p0/alive/forged")
+    p1.put("depth/p1/tile", tile_payload("p1", Window(20, 0, 20, 20), -1.0))  # its own: allowed
+    wait_for(lambda: health(robot)["tiles_accepted"] == 1, 10, "p1's own tile")
+    time.sleep(0.5)
+    answer = health(robot)
+    assert answer["tiles_accepted"] == 1 and set(answer["pairs"]) == {"p1"}
+    assert latest(robot).value_at(0.5, 0.5) == UNKNOWN  # p0's cells: never observed
+    token.undeclare()
+    p1.close()
+
+
+@pytest.mark.parametrize("user, password", [("depth-p0", "wrong"), (None, None)])
 def test_wrong_or_no_credentials_cannot_connect(
     site: dict[str, Any], user: str | None, password: str | None
 ) -> None:

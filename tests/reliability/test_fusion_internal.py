@@ -1,0 +1,103 @@
+"""Fusion's own threads outlive what one message or one save raises: the owner's loop counts a tile
+whose fusing raised anything (memory, numpy, a bug) as rejected ``internal`` and takes the next;
+the state writer counts a save that failed any way and saves again with the next hand-over."""
+
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from common.lattice import Window
+from services.fusion import persistence
+from services.fusion.grid import FusedGrid, GridParams
+from services.fusion.inbox import Delivery, Inbox
+from services.fusion.persistence import StateWriter, load_grid
+from services.fusion.service import FusionState, run
+from services.fusion.settings import FusionSettings
+from tests.conftest import wait_for
+from tests.tiles import tile_payload
+
+
+class FlakyGrid(FusedGrid):
+    """Fails its first tiles the ways fusing one can, then fuses."""
+
+    def __init__(self, params: GridParams) -> None:
+        super().__init__(params)
+        self.failures: list[BaseException] = [
+            MemoryError("cannot allocate"),
+            np.linalg.LinAlgError("singular"),
+            IndexError("index 64 is out of bounds"),
+        ]
+
+    def integrate(self, *args: Any, **kwargs: Any) -> Window:
+        if self.failures:
+            raise self.failures.pop(0)
+        return super().integrate(*args, **kwargs)
+
+
+def test_the_owner_loop_counts_any_exception_of_one_tile_as_internal_and_goes_on(
+    tmp_path: Path,
+) -> None:
+    settings = FusionSettings(state_dir=tmp_path, no_multicast_scouting=True)
+    state = FusionState(settings, FlakyGrid(settings.grid_params()))
+    inbox = Inbox(64, 1 << 24)
+    writer = StateWriter(tmp_path)
+    stop = threading.Event()
+    updates: list[bytes] = []
+    loop = threading.Thread(
+        target=run,
+        args=(settings, state, inbox, writer, stop, updates.append, lambda _: None, lambda: None),
+    )
+    loop.start()
+    for seq in range(5):
+        payload = tile_payload("p0", Window(4 * seq, 0, 4, 4), 3.0, seq=seq)
+        inbox.offer(Delivery("tile", "depth/p0/tile", time.time_ns(), payload))
+        time.sleep(0.05)
+    wait_for(lambda: sum(state.view.accepted.values()) == 2, 5, "the tiles after the failures")
+    assert loop.is_alive()
+    assert state.view.rejected == {"internal": 3}
+    wait_for(lambda: bool(updates), 5, "an update of the fused tiles")
+    stop.set()
+    loop.join(5)
+    writer.close()
+    assert not loop.is_alive()
+
+
+def test_a_save_failing_any_way_is_counted_and_the_next_one_saves(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    grid = FusedGrid(GridParams())
+
+    def fuse(window: Window, stamp_ns: int) -> None:
+        grid.integrate(
+            window,
+            np.full(window.shape, 2.0, np.float32),
+            np.zeros(window.shape, np.float32),
+            np.ones(window.shape, np.uint16),
+            stamp_ns,
+        )
+
+    real = persistence.encode_records
+    calls = []
+
+    def failing_once(*args: Any, **kwargs: Any) -> Any:
+        calls.append(args)
+        if len(calls) == 1:
+            raise ValueError("a bug in the encoder")  # not an OSError: escaped the old writer
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(persistence, "encode_records", failing_once)
+    writer = StateWriter(tmp_path)
+    fuse(Window(0, 0, 10, 10), 10**9)
+    writer.hand_over(*grid.freeze())
+    wait_for(lambda: writer.errors == 1, 5, "the failed save counted")
+    assert writer._thread.is_alive() and writer.saved_version == -1
+    fuse(Window(100, 0, 10, 10), 2 * 10**9)
+    writer.hand_over(*grid.freeze())
+    writer.close()
+    assert writer.saved_version == grid.version and writer.errors == 1
+    restored = load_grid(GridParams(), tmp_path, 1)
+    np.testing.assert_array_equal(restored.layer("logodds"), grid.layer("logodds"))
