@@ -4,6 +4,7 @@ end; every child stopped, none left behind."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import signal
@@ -40,6 +41,8 @@ from services.viewer.address import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, availa
 
 STOP_TIMEOUT_S = 10.0
 LOG_TAIL_LINES = 15
+OPTIONAL_CHILDREN = frozenset({"viewer"})
+"""Children ``up`` runs on without: the map is what matters, the page only shows it."""
 
 
 class UpSettings(ZenohSettings):
@@ -58,6 +61,10 @@ class UpSettings(ZenohSettings):
     )
     ros2: bool = Field(
         False, description="also run the ROS 2 node (overgrid ros2: /map to DDS; the [ros2] extra)"
+    )
+    rmw_zenoh: bool = Field(
+        False,
+        description="also publish natively for rmw_zenoh robots (overgrid rmw-zenoh: no ROS needed)",
     )
     camera_sim: CameraSimParams = Field(
         default_factory=CameraSimParams, description="the simulator (overgrid camera-sim)"
@@ -121,6 +128,8 @@ def child_commands(settings: UpSettings) -> list[tuple[str, list[str]]]:
         commands.append(("viewer", ["view", "--http-port", str(settings.view_port)]))
     if settings.ros2:
         commands.append(("ros2", ["ros2"]))
+    if settings.rmw_zenoh:
+        commands.append(("rmw_zenoh", ["rmw-zenoh"]))
     return [(name, [*args, *session_flags(settings)]) for name, args in commands]
 
 
@@ -154,6 +163,39 @@ def start_children(settings: UpSettings) -> list[Child]:
         )
         children.append(Child(name, process, log_path, log_file))
     return children
+
+
+def without_unservable_viewer(settings: UpSettings) -> UpSettings:
+    """The viewer needs aiohttp (the [view] extra): without it, one line and no page, not a
+    child that dies at once."""
+    if not settings.view or importlib.util.find_spec("aiohttp") is not None:
+        return settings
+    print(
+        "overgrid up: no live map page: `overgrid view` needs aiohttp "
+        "(pip install 'overgrid[view]'); --no-view silences this",
+        file=sys.stderr,
+        flush=True,
+    )
+    return settings.model_copy(update={"view": False})
+
+
+def first_failure(children: list[Child], reported: set[str]) -> Child | None:
+    """The first child that ended and must end ``up`` with it; an optional child that ended is
+    reported once (its name added to ``reported``) and left out."""
+    for child in children:
+        if child.process.poll() is None:
+            continue
+        if child.name not in OPTIONAL_CHILDREN:
+            return child
+        if child.name not in reported:
+            reported.add(child.name)
+            print(
+                f"{child.name} died (exit {child.process.returncode}); the map goes on without "
+                f"it. Its last log lines:\n{child.tail()}",
+                file=sys.stderr,
+                flush=True,
+            )
+    return None
 
 
 def stop_children(children: list[Child]) -> list[str]:
@@ -270,6 +312,7 @@ def save_outputs(
 def main(settings: UpSettings) -> None:
     stop = stop_on_signals()
     settings.out.mkdir(parents=True, exist_ok=True)
+    settings = without_unservable_viewer(settings)
     if settings.view:  # another `up` may hold the port: the URL printed must be this one's
         port = available_port(DEFAULT_HTTP_HOST, settings.view_port)
         settings = settings.model_copy(update={"view_port": port})
@@ -308,11 +351,12 @@ def _supervise(
     answer: dict[str, Any] | None = None
     previous: dict[str, int] = {}
     written: list[Path] = []
+    reported: set[str] = set()
     with open_session(settings) as session:
         scoring = Scoring(session)
         try:
             while not stop.wait(settings.progress_s):
-                failed = next((c for c in children if c.process.poll() is not None), None)
+                failed = first_failure(children, reported)
                 if failed is not None:
                     break
                 elapsed = time.monotonic() - started

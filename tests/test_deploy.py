@@ -25,6 +25,8 @@ from services.fusion.settings import FusionSettings
 from services.ros2 import cdr
 from services.ros2.settings import RmwZenohSettings
 from services.router import RouterSettings
+from services.viewer.address import LOOPBACK_HOSTS
+from services.viewer.server import ViewSettings
 from tests.conftest import PROCESS_LIFETIME_S, REPO, free_port, wait_for
 from tests.reliability.test_security import PASSWORDS, _client_config, certs  # noqa: F401
 from tests.tiles import tile_payload
@@ -35,11 +37,11 @@ SETTINGS: dict[str, type[ZenohSettings]] = {
     "depth": DepthSettings,
     "camera-sim": CameraSimSettings,
     "rmw-zenoh": RmwZenohSettings,
+    "view": ViewSettings,
 }
 
 
-@pytest.mark.parametrize("unit", sorted((REPO / "deploy" / "systemd").glob("*.service")))
-def test_systemd_units_run_commands_that_parse(unit: Path, tmp_path: Path) -> None:
+def _unit_settings(unit: Path, tmp_path: Path) -> ZenohSettings:
     exec_start = next(
         line.split("=", 1)[1]
         for line in unit.read_text().splitlines()
@@ -48,9 +50,22 @@ def test_systemd_units_run_commands_that_parse(unit: Path, tmp_path: Path) -> No
     words = shlex.split(exec_start.replace("%i", "p0").replace("${STATE_DIRECTORY}", str(tmp_path)))
     assert words[0].endswith("/overgrid")
     command, args = words[1], words[2:]
-    settings_cls = SETTINGS[command]
-    settings = parse_settings(settings_cls, args, command, "")
+    return parse_settings(SETTINGS[command], args, command, "")
+
+
+@pytest.mark.parametrize("unit", sorted((REPO / "deploy" / "systemd").glob("*.service")))
+def test_systemd_units_run_commands_that_parse(unit: Path, tmp_path: Path) -> None:
+    settings = _unit_settings(unit, tmp_path)
     assert settings.config is not None and settings.config.name.endswith(".json5")
+
+
+def test_the_viewer_unit_reads_as_the_robot_user_and_serves_loopback(tmp_path: Path) -> None:
+    settings = _unit_settings(REPO / "deploy" / "systemd" / "overgrid-view.service", tmp_path)
+    assert isinstance(settings, ViewSettings)
+    assert settings.config is not None and settings.config.name == "robot.json5"
+    assert settings.http_host in LOOPBACK_HOSTS and settings.token is None  # overgrid.env opens it
+    example = (REPO / "deploy" / "zenoh" / "credentials.txt.example").read_text()
+    assert any(line.startswith("robot:") for line in example.splitlines())
 
 
 @pytest.mark.parametrize("name", ["router.json5", "client.json5"])
@@ -111,7 +126,7 @@ def test_the_router_lets_the_ros2_user_publish_the_map_and_no_more(
         )
 
     processes = [start("fusion", "fusion", "--state-dir", str(tmp_path / "state"))]
-    robot, rogue_robot, depth = session("robot"), session("robot"), session("depth")
+    robot, rogue_robot, depth = session("robot"), session("robot"), session("depth-p0")
     try:
 
         def fused() -> bool:
@@ -134,10 +149,11 @@ def test_the_router_lets_the_ros2_user_publish_the_map_and_no_more(
             replies = robot.liveliness().get(f"@ros2_lv/{DOMAIN}/**", timeout=2)
             return [str(r.ok.key_expr) for r in replies if r.ok is not None]
 
-        wait_for(lambda: len(graph()) == 6, 10, "the node and its five publishers in the graph")
+        wait_for(lambda: len(graph()) == 7, 10, "the node and its six publishers in the graph")
         assert sum("/NN/%/%/overgrid_map" in token for token in graph()) == 1
         maps = _late_joiner(robot, _data_key("map", cdr.OCCUPANCY_GRID))
         transforms = _late_joiner(robot, _data_key("tf_static", cdr.TF_MESSAGE))
+        detections = _late_joiner(robot, _data_key("map_detections", cdr.DETECTION_3D_ARRAY))
         grid = cdr.decode(
             "jazzy", bytes(maps[1].get(timeout=10).payload.to_bytes()), cdr.OCCUPANCY_GRID
         )
@@ -146,6 +162,9 @@ def test_the_router_lets_the_ros2_user_publish_the_map_and_no_more(
         assert cdr.decode("jazzy", raw_tf, cdr.TF_MESSAGE).transforms[0].child_frame_id == (
             "overgrid_world"
         )
+        # The objects as fusion serves them at start (none tracked): the typed topic passes too.
+        raw_detections = bytes(detections[1].get(timeout=10).payload.to_bytes())
+        assert cdr.decode("jazzy", raw_detections, cdr.DETECTION_3D_ARRAY).detections == []
 
         # The viewer behind the router connects as a robot and shows the map.
         port = free_port()
@@ -189,14 +208,14 @@ def test_the_router_lets_the_ros2_user_publish_the_map_and_no_more(
 
         wait_for(update_seen, 10, "a /map_updates sample at the robot")
         assert cmd_vel not in received and forged_map not in received
-        assert len(graph()) == 6 and not any("/ff/" in token for token in graph())
+        assert len(graph()) == 7 and not any("/ff/" in token for token in graph())
         replies = [r.ok.payload.to_bytes() for r in robot.get("map/latest", timeout=2) if r.ok]
         assert replies and b"forged" not in replies
         for token in intruders:
             token.undeclare()  # type: ignore[no-untyped-call]
         forger.undeclare()  # type: ignore[no-untyped-call]
         watcher.undeclare()  # type: ignore[no-untyped-call]
-        for subscriber, _ in (maps, transforms):
+        for subscriber, _ in (maps, transforms, detections):
             subscriber.undeclare()  # type: ignore[no-untyped-call]
         rogue_ros2.close()  # type: ignore[no-untyped-call]
     finally:

@@ -1,17 +1,22 @@
 """The map and its objects as ROS 2 message fields (services/ros2/grid_message.py,
-object_markers.py) and their CDR (rosbags)."""
+object_markers.py), their CDR (rosbags) against rclpy's, and the type hashes of the messages
+registered from their definitions (map_msgs, vision_msgs)."""
 
 from __future__ import annotations
 
+import importlib
 import math
+from typing import Any
 
 import numpy as np
 import pytest
+from rosbags.interfaces import Nodetype
+from rosbags.typesys.store import Typestore
 
 from common.lattice import Window
 from common.messages import ObjectsHeader, TrackedObject
 from common.occupancy_map import UNKNOWN, OccupancyMap
-from services.ros2 import cdr
+from services.ros2 import cdr, node
 from services.ros2.grid_message import (
     PlanarPose,
     changed_window,
@@ -150,6 +155,7 @@ def test_marker_array_clears_then_adds_one_cube_per_object(distro: cdr.Distro) -
     array = cdr.decode(distro, cdr.marker_array_cdr(distro, markers), cdr.MARKER_ARRAY)
     clear, cube = array.markers
     assert (clear.ns, clear.action) == (NAMESPACE, cdr.MARKER_DELETEALL)
+    assert clear.pose.orientation.w == 1.0  # the .msg default, as rclpy gives it
     assert (cube.ns, cube.id, cube.type, cube.action) == (NAMESPACE, 5, cdr.MARKER_CUBE, 0)
     assert (cube.pose.position.x, cube.pose.position.y, cube.pose.position.z) == pytest.approx(
         (1.0, 2.0, 0.6)
@@ -181,3 +187,149 @@ def test_tf_static_carries_the_world_in_the_map_frame(distro: cdr.Distro) -> Non
     assert origin == pytest.approx((10.0, -1.0, 0.0))
     if distro != "humble":
         assert cdr.type_hash(distro, cdr.TF_MESSAGE) == TF_MESSAGE_HASH
+
+
+VISION_MSGS_HASHES = {
+    cdr.DETECTION_3D_ARRAY: "RIHS01_793f5eab9595ac1c0da07873cc859db42eae51f0ee76056db8562515d830e018",
+    cdr.DETECTION_3D: "RIHS01_ddd703be132ab0b69d33121f1bb034132bfbb3b0ac5f9fb1516005ba1c8a265b",
+    cdr.BOUNDING_BOX_3D: "RIHS01_bbb73a65c163d7f9bb29009c7bde9f7faa576bd2d23299c4511d19230dab4698",
+    cdr.OBJECT_HYPOTHESIS_WITH_POSE: (
+        "RIHS01_41c12344c0396c48b81df12467c192d99b2a0eb1463c5c37194e4223251c80bc"
+    ),
+    cdr.OBJECT_HYPOTHESIS: "RIHS01_51da43cec11c01957a64d1e05a24acd18aae7745ec30b74348ad5f6d634f7f90",
+}
+"""vision_msgs 4.x's hashes as rosidl generated them (rosidl_generator_c's
+detection3_d_array__description.c of a vision_msgs build: its own hash and its referenced types'
+EXPECTED_HASH); no vision_msgs wheel ships its .json to read them from."""
+
+
+@pytest.mark.parametrize("distro", ["jazzy", "kilted"])
+def test_registered_vision_msgs_have_rosidls_type_hashes(distro: cdr.Distro) -> None:
+    for ros_type, expected in VISION_MSGS_HASHES.items():
+        assert cdr.type_hash(distro, ros_type) == expected, ros_type
+
+
+@pytest.mark.parametrize("distro", ["humble", "jazzy"])
+def test_detection_array_carries_each_track_typed(distro: cdr.Distro) -> None:
+    markers = object_markers(tracked_objects(), "site", PlanarPose(10.0, 0.0, math.pi / 2))
+    raw = cdr.detection_array_cdr(distro, markers)
+    assert raw[:4] == b"\x00\x01\x00\x00"
+    array = cdr.decode(distro, raw, cdr.DETECTION_3D_ARRAY)
+    (detection,) = array.detections
+    assert (array.header.frame_id, detection.header.frame_id, detection.id) == ("site", "site", "5")
+    assert (array.header.stamp.sec, array.header.stamp.nanosec) == stamp_parts(STAMP_NS)
+    center, size = detection.bbox.center, detection.bbox.size
+    assert (center.position.x, center.position.y, center.position.z) == pytest.approx(
+        (8.0, 1.0, 0.6)
+    )
+    yaw = 0.3 + math.pi / 2
+    assert (center.orientation.z, center.orientation.w) == pytest.approx(
+        (math.sin(yaw / 2), math.cos(yaw / 2))
+    )
+    assert (size.x, size.y, size.z) == pytest.approx((0.8, 0.4, 1.2))
+    (result,) = detection.results
+    assert (result.hypothesis.class_id, result.hypothesis.score) == ("moving", 1.0)
+    assert result.pose.pose.position.x == center.position.x
+    assert not np.asarray(result.pose.covariance).any()  # unknown, not "exact"
+    none = object_markers(
+        ObjectsHeader(version=1, stamp_ns=STAMP_NS, objects=[]), "map", PlanarPose()
+    )
+    raw_none = cdr.detection_array_cdr(distro, none)
+    assert cdr.decode(distro, raw_none, cdr.DETECTION_3D_ARRAY).detections == []
+
+
+CDR_ALIGNMENT_BYTES = {
+    "bool": 1, "byte": 1, "char": 1, "int8": 1, "uint8": 1, "int16": 2, "uint16": 2,
+    "int32": 4, "uint32": 4, "float32": 4, "int64": 8, "uint64": 8, "float64": 8,
+}  # fmt: skip
+"""Size, and so alignment, of each primitive in ROS 2's CDR (XCDR1: 8-byte types align to 8)."""
+ENCAPSULATION_BYTES = 4
+
+
+def padding_offsets(store: Typestore, ros_type: str, message: Any) -> tuple[set[int], int]:
+    """Offsets of CDR's alignment padding in a message's bytes (encapsulation header included),
+    from walking its layout: each primitive starts at a multiple of its size counted from the end
+    of the header; a string is a uint32 length, then its bytes and a NUL; a sequence a uint32
+    length, then its items. Also the total size, to check the walk against the bytes."""
+    padding: set[int] = set()
+    position = 0
+
+    def align(size: int) -> None:
+        nonlocal position
+        skip = -position % size
+        padding.update(range(ENCAPSULATION_BYTES + position, ENCAPSULATION_BYTES + position + skip))
+        position += skip
+
+    def walk(kind: Nodetype, detail: Any, value: Any) -> None:
+        nonlocal position
+        if kind == Nodetype.NAME:
+            for name, (field_kind, field_detail) in store.fielddefs[detail][1]:
+                walk(field_kind, field_detail, getattr(value, name))
+        elif kind == Nodetype.BASE and detail[0] == "string":
+            align(4)
+            position += 4 + len(value.encode()) + 1
+        elif kind == Nodetype.BASE:
+            align(CDR_ALIGNMENT_BYTES[detail[0]])
+            position += CDR_ALIGNMENT_BYTES[detail[0]]
+        else:
+            (item_kind, item_detail), _count = detail
+            if kind == Nodetype.SEQUENCE:
+                align(4)
+                position += 4
+            for item in value:
+                walk(item_kind, item_detail, item)
+
+    walk(Nodetype.NAME, ros_type, message)
+    return padding, ENCAPSULATION_BYTES + position
+
+
+def test_cdr_equals_rclpys_serialize_message_outside_alignment_padding() -> None:
+    """The same messages, built by the rclpy node's own builders (services/ros2/node.py) and
+    serialised by rclpy's ``serialize_message``, and by rosbags for the native output: equal byte
+    for byte but for CDR's alignment padding, and rosbags reads rclpy's bytes back into exactly
+    its own.
+
+    Why not strict equality: rmw_fastrtps serialises with Fast CDR into a freshly allocated buffer
+    and skips alignment padding without writing it, so those bytes are whatever the allocation
+    held (an OccupancyGrid's offsets 40-43, before the origin pose's first float64, came out 0x51
+    in one run and otherwise in others); rosbags writes zeros there. Subscribers never read
+    padding, so only these bytes may differ."""
+    serialization = importlib.import_module("rclpy.serialization")
+    nav, sensor = node.ros_messages("nav_msgs"), node.ros_messages("sensor_msgs")
+    visualization = node.ros_messages("visualization_msgs")
+    occupancy_map = a_map()
+    grid = grid_message(occupancy_map, "map", PlanarPose(1.0, 2.0, 0.3))
+    image = height_image(occupancy_map, "map")
+    markers = object_markers(tracked_objects(), "map", PlanarPose(1.0, 2.0, 0.3))
+    cases = [
+        (
+            cdr.OCCUPANCY_GRID,
+            cdr.occupancy_grid_cdr("kilted", grid),
+            node.occupancy_grid_msg(nav.OccupancyGrid, grid),
+        ),
+        (
+            cdr.IMAGE,
+            cdr.height_image_cdr("kilted", image),
+            node.height_image_msg(sensor.Image, image),
+        ),
+        (
+            cdr.MARKER_ARRAY,
+            cdr.marker_array_cdr("kilted", markers),
+            node.marker_array_msg(visualization.Marker, visualization.MarkerArray, markers),
+        ),
+    ]
+    store = cdr.typestore("kilted")
+    for ros_type, ours, message in cases:
+        theirs = bytes(serialization.serialize_message(message))
+        padding, size = padding_offsets(store, ros_type, store.deserialize_cdr(ours, ros_type))
+        assert len(theirs) == len(ours) == size, ros_type
+        assert all(ours[at] == 0 for at in padding)
+        differing = {at for at in range(size) if ours[at] != theirs[at]}
+        assert differing <= padding, (ros_type, sorted(differing - padding))
+        again = store.serialize_cdr(store.deserialize_cdr(theirs, ros_type), ros_type)
+        assert bytes(again) == ours, ros_type
+    # The grid's padding is where the audit saw rclpy's bytes differ: before the origin pose.
+    grid_padding, _ = padding_offsets(
+        store, cdr.OCCUPANCY_GRID, store.deserialize_cdr(cases[0][1], cdr.OCCUPANCY_GRID)
+    )
+    assert grid_padding == {40, 41, 42, 43}

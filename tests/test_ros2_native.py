@@ -1,7 +1,8 @@
 """``overgrid rmw-zenoh`` beside a real fusion process, checked against rmw_zenoh's conventions
 (no rmw_zenoh_cpp exists here): keys, liveliness graph tokens, attachment, CDR that rosbags and
 rclpy read back, the cached /map and /tf_static for a late joiner, /map_updates keeping its copy
-equal, the objects as markers."""
+equal, the objects as markers and as a vision_msgs/Detection3DArray, cached with the height layer
+for late joiners too."""
 
 from __future__ import annotations
 
@@ -42,6 +43,24 @@ def shipped_type_hash(package: str, name: str) -> str:
     path = Path(sys.prefix) / "share" / package / "msg" / f"{name}.json"
     description = json.loads(path.read_text())
     return str(description["type_hashes"][0]["hash_string"])
+
+
+def late_joiner(
+    session: zenoh.Session, key: str
+) -> tuple[zenoh.ext.AdvancedSubscriber[None], queue.Queue[zenoh.Sample]]:
+    """Subscribed as rmw_zenoh subscribes a reliable transient_local reader
+    (rmw_subscription_data.cpp, SubscriptionData::init): an advanced subscriber on the exact key
+    that detects late publishers, queries their cache and recovers by heartbeat."""
+    samples: queue.Queue[zenoh.Sample] = queue.Queue()
+    subscriber = zenoh.ext.declare_advanced_subscriber(
+        session,
+        key,
+        samples.put,
+        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+        recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+        subscriber_detection=True,
+    )
+    return subscriber, samples
 
 
 def graph_tokens(session: zenoh.Session) -> list[str]:
@@ -93,6 +112,18 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
         f"tf2_msgs::msg::dds_::TFMessage_/{tf_hash}/:1:,1:,:,:,,"
     )
     assert tf_token in tokens  # as tf2_ros's static broadcaster: transient_local, depth 1
+    image_hash = cdr.type_hash("jazzy", cdr.IMAGE)
+    marker_hash = cdr.type_hash("jazzy", cdr.MARKER_ARRAY)
+    detections_hash = cdr.type_hash("jazzy", cdr.DETECTION_3D_ARRAY)
+    latched = [  # transient_local, depth 1, like /map: a late joiner gets the last one
+        f"3/MP/%/%/overgrid_map/%map_height/sensor_msgs::msg::dds_::Image_/{image_hash}",
+        f"4/MP/%/%/overgrid_map/%map_objects/visualization_msgs::msg::dds_::MarkerArray_/"
+        f"{marker_hash}",
+        f"6/MP/%/%/overgrid_map/%map_detections/vision_msgs::msg::dds_::Detection3DArray_/"
+        f"{detections_hash}",
+    ]
+    for endpoint in latched:
+        assert f"@ros2_lv/{DOMAIN}/{zid}/0/{endpoint}/:1:,1:,:,:,," in tokens
 
     # A late joiner, subscribed as rmw_zenoh subscribes a reliable transient_local reader
     # (rmw_subscription_data.cpp, SubscriptionData::init): an advanced subscriber on the exact key
@@ -110,8 +141,7 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
     updates_subscriber = bus.session.declare_subscriber(UPDATES_KEY + updates_hash, updates.put)
     heights: queue.Queue[zenoh.Sample] = queue.Queue()
     heights_subscriber = bus.session.declare_subscriber(
-        f"{DOMAIN}/map_height/sensor_msgs::msg::dds_::Image_/{cdr.type_hash('jazzy', cdr.IMAGE)}",
-        heights.put,
+        f"{DOMAIN}/map_height/sensor_msgs::msg::dds_::Image_/{image_hash}", heights.put
     )
     transforms: queue.Queue[zenoh.Sample] = queue.Queue()
     late_tf = zenoh.ext.declare_advanced_subscriber(
@@ -185,7 +215,6 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
     heights_subscriber.undeclare()  # type: ignore[no-untyped-call]
 
     # A map/objects put becomes a MarkerArray: a DELETEALL, then a CUBE per tracked object.
-    marker_hash = cdr.type_hash("jazzy", cdr.MARKER_ARRAY)
     assert marker_hash == shipped_type_hash("visualization_msgs", "MarkerArray")
     arrays: queue.Queue[zenoh.Sample] = queue.Queue()
     markers_subscriber = bus.session.declare_subscriber(
@@ -203,6 +232,32 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
 
     wait_for(lambda: cubes() == [5], 10, "the tracked object as a cube")
     markers_subscriber.undeclare()  # type: ignore[no-untyped-call]
+
+    # Late joiners get the last objects, markers and typed, and the last height layer from the
+    # publishers' caches: nothing is published while they subscribe (the objects and the map do
+    # not change any more).
+    objects_key = f"{DOMAIN}/map_objects/visualization_msgs::msg::dds_::MarkerArray_/{marker_hash}"
+    detections_key = (
+        f"{DOMAIN}/map_detections/vision_msgs::msg::dds_::Detection3DArray_/{detections_hash}"
+    )
+    height_key = f"{DOMAIN}/map_height/sensor_msgs::msg::dds_::Image_/{image_hash}"
+    joiners = {
+        key: late_joiner(bus.session, key) for key in (objects_key, detections_key, height_key)
+    }
+    raw_markers = bytes(joiners[objects_key][1].get(timeout=10).payload.to_bytes())
+    late_markers = cdr.decode("jazzy", raw_markers, cdr.MARKER_ARRAY).markers
+    assert [m.id for m in late_markers if m.type == cdr.MARKER_CUBE] == [5]
+    raw_detections = bytes(joiners[detections_key][1].get(timeout=10).payload.to_bytes())
+    (detection,) = cdr.decode("jazzy", raw_detections, cdr.DETECTION_3D_ARRAY).detections
+    assert detection.id == "5" and detection.results[0].hypothesis.class_id == "moving"
+    assert (detection.bbox.size.x, detection.bbox.size.y) == pytest.approx((0.8, 0.4))
+    assert (detection.bbox.center.position.x, detection.bbox.center.position.y) == pytest.approx(
+        (1.0 + 1.5, 2.0 - 2.0)  # the object's centre, moved by --world-in-map
+    )
+    raw_late_image = bytes(joiners[height_key][1].get(timeout=10).payload.to_bytes())
+    assert cdr.decode("jazzy", raw_late_image, cdr.IMAGE).width == grid.info.width
+    for subscriber, _ in joiners.values():
+        subscriber.undeclare()  # type: ignore[no-untyped-call]
 
     # Stopped, it leaves the robots' graph: its tokens go with it.
     native.send_signal(signal.SIGINT)

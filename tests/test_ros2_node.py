@@ -1,6 +1,7 @@
 """``overgrid ros2`` as a real rclpy node beside a real fusion process: a real rclpy subscriber
-started after the map exists gets /map (transient_local) equal to map/latest cell for cell, then a
-newer /map after tiles change it, the height layer, and the objects as markers.
+started after the map exists gets /map (transient_local, remapped the ROS way) equal to map/latest
+cell for cell, then a newer /map equal to the newer map/latest after each of several tile changes,
+the height layer, and the objects as markers.
 
 DDS isolation: rmw_fastrtps_cpp on a random domain id, discovery kept to this host, and topic names
 of this run only, so concurrent runs never cross."""
@@ -8,13 +9,19 @@ of this run only, so concurrent runs never cross."""
 from __future__ import annotations
 
 import json
+import queue
 import random
 import signal
 import subprocess
 import sys
+import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import IO, Any
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 from common import keys
@@ -22,6 +29,7 @@ from common.client import latest
 from common.codec import encode
 from common.lattice import Window
 from common.messages import OBJECTS_KIND
+from common.occupancy_map import OccupancyMap
 from tests.conftest import REPO, Bus, wait_for
 from tests.test_ros2_messages import tracked_objects
 from tests.test_ros2_native import start_fusion_with_a_tile
@@ -30,9 +38,11 @@ from tests.tiles import tile_payload
 pytestmark = pytest.mark.process
 
 FIRST, SECOND = Window(-4, 2, 30, 20), Window(0, 5, 6, 4)
-SUBSCRIBER_LIFETIME_S = 60
+TILE_CHANGES = 3
+SUBSCRIBER_LIFETIME_S = 90
+LINE_TIMEOUT_S = 20
 SUBSCRIBER = """
-import json, sys, time
+import json, sys, threading, time
 import rclpy
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from nav_msgs.msg import OccupancyGrid
@@ -40,40 +50,35 @@ from sensor_msgs.msg import Image
 from visualization_msgs.msg import Marker, MarkerArray
 
 deadline, prefix = time.monotonic() + float(sys.argv[1]), sys.argv[2]
+stop = threading.Event()  # the test closes our stdin when it has seen enough
+threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
 rclpy.init()
 node = rclpy.create_node("overgrid_test_subscriber")
-maps, heights, cubes = [], [], []
-qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
+latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 def on_map(msg):
     o = msg.info.origin
-    maps.append({"frame_id": msg.header.frame_id, "width": msg.info.width,
-                 "height": msg.info.height, "resolution": msg.info.resolution,
-                 "origin": [o.position.x, o.position.y, o.orientation.z, o.orientation.w],
-                 "data": list(msg.data)})
-    print(json.dumps({"map": maps[-1]}), flush=True)
+    print(json.dumps({"map": {"frame_id": msg.header.frame_id, "width": msg.info.width,
+                              "height": msg.info.height, "resolution": msg.info.resolution,
+                              "origin": [o.position.x, o.position.y, o.orientation.z,
+                                         o.orientation.w],
+                              "data": list(msg.data)}}), flush=True)
 
 def on_height(msg):
-    heights.append(msg)
     print(json.dumps({"height": {"encoding": msg.encoding, "width": msg.width,
                                  "height": msg.height, "step": msg.step}}), flush=True)
 
 def on_objects(msg):
-    cubes.extend(m.id for m in msg.markers if m.type == Marker.CUBE)
-    print(json.dumps({"cubes": cubes}), flush=True)
+    print(json.dumps({"cubes": [m.id for m in msg.markers if m.type == Marker.CUBE]}), flush=True)
 
-node.create_subscription(OccupancyGrid, prefix + "/map", on_map, qos)
-node.create_subscription(MarkerArray, prefix + "/map_objects", on_objects, 1)
-node.create_subscription(Image, prefix + "/map_height", on_height, 1)
-def done():  # a /map that differs from the first one, a height image, a cube
-    return bool(heights and cubes) and any(m["data"] != maps[0]["data"] for m in maps[1:])
-
-while time.monotonic() < deadline and not done():
+node.create_subscription(OccupancyGrid, prefix + "/site/map", on_map, latched)
+node.create_subscription(MarkerArray, prefix + "/map_objects", on_objects, latched)
+node.create_subscription(Image, prefix + "/map_height", on_height, latched)
+while time.monotonic() < deadline and not stop.is_set():
     rclpy.spin_once(node, timeout_sec=0.1)
 node.destroy_node()
 rclpy.shutdown()
-sys.exit(0 if done() else 1)
 """
 
 
@@ -89,7 +94,50 @@ def ros_env(monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
     return env
 
 
-def test_rclpy_subscriber_gets_map_then_newer_map(
+class Lines:
+    """The subscriber's JSON lines as they come (a reader thread), one queue per kind of line, so
+    the test can wait for the next of one kind without losing the others."""
+
+    def __init__(self, stream: IO[str], kinds: tuple[str, ...]) -> None:
+        self._queues: dict[str, queue.Queue[Any]] = {kind: queue.Queue() for kind in kinds}
+        threading.Thread(target=self._read, args=(stream,), daemon=True).start()
+
+    def _read(self, stream: IO[str]) -> None:
+        for line in stream:
+            if line.strip():
+                ((kind, value),) = json.loads(line).items()
+                self._queues[kind].put(value)
+
+    def next(self, kind: str, matches: Callable[[Any], bool], what: str) -> Any:
+        """The next ``kind`` line that ``matches`` (earlier ones of that kind are dropped), or an
+        assertion error after the timeout."""
+        deadline = time.monotonic() + LINE_TIMEOUT_S
+        while (remaining := deadline - time.monotonic()) > 0:
+            try:
+                value = self._queues[kind].get(timeout=remaining)
+            except queue.Empty:
+                break
+            if matches(value):
+                return value
+        raise AssertionError(f"the subscriber got no {what} in {LINE_TIMEOUT_S} s")
+
+
+def cells(grid: dict[str, Any]) -> npt.NDArray[np.int8]:
+    return np.array(grid["data"], np.int8).reshape(grid["height"], grid["width"])
+
+
+def newer_map(bus: Bus, version: int, what: str) -> OccupancyMap:
+    """map/latest once it is newer than ``version``."""
+    deadline = time.monotonic() + LINE_TIMEOUT_S
+    while time.monotonic() < deadline:
+        current = latest(bus.session, timeout_s=5)
+        if current.version > version:
+            return current
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def test_rclpy_subscriber_gets_map_then_each_newer_map(
     bus: Bus, tmp_path: Path, ros_env: dict[str, str]
 ) -> None:
     tiles = start_fusion_with_a_tile(bus, tmp_path, FIRST)
@@ -107,27 +155,35 @@ def test_rclpy_subscriber_gets_map_then_newer_map(
         "0.2",
         "--height-interval-s",
         "0.2",
-        # Settings as node parameters, the ROS way; overgrid's (Zenoh) flags follow the "--".
-        *("--ros-args", "-p", "frame_id:=site", "-p", "world_in_map:=1,2,0", "--"),
+        # Settings as node parameters and a remapping, the ROS way; overgrid's (Zenoh) flags follow
+        # the "--".
+        *("--ros-args", "-p", "frame_id:=site", "-p", "world_in_map:=1,2,0"),
+        *("-r", f"{prefix}/map:={prefix}/site/map", "--"),
         log_path=node_log,
     )
     wait_for(lambda: b"first map published" in node_log.read_bytes(), 60, "the node's first /map")
-    # No wheel ships map_msgs or tf2_msgs: the node says at start what it does not publish.
+    # No wheel ships map_msgs, tf2_msgs or vision_msgs: the node says at start what it does not
+    # publish.
     said = node_log.read_text()
     assert "map_msgs is not importable" in said and "/map_updates is not published" in said
     assert "tf2_msgs is not importable" in said and "/tf_static is not published" in said
+    assert "vision_msgs is not importable" in said and "/map_detections is not published" in said
     subscriber = subprocess.Popen(
         [
             *("timeout", "-s", "INT", "-k", "5", str(SUBSCRIBER_LIFETIME_S)),
             *(sys.executable, "-c", SUBSCRIBER, str(SUBSCRIBER_LIFETIME_S - 10), prefix),
         ],
         cwd=REPO,
+        stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
     )
+    assert subscriber.stdout is not None and subscriber.stdin is not None
+    lines = Lines(subscriber.stdout, ("map", "height", "cubes"))
     try:
-        first = json.loads(subscriber.stdout.readline())["map"]  # type: ignore[union-attr]
+        # Started after the map exists, on the remapped name: the latched /map.
+        first = lines.next("map", lambda _: True, "first /map")
         fused = latest(bus.session, timeout_s=10)
         rows, cols = fused.occupancy.shape
         assert (first["width"], first["height"]) == (cols, rows)
@@ -135,26 +191,34 @@ def test_rclpy_subscriber_gets_map_then_newer_map(
         assert first["resolution"] == pytest.approx(0.05)
         x0, y0 = fused.origin_m
         assert first["origin"] == pytest.approx([x0 + 1, y0 + 2, 0.0, 1.0])
-        assert np.array_equal(np.array(first["data"], np.int8).reshape(rows, cols), fused.occupancy)
+        assert np.array_equal(cells(first), fused.occupancy)
+        height = lines.next("height", lambda _: True, "height image")
+        assert height == {"encoding": "32FC1", "width": cols, "height": rows, "step": cols * 4}
 
-        # A tile changes the map: a newer /map follows, equal to the newer map/latest. A
-        # map/objects put: a MarkerArray with its box.
-        tiles.put(tile_payload("p0", SECOND, -2.0, seq=10**12))
+        # Tiles keep changing the map: after each change a newer /map equal to the newer
+        # map/latest arrives.
+        before = fused
+        for change in range(1, TILE_CHANGES + 1):
+            seq = time.monotonic_ns() // 1000
+            tiles.put(tile_payload("p0", SECOND, 2.0 * (-1) ** change, seq=seq))
+            now = newer_map(bus, before.version, f"tile change {change} fused")
+            assert not np.array_equal(now.occupancy, before.occupancy)
+
+            def is_now(grid: dict[str, Any], target: npt.NDArray[np.int8] = now.occupancy) -> bool:
+                return bool(np.array_equal(cells(grid), target))
+
+            lines.next("map", is_now, f"/map equal to map/latest after tile change {change}")
+            before = now
+
+        # A map/objects put: a MarkerArray with its box.
         bus.session.put(keys.MAP_OBJECTS, encode(OBJECTS_KIND, tracked_objects(version=10**6)))
-        output, errors = subscriber.communicate(timeout=SUBSCRIBER_LIFETIME_S)
+        assert lines.next("cubes", lambda ids: ids == [5], "cube of the tracked object") == [5]
+        subscriber.stdin.close()
+        subscriber.wait(20)
     finally:
         if subscriber.poll() is None:
             subscriber.kill()
-    assert subscriber.returncode == 0, errors[-2000:]
-    lines = [json.loads(line) for line in output.splitlines() if line.strip()]
-    newer = [line["map"] for line in lines if "map" in line][-1]
-    now = latest(bus.session, timeout_s=10)
-    assert np.array_equal(
-        np.array(newer["data"], np.int8).reshape(now.occupancy.shape), now.occupancy
-    )
-    height = next(line["height"] for line in lines if "height" in line)
-    assert height == {"encoding": "32FC1", "width": cols, "height": rows, "step": cols * 4}
-    assert next(line["cubes"] for line in lines if line.get("cubes")) == [5]
+    assert subscriber.returncode == 0, subscriber.stderr.read()[-2000:]  # type: ignore[union-attr]
     # It stops cleanly: no spinning thread left to abort the process at exit.
     node_process.send_signal(signal.SIGINT)
     assert node_process.wait(20) == 0, node_log.read_text()[-2000:]

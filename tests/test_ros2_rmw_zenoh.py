@@ -1,5 +1,7 @@
 """rmw_zenoh's conventions (services/ros2/rmw_zenoh.py) against its source's rules and examples:
-liveliness_utils.cpp (keys, tokens, QoS), attachment_helpers.cpp, the zenoh serialization format."""
+docs/design.md's literal keys and tokens, liveliness_utils.cpp (keys, tokens, QoS),
+attachment_helpers.cpp, the zenoh serialization format; the native sink's keys for a domain and a
+distro."""
 
 from __future__ import annotations
 
@@ -12,8 +14,10 @@ from pathlib import Path
 import pytest
 import xxhash
 
+from common.zenoh_session import open_session
 from services.ros2 import cdr
 from services.ros2.environment import ros_environment
+from services.ros2.native import NativeSink
 from services.ros2.node import split_ros_args
 from services.ros2.rmw_zenoh import (
     DEFAULT_QOS,
@@ -30,10 +34,53 @@ from services.ros2.rmw_zenoh import (
     qos_keyexpr,
     topic_keyexpr,
 )
-from services.ros2.settings import Ros2Settings
+from services.ros2.settings import RmwZenohSettings, Ros2Settings
 
 MAP_QOS = TopicQos(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, History.KEEP_LAST, 1)
 ZID = "4bf9c8b6f3cbb1d2a6cd0c2d1fa5e4e1"
+
+# Verbatim from ros2/rmw_zenoh, docs/design.md (commit 99a6a2bd10b949052f4f12c5854825dc005e95a5):
+# "Topic and Service name mapping to Zenoh key expressions" and "Graph Cache", the examples with
+# demo_nodes_cpp's talker and listener and example_interfaces' add_two_ints.
+DESIGN_STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+DESIGN_ADD_TWO_INTS_HASH = "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a"
+DESIGN_CHATTER_KEY = (
+    "0/chatter/std_msgs::msg::dds_::String_/"
+    "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+)
+DESIGN_ROBOT1_CHATTER_KEY = (
+    "0/robot1/chatter/std_msgs::msg::dds_::String_/"
+    "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+)
+DESIGN_ADD_TWO_INTS_KEY = (
+    "2/add_two_ints/example_interfaces::srv::dds_::AddTwoInts_/"
+    "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a"
+)
+DESIGN_LISTENER_NODE_TOKEN = "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
+DESIGN_TALKER_PUBLISHER_TOKEN = (
+    "@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/"
+    "std_msgs::msg::dds_::String_/"
+    "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,7:,:,:,,"
+)
+
+
+def test_keys_and_tokens_are_rmw_zenohs_design_examples_exactly() -> None:
+    string_type, add_two_ints = "std_msgs/msg/String", "example_interfaces/srv/AddTwoInts"
+    # rosbags computes the same type hash the example carries.
+    assert cdr.type_hash("jazzy", string_type) == DESIGN_STRING_HASH
+    assert topic_keyexpr(0, "/chatter", string_type, DESIGN_STRING_HASH) == DESIGN_CHATTER_KEY
+    robot1 = topic_keyexpr(0, "/robot1/chatter", string_type, DESIGN_STRING_HASH)
+    assert robot1 == DESIGN_ROBOT1_CHATTER_KEY
+    service = topic_keyexpr(2, "/add_two_ints", add_two_ints, DESIGN_ADD_TWO_INTS_HASH)
+    assert service == DESIGN_ADD_TWO_INTS_KEY
+    listener = NodeIdentity(2, "aac3178e146ba6f1fc6e6a4085e77f21", 0, "listener")
+    assert listener.node_token() == DESIGN_LISTENER_NODE_TOKEN
+    talker = NodeIdentity(2, "8b20917502ee955ac4476e0266340d5c", 0, "talker")
+    # demo_nodes_cpp's talker: reliable, volatile, keep_last 7 (rmw_zenoh's defaults but depth).
+    token = talker.publisher_token(
+        10, "/chatter", string_type, DESIGN_STRING_HASH, TopicQos(depth=7)
+    )
+    assert token == DESIGN_TALKER_PUBLISHER_TOKEN
 
 
 def parse_qos(keyexpr: str) -> TopicQos:
@@ -120,9 +167,58 @@ def test_attachment_is_zenoh_serialized_seq_stamp_gid() -> None:
         attachment(1, 1, b"short")
 
 
+def _sink_keys(settings: RmwZenohSettings) -> tuple[str, list[str], list[str]]:
+    """(node token, data keys, publisher tokens) of a native sink on a session of its own."""
+    with open_session(settings) as session:
+        sink = NativeSink(session, settings)
+        try:
+            publishers = [sink.map, sink.updates, sink.height, sink.objects, sink.tf_static]
+            publishers.append(sink.detections)
+            return (
+                sink.node.node_token(),
+                [p.key for p in publishers],
+                [p.token_key for p in publishers],
+            )
+        finally:
+            sink.close()
+
+
+def test_native_keys_take_ros_domain_id_unless_given(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("ROS_DOMAIN_ID", "42")
+    node_token, keys, tokens = _sink_keys(RmwZenohSettings(no_multicast_scouting=True))
+    assert node_token.startswith("@ros2_lv/42/") and node_token.endswith("/0/0/NN/%/%/overgrid_map")
+    map_hash = cdr.type_hash("jazzy", cdr.OCCUPANCY_GRID)
+    assert keys[0] == f"42/map/nav_msgs::msg::dds_::OccupancyGrid_/{map_hash}"
+    assert all(key.startswith("42/") for key in keys)
+    assert all(token.startswith("@ros2_lv/42/") for token in tokens)
+    given = RmwZenohSettings(no_multicast_scouting=True, domain_id=3)
+    assert all(key.startswith("3/") for key in _sink_keys(given)[1])
+    monkeypatch.delenv("ROS_DOMAIN_ID")
+    unset = RmwZenohSettings(no_multicast_scouting=True)
+    assert all(key.startswith("0/") for key in _sink_keys(unset)[1])
+
+
+def test_native_keys_for_humble_carry_no_type_hash() -> None:
+    settings = RmwZenohSettings(no_multicast_scouting=True, distro="humble", domain_id=0)
+    _, keys, tokens = _sink_keys(settings)
+    assert keys[0] == "0/map/nav_msgs::msg::dds_::OccupancyGrid_/TypeHashNotSupported"
+    assert all(key.endswith(f"/{NO_TYPE_HASH}") for key in keys)
+    # The token's type hash part, then the QoS: ``.../<type>/TypeHashNotSupported/<qos>``.
+    assert all(token.split("/")[11] == NO_TYPE_HASH for token in tokens)
+    assert tokens[0].endswith(
+        "/MP/%/%/overgrid_map/%map/nav_msgs::msg::dds_::OccupancyGrid_/"
+        "TypeHashNotSupported/:1:,1:,:,:,,"
+    )
+
+
 def test_settings_give_the_map_qos_and_pose() -> None:
     settings = Ros2Settings(world_in_map=["1", "-2", "0.5"])
     assert settings.map_qos == MAP_QOS
+    # Late joiners get the last height layer and objects too, as /map; each is a setting.
+    assert settings.height_qos == settings.objects_qos == MAP_QOS
+    volatile = Ros2Settings(objects_durability="volatile", objects_depth=3, height_depth=2)
+    assert volatile.objects_qos == TopicQos(depth=3)
+    assert volatile.height_qos == TopicQos(durability=Durability.TRANSIENT_LOCAL, depth=2)
     assert (settings.pose.x_m, settings.pose.y_m, settings.pose.yaw_rad) == (1, -2, 0.5)
     with pytest.raises(ValueError, match="x,y,yaw"):
         Ros2Settings(world_in_map=["1", "2"])

@@ -1,10 +1,13 @@
 """``overgrid up`` runs the whole system as real processes and leaves nothing behind."""
 
 import json
+import os
+import re
 import signal
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 
 import pytest
@@ -15,7 +18,8 @@ from common.settings import OvergridParams, ZenohSettings, parse_settings
 from services.camera_sim.settings import CameraSimParams, CameraSimSettings
 from services.depth.settings import DepthParams, DepthSettings
 from services.fusion.settings import FusionParams, FusionSettings
-from services.up import UpSettings, child_commands, child_environment
+from services.ros2.settings import RmwZenohSettings
+from services.up import UpSettings, child_commands, child_environment, without_unservable_viewer
 from tests.conftest import REPO, Bus, wait_for
 
 pytestmark = pytest.mark.process
@@ -81,6 +85,16 @@ def test_nested_children_read_no_settings_of_their_own(monkeypatch: pytest.Monke
     assert child_environment("view")["OVERGRID_RATE_HZ"] == "9"  # not nested: reads its own
 
 
+def test_rmw_zenoh_runs_beside_the_rest_on_the_same_network() -> None:
+    args = ["--rmw-zenoh", "--no-view", "--namespace", "site-a", "--listen", "tcp/127.0.0.1:7999"]
+    commands = dict(child_commands(parse_settings(UpSettings, args, "overgrid up", "")))
+    command, *child_args = commands["rmw_zenoh"]
+    assert command == "rmw-zenoh"
+    child = parse_settings(RmwZenohSettings, child_args, command, "")
+    assert child.namespace == "site-a" and child.listen == []  # `up` alone listens
+    assert "rmw_zenoh" not in dict(child_commands(parse_settings(UpSettings, [], "up", "")))
+
+
 def test_depth_and_fusion_must_share_the_lattice(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as stopped:
         parse_settings(UpSettings, ["--depth.resolution-m", "0.1"], "overgrid up", "")
@@ -89,16 +103,44 @@ def test_depth_and_fusion_must_share_the_lattice(capsys: pytest.CaptureFixture[s
     assert "--depth.resolution-m" in err and "--fusion.grid.resolution-m" in err
 
 
-def _children_of(namespace: str) -> list[str]:
-    result = subprocess.run(
-        ["pgrep", "-f", f"--namespace {namespace}"], capture_output=True, text=True
-    )
+def test_up_runs_without_the_page_when_aiohttp_is_missing(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setitem(sys.modules, "aiohttp", None)  # as if not installed
+    settings = without_unservable_viewer(parse_settings(UpSettings, [], "overgrid up", ""))
+    assert not settings.view and "viewer" not in dict(child_commands(settings))
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "aiohttp" in line and "overgrid[view]" in line
+
+
+def _children_of(namespace: str, command: str = "") -> list[str]:
+    pattern = f"services.cli {command}.*--namespace {namespace}"
+    result = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True)
     return result.stdout.split()
+
+
+def _page_url(up: subprocess.Popen[str]) -> str:
+    """The live map's URL from ``up``'s first lines."""
+    assert up.stdout is not None
+    lines = [up.stdout.readline() for _ in range(2)]
+    found = re.search(r"^the live map: (http://127\.0\.0\.1:\d+/)$", lines[1].rstrip("\n"))
+    assert found, lines
+    return found.group(1)
+
+
+def _serves(url: str) -> bool:
+    """Whether ``url`` answers 200 (the viewer says 503 while it has no map)."""
+    try:
+        with urllib.request.urlopen(url, timeout=5) as answer:
+            return bool(answer.status == 200)
+    except OSError:
+        return False
 
 
 def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_path: Path) -> None:
     # Nested flags reach the children: each would refuse to start on a flag it does not know.
-    up = _up(bus, tmp_path / "run", "--duration-s", "12", "--depth.summary-s", "5", "--ros2")
+    ros2 = ("--ros2", "--rmw-zenoh")
+    up = _up(bus, tmp_path / "run", "--duration-s", "12", "--depth.summary-s", "5", *ros2)
     out, _ = up.communicate(timeout=180)
     assert up.returncode == 0, out
     assert "map v" in out and "p0" in out and "p1" in out  # progress lines
@@ -129,18 +171,25 @@ def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_pa
     ros2_log = (tmp_path / "run" / "logs" / "ros2.log").read_text()
     assert "msg=started" in ros2_log and "msg=stopped" in ros2_log, ros2_log  # --ros2 ran
     assert "terminate" not in ros2_log, ros2_log  # and stopped cleanly
+    rmw_zenoh_log = (tmp_path / "run" / "logs" / "rmw_zenoh.log").read_text()
+    assert "first map published" in rmw_zenoh_log, rmw_zenoh_log  # --rmw-zenoh ran
+    assert "msg=stopped" in rmw_zenoh_log, rmw_zenoh_log
     assert _children_of(bus.namespace) == []
 
 
 def test_sigint_during_up_still_saves_the_map(bus: Bus, tmp_path: Path) -> None:
+    """… and the live map is at the URL ``up`` printed, and the viewer dying ends nothing."""
     up = _up(bus, tmp_path / "run")
-    wait_for(
-        lambda: (tmp_path / "run" / "logs" / "fusion.log").exists(), 30, "up to start its children"
-    )
-    time.sleep(10)
+    url = _page_url(up)
+    wait_for(lambda: _serves(url), 30, "the live map at the URL up printed")
+    wait_for(lambda: _serves(url + "download/map.png"), 60, "a map (the viewer has it)")
+    (viewer,) = _children_of(bus.namespace, "view")
+    os.kill(int(viewer), signal.SIGKILL)
+    time.sleep(3)  # progress goes on
     up.send_signal(signal.SIGINT)
     out, _ = up.communicate(timeout=60)
     assert up.returncode == 0, out
+    assert out.count("viewer died (exit -9); the map goes on") == 1, out
     assert (tmp_path / "run" / "map.pgm").exists() and (tmp_path / "run" / "map.png").exists()
     assert _children_of(bus.namespace) == []
 

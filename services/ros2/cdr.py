@@ -1,9 +1,9 @@
 """CDR bytes and RIHS01 type hashes of the map messages, from rosbags (pure Python, no ROS):
 the same bytes rclpy's ``serialize_message`` gives, with the 4-byte encapsulation header.
 
-map_msgs has no wheel and is not in rosbags' stores: its OccupancyGridUpdate is registered from
-its message definition (ros-planning/navigation_msgs, map_msgs/msg/OccupancyGridUpdate.msg), so
-rosbags derives its CDR layout and type hash the way it does for the shipped types.
+map_msgs and vision_msgs have no wheel and are not in rosbags' stores: their messages are
+registered from their definitions, so rosbags derives their CDR layout and type hash the way it
+does for the shipped types.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from services.ros2.grid_message import (
     StaticTransform,
     stamp_parts,
 )
-from services.ros2.object_markers import NAMESPACE, ObjectMarkers
+from services.ros2.object_markers import NAMESPACE, TRACK_SCORE, ObjectMarkers
 from services.ros2.rmw_zenoh import NO_TYPE_HASH
 
 Distro = Literal["humble", "jazzy", "kilted"]
@@ -41,21 +41,58 @@ MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 MARKER_CUBE, MARKER_ADD, MARKER_DELETEALL = 1, 0, 3
 """visualization_msgs/Marker's constants."""
+DETECTION_3D_ARRAY = "vision_msgs/msg/Detection3DArray"
+DETECTION_3D = "vision_msgs/msg/Detection3D"
+BOUNDING_BOX_3D = "vision_msgs/msg/BoundingBox3D"
+OBJECT_HYPOTHESIS_WITH_POSE = "vision_msgs/msg/ObjectHypothesisWithPose"
+OBJECT_HYPOTHESIS = "vision_msgs/msg/ObjectHypothesis"
 NUMPY_TYPES = {"bool": np.bool_, "byte": np.uint8, "char": np.uint8}
-OCCUPANCY_GRID_UPDATE_MSG = """\
+COVARIANCE_SIZE = 36
+"""geometry_msgs/PoseWithCovariance's 6×6 row-major covariance."""
+REGISTERED_MSGS = {
+    # ros-planning/navigation_msgs, map_msgs/msg/OccupancyGridUpdate.msg.
+    OCCUPANCY_GRID_UPDATE: """\
 std_msgs/Header header
 int32 x
 int32 y
 uint32 width
 uint32 height
 int8[] data
-"""
+""",
+    # ros-perception/vision_msgs 4.x (Humble, Jazzy, Kilted), vision_msgs/msg/*.msg, their field
+    # lines (comments do not enter the layout or the RIHS01 hash). Taken from the raw sources that
+    # rosidl embeds in the generated type descriptions; the hashes rosbags derives from them equal
+    # the ones rosidl generated (tests/test_ros2_messages.py).
+    OBJECT_HYPOTHESIS: """\
+string class_id
+float64 score
+""",
+    OBJECT_HYPOTHESIS_WITH_POSE: """\
+ObjectHypothesis hypothesis
+geometry_msgs/PoseWithCovariance pose
+""",
+    BOUNDING_BOX_3D: """\
+geometry_msgs/Pose center
+geometry_msgs/Vector3 size
+""",
+    DETECTION_3D: """\
+std_msgs/Header header
+ObjectHypothesisWithPose[] results
+BoundingBox3D bbox
+string id
+""",
+    DETECTION_3D_ARRAY: """\
+std_msgs/Header header
+Detection3D[] detections
+""",
+}
 
 
 @cache
 def typestore(distro: Distro) -> Typestore:
     store = get_typestore(STORES[distro])
-    store.register(get_types_from_msg(OCCUPANCY_GRID_UPDATE_MSG, OCCUPANCY_GRID_UPDATE))
+    for ros_type, definition in REGISTERED_MSGS.items():
+        store.register(get_types_from_msg(definition, ros_type))
     return store
 
 
@@ -74,21 +111,33 @@ def _header(store: Typestore, stamp_ns: int, frame_id: str) -> Any:
     )
 
 
-def _info(store: Typestore, info: GridInfo) -> Any:
+def _pose(
+    store: Typestore,
+    xyz_m: tuple[float, float, float],
+    xyzw: tuple[float, float, float, float],
+) -> Any:
     types = store.types
-    x, y, z = info.origin_xyz_m
-    qx, qy, qz, qw = info.origin_xyzw
-    sec, nanosec = stamp_parts(info.stamp_ns)
-    pose = types["geometry_msgs/msg/Pose"](
+    (x, y, z), (qx, qy, qz, qw) = xyz_m, xyzw
+    return types["geometry_msgs/msg/Pose"](
         position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
         orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
     )
+
+
+def _vector3(store: Typestore, xyz: tuple[float, float, float]) -> Any:
+    x, y, z = xyz
+    return store.types["geometry_msgs/msg/Vector3"](x=x, y=y, z=z)
+
+
+def _info(store: Typestore, info: GridInfo) -> Any:
+    types = store.types
+    sec, nanosec = stamp_parts(info.stamp_ns)
     return types["nav_msgs/msg/MapMetaData"](
         map_load_time=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
         resolution=info.resolution_m,
         width=info.width,
         height=info.height,
-        origin=pose,
+        origin=_pose(store, info.origin_xyz_m, info.origin_xyzw),
     )
 
 
@@ -132,22 +181,29 @@ def height_image_cdr(distro: Distro, image: HeightImage) -> bytes:
 def tf_message_cdr(distro: Distro, transform: StaticTransform) -> bytes:
     store = typestore(distro)
     types = store.types
-    (x, y, z), (qx, qy, qz, qw) = transform.translation_xyz_m, transform.rotation_xyzw
+    qx, qy, qz, qw = transform.rotation_xyzw
     stamped = types["geometry_msgs/msg/TransformStamped"](
         header=_header(store, transform.stamp_ns, transform.frame_id),
         child_frame_id=transform.child_frame_id,
         transform=types["geometry_msgs/msg/Transform"](
-            translation=types["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
+            translation=_vector3(store, transform.translation_xyz_m),
             rotation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
         ),
     )
     return bytes(store.serialize_cdr(types[TF_MESSAGE](transforms=[stamped]), TF_MESSAGE))
 
 
+MSG_DEFAULTS: dict[str, dict[str, Any]] = {"geometry_msgs/msg/Quaternion": {"w": 1.0}}
+"""The non-zero defaults of .msg definitions that rosbags' type store does not keep: the identity
+quaternion (``float64 w 1``), as rclpy gives an unset pose."""
+
+
 def default_message(store: Typestore, ros_type: str, **values: Any) -> Any:
-    """A message with ``values`` and every other field at ROS's default (0, "", false, empty):
-    rosbags' message classes have no defaults, and a Marker has a dozen fields a box never uses."""
+    """A message with ``values`` and every other field at ROS's default (``MSG_DEFAULTS``, else 0,
+    "", false, empty): rosbags' message classes have no defaults, and a Marker has a dozen fields
+    a box never uses."""
     fields = store.fielddefs[ros_type][1]
+    values = {**MSG_DEFAULTS.get(ros_type, {}), **values}
     return store.types[ros_type](
         **{
             name: values[name] if name in values else _default(store, node, detail)
@@ -176,12 +232,7 @@ def marker_array_cdr(distro: Distro, markers: ObjectMarkers) -> bytes:
     clear = default_message(store, MARKER, header=header, ns=NAMESPACE, action=MARKER_DELETEALL)
     boxes = []
     for box in markers.boxes:
-        (x, y, z), (qx, qy, qz, qw) = box.center_xyz_m, box.orientation_xyzw
-        (sx, sy, sz), (r, g, b, a) = box.size_xyz_m, box.color_rgba
-        pose = types["geometry_msgs/msg/Pose"](
-            position=types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
-            orientation=types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
-        )
+        r, g, b, a = box.color_rgba
         boxes.append(
             default_message(
                 store,
@@ -191,13 +242,41 @@ def marker_array_cdr(distro: Distro, markers: ObjectMarkers) -> bytes:
                 id=box.id,
                 type=MARKER_CUBE,
                 action=MARKER_ADD,
-                pose=pose,
-                scale=types["geometry_msgs/msg/Vector3"](x=sx, y=sy, z=sz),
+                pose=_pose(store, box.center_xyz_m, box.orientation_xyzw),
+                scale=_vector3(store, box.size_xyz_m),
                 color=types["std_msgs/msg/ColorRGBA"](r=r, g=g, b=b, a=a),
             )
         )
     message = types[MARKER_ARRAY](markers=[clear, *boxes])
     return bytes(store.serialize_cdr(message, MARKER_ARRAY))
+
+
+def detection_array_cdr(distro: Distro, markers: ObjectMarkers) -> bytes:
+    """vision_msgs/Detection3DArray: per track its box, its id, its class as the one hypothesis
+    (score ``TRACK_SCORE``) posed at the box centre; the pose covariance stays zero (unknown):
+    the tracker estimates the velocity's uncertainty, not the position's."""
+    store = typestore(distro)
+    types = store.types
+    header = _header(store, markers.stamp_ns, markers.frame_id)
+    detections = []
+    for box in markers.boxes:
+        center = _pose(store, box.center_xyz_m, box.orientation_xyzw)
+        hypothesis = types[OBJECT_HYPOTHESIS_WITH_POSE](
+            hypothesis=types[OBJECT_HYPOTHESIS](class_id=box.object_class, score=TRACK_SCORE),
+            pose=types["geometry_msgs/msg/PoseWithCovariance"](
+                pose=center, covariance=np.zeros(COVARIANCE_SIZE)
+            ),
+        )
+        detections.append(
+            types[DETECTION_3D](
+                header=header,
+                results=[hypothesis],
+                bbox=types[BOUNDING_BOX_3D](center=center, size=_vector3(store, box.size_xyz_m)),
+                id=str(box.id),
+            )
+        )
+    message = types[DETECTION_3D_ARRAY](header=header, detections=detections)
+    return bytes(store.serialize_cdr(message, DETECTION_3D_ARRAY))
 
 
 def decode(distro: Distro, raw: bytes, ros_type: str) -> Any:

@@ -1,9 +1,9 @@
-"""``overgrid rmw-zenoh``: /map, /map_updates, the height layer, the objects and /tf_static straight
-onto rmw_zenoh's Zenoh keys, so a robot with ``RMW_IMPLEMENTATION=rmw_zenoh_cpp`` on the same Zenoh
-network gets the map from ``ros2 topic echo /map`` with no ROS node or bridge here (base install +
-rosbags).
+"""``overgrid rmw-zenoh``: /map, /map_updates, the height layer, the objects (as markers and as
+vision_msgs/Detection3DArray) and /tf_static straight onto rmw_zenoh's Zenoh keys, so a robot with
+``RMW_IMPLEMENTATION=rmw_zenoh_cpp`` on the same Zenoh network gets the map from
+``ros2 topic echo /map`` with no ROS node or bridge here (base install + rosbags).
 
-The process shows up in the robot's ROS graph as node ``overgrid_map`` with five publishers,
+The process shows up in the robot's ROS graph as node ``overgrid_map`` with six publishers,
 because it declares the same liveliness tokens an rmw_zenoh node would (services/ros2/rmw_zenoh.py
 says which source each convention comes from).
 """
@@ -100,7 +100,6 @@ class NativeSink:
         domain_id = s.domain_id if s.domain_id is not None else ros_domain_id()
         self.node = NodeIdentity(domain_id, str(session.info.zid()), NODE_ID, s.node_name)
         self._node_token = session.liveliness().declare_token(self.node.node_token())
-        latest_only = TopicQos(depth=1)  # reliable, volatile: each message replaces the last
         self.map = NativePublisher(
             session, self.node, 1, s.map_topic, cdr.OCCUPANCY_GRID, s.distro, s.map_qos
         )
@@ -114,13 +113,22 @@ class NativeSink:
             s.updates_qos,
         )
         self.height = NativePublisher(
-            session, self.node, 3, s.height_topic, cdr.IMAGE, s.distro, latest_only
+            session, self.node, 3, s.height_topic, cdr.IMAGE, s.distro, s.height_qos
         )
         self.objects = NativePublisher(
-            session, self.node, 4, s.objects_topic, cdr.MARKER_ARRAY, s.distro, latest_only
+            session, self.node, 4, s.objects_topic, cdr.MARKER_ARRAY, s.distro, s.objects_qos
         )
         self.tf_static = NativePublisher(
             session, self.node, 5, s.tf_static_topic, cdr.TF_MESSAGE, s.distro, s.tf_static_qos
+        )
+        self.detections = NativePublisher(
+            session,
+            self.node,
+            6,
+            s.detections_topic,
+            cdr.DETECTION_3D_ARRAY,
+            s.distro,
+            s.objects_qos,
         )
 
     def publish_map(self, message: GridMessage) -> None:
@@ -134,12 +142,14 @@ class NativeSink:
 
     def publish_objects(self, markers: ObjectMarkers) -> None:
         self.objects.put(cdr.marker_array_cdr(self._distro, markers))
+        self.detections.put(cdr.detection_array_cdr(self._distro, markers))
 
     def publish_static_transform(self, transform: StaticTransform) -> None:
         self.tf_static.put(cdr.tf_message_cdr(self._distro, transform))
 
     def close(self) -> None:
-        for publisher in (self.tf_static, self.objects, self.height, self.updates, self.map):
+        publishers = (self.detections, self.tf_static, self.objects, self.height, self.updates)
+        for publisher in (*publishers, self.map):
             publisher.close()
         self._node_token.undeclare()  # type: ignore[no-untyped-call]
 

@@ -4,8 +4,10 @@ that starts later still gets it, as from nav2's map_server), /map_updates
 (map_msgs/OccupancyGridUpdate), /tf_static (tf2_msgs/TFMessage: overgrid's world frame in the
 robots' map frame, transient_local) — these two when map_msgs and tf2_msgs are importable: no wheel
 ships them, every system ROS 2 has them, and the node says at start which it lacks — the height
-layer, and the tracked objects of ``map/objects`` as a visualization_msgs/MarkerArray
-(services/ros2/object_markers.py says why markers).
+layer, and the tracked objects of ``map/objects`` as a visualization_msgs/MarkerArray and, where
+vision_msgs is importable, a vision_msgs/Detection3DArray (services/ros2/object_markers.py). The
+height layer and both objects topics are transient_local with depth 1 by default, like /map: a
+robot that starts later gets the last ones.
 
 The height layer is a sensor_msgs/Image 32FC1 on /map's cells, not a second OccupancyGrid: it
 carries metres as float32 with NaN for "never seen", which an int8 0..100 grid could only carry
@@ -39,7 +41,7 @@ from services.ros2.grid_message import (
     StaticTransform,
     stamp_parts,
 )
-from services.ros2.object_markers import NAMESPACE, ObjectMarkers
+from services.ros2.object_markers import NAMESPACE, TRACK_SCORE, ObjectMarkers
 from services.ros2.relay import MapRelay
 from services.ros2.rmw_zenoh import TopicQos
 from services.ros2.settings import Ros2Settings
@@ -52,12 +54,19 @@ ROS_PARAMETERS = (
     "updates_topic",
     "height_topic",
     "objects_topic",
+    "detections_topic",
     "tf_static_topic",
     "world_frame_id",
     "map_depth",
     "updates_depth",
     "map_durability",
     "map_reliability",
+    "height_depth",
+    "height_durability",
+    "height_reliability",
+    "objects_depth",
+    "objects_durability",
+    "objects_reliability",
     "world_in_map",
     "map_interval_s",
     "height_interval_s",
@@ -70,8 +79,92 @@ def _set_header(header: Any, stamp_ns: int, frame_id: str) -> None:
     header.frame_id = frame_id
 
 
+def _set_pose(
+    pose: Any, xyz_m: tuple[float, float, float], xyzw: tuple[float, float, float, float]
+) -> None:
+    pose.position.x, pose.position.y, pose.position.z = xyz_m
+    pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = xyzw
+
+
+def occupancy_grid_msg(grid_type: Any, message: GridMessage) -> Any:
+    """A nav_msgs/OccupancyGrid (``grid_type``) of ``message``."""
+    grid = grid_type()
+    info = message.info
+    _set_header(grid.header, info.stamp_ns, info.frame_id)
+    grid.info.map_load_time.sec, grid.info.map_load_time.nanosec = stamp_parts(info.stamp_ns)
+    grid.info.resolution = info.resolution_m
+    grid.info.width, grid.info.height = info.width, info.height
+    _set_pose(grid.info.origin, info.origin_xyz_m, info.origin_xyzw)
+    grid.data = array.array("b", message.data.tobytes())
+    return grid
+
+
+def occupancy_grid_update_msg(update_type: Any, update: GridUpdate) -> Any:
+    message = update_type()
+    _set_header(message.header, update.stamp_ns, update.frame_id)
+    message.x, message.y = update.x, update.y
+    message.width, message.height = update.width, update.height
+    message.data = array.array("b", update.data.tobytes())
+    return message
+
+
+def height_image_msg(image_type: Any, image: HeightImage) -> Any:
+    message = image_type()
+    _set_header(message.header, image.stamp_ns, image.frame_id)
+    message.height, message.width = image.height, image.width
+    message.encoding, message.is_bigendian = image.ENCODING, sys.byteorder == "big"
+    message.step = image.step_bytes
+    message.data = array.array("B", image.data.tobytes())
+    return message
+
+
+def marker_array_msg(marker_type: Any, array_type: Any, markers: ObjectMarkers) -> Any:
+    """A DELETEALL, then a CUBE per box (services/ros2/object_markers.py)."""
+    clear = marker_type(ns=NAMESPACE, action=marker_type.DELETEALL)
+    _set_header(clear.header, markers.stamp_ns, markers.frame_id)
+    message = array_type(markers=[clear])
+    for box in markers.boxes:
+        marker = marker_type(ns=NAMESPACE, id=box.id, type=marker_type.CUBE)
+        marker.action = marker_type.ADD
+        _set_header(marker.header, markers.stamp_ns, markers.frame_id)
+        _set_pose(marker.pose, box.center_xyz_m, box.orientation_xyzw)
+        marker.scale.x, marker.scale.y, marker.scale.z = box.size_xyz_m
+        marker.color.r, marker.color.g, marker.color.b, marker.color.a = box.color_rgba
+        message.markers.append(marker)
+    return message
+
+
+def detection_array_msg(vision: Any, markers: ObjectMarkers) -> Any:
+    """A vision_msgs/Detection3DArray (``vision``: the ``vision_msgs.msg`` module), as
+    ``cdr.detection_array_cdr`` builds it for the native output."""
+    message = vision.Detection3DArray()
+    _set_header(message.header, markers.stamp_ns, markers.frame_id)
+    for box in markers.boxes:
+        detection = vision.Detection3D(id=str(box.id))
+        _set_header(detection.header, markers.stamp_ns, markers.frame_id)
+        _set_pose(detection.bbox.center, box.center_xyz_m, box.orientation_xyzw)
+        detection.bbox.size.x, detection.bbox.size.y, detection.bbox.size.z = box.size_xyz_m
+        result = vision.ObjectHypothesisWithPose()
+        result.hypothesis.class_id, result.hypothesis.score = box.object_class, TRACK_SCORE
+        _set_pose(result.pose.pose, box.center_xyz_m, box.orientation_xyzw)
+        detection.results.append(result)
+        message.detections.append(detection)
+    return message
+
+
+def tf_msg(stamped_type: Any, message_type: Any, transform: StaticTransform) -> Any:
+    stamped = stamped_type(child_frame_id=transform.child_frame_id)
+    _set_header(stamped.header, transform.stamp_ns, transform.frame_id)
+    translation, rotation = stamped.transform.translation, stamped.transform.rotation
+    translation.x, translation.y, translation.z = transform.translation_xyz_m
+    rotation.x, rotation.y, rotation.z, rotation.w = transform.rotation_xyzw
+    return message_type(transforms=[stamped])
+
+
 class RclpySink:
-    """The relay's messages as rclpy messages on three publishers of ``node``."""
+    """The relay's messages as rclpy messages on the publishers of ``node``: /map, the height layer
+    and the objects' markers always; /map_updates, /tf_static and the objects' Detection3DArray
+    when map_msgs, tf2_msgs and vision_msgs are importable (six at most)."""
 
     def __init__(self, node: Any, settings: Ros2Settings) -> None:
         OccupancyGrid = ros_messages("nav_msgs").OccupancyGrid
@@ -80,7 +173,10 @@ class RclpySink:
         self._map = node.create_publisher(
             OccupancyGrid, settings.map_topic, rclpy_qos(settings.map_qos)
         )
-        self._height = node.create_publisher(Image, settings.height_topic, 1)
+        self._height = node.create_publisher(
+            Image, settings.height_topic, rclpy_qos(settings.height_qos)
+        )
+        objects_qos = rclpy_qos(settings.objects_qos)
         try:
             visualization = ros_messages("visualization_msgs")
             Marker, MarkerArray = visualization.Marker, visualization.MarkerArray
@@ -89,7 +185,16 @@ class RclpySink:
             log.warning(f"visualization_msgs is not importable: {settings.objects_topic} is off")
         else:
             self._marker_types: Any = (Marker, MarkerArray)
-            self._objects = node.create_publisher(MarkerArray, settings.objects_topic, 1)
+            self._objects = node.create_publisher(MarkerArray, settings.objects_topic, objects_qos)
+        try:
+            self._vision: Any = ros_messages("vision_msgs")
+        except ImportError:
+            self._detections: Any = None
+            _say_not_published("vision_msgs", settings.detections_topic, VISION_MSGS_HINT)
+        else:
+            self._detections = node.create_publisher(
+                self._vision.Detection3DArray, settings.detections_topic, objects_qos
+            )
         try:
             OccupancyGridUpdate = ros_messages("map_msgs").OccupancyGridUpdate
         except ImportError:
@@ -114,70 +219,26 @@ class RclpySink:
             )
 
     def publish_map(self, message: GridMessage) -> None:
-        grid = self._grid_type()
-        _set_header(grid.header, message.info.stamp_ns, message.info.frame_id)
-        info = message.info
-        grid.info.map_load_time.sec, grid.info.map_load_time.nanosec = stamp_parts(info.stamp_ns)
-        grid.info.resolution = info.resolution_m
-        grid.info.width, grid.info.height = info.width, info.height
-        position, orientation = grid.info.origin.position, grid.info.origin.orientation
-        position.x, position.y, position.z = info.origin_xyz_m
-        orientation.x, orientation.y, orientation.z, orientation.w = info.origin_xyzw
-        grid.data = array.array("b", message.data.tobytes())
-        self._map.publish(grid)
+        self._map.publish(occupancy_grid_msg(self._grid_type, message))
 
     def publish_update(self, update: GridUpdate) -> None:
-        if self._updates is None:
-            return
-        message = self._update_type()
-        _set_header(message.header, update.stamp_ns, update.frame_id)
-        message.x, message.y, message.width, message.height = (
-            update.x,
-            update.y,
-            update.width,
-            update.height,
-        )
-        message.data = array.array("b", update.data.tobytes())
-        self._updates.publish(message)
+        if self._updates is not None:
+            self._updates.publish(occupancy_grid_update_msg(self._update_type, update))
 
     def publish_height(self, image: HeightImage) -> None:
-        message = self._image_type()
-        _set_header(message.header, image.stamp_ns, image.frame_id)
-        message.height, message.width = image.height, image.width
-        message.encoding, message.is_bigendian = image.ENCODING, sys.byteorder == "big"
-        message.step = image.step_bytes
-        message.data = array.array("B", image.data.tobytes())
-        self._height.publish(message)
+        self._height.publish(height_image_msg(self._image_type, image))
 
     def publish_objects(self, markers: ObjectMarkers) -> None:
-        if self._objects is None:
-            return
-        marker_type, array_type = self._marker_types
-        clear = marker_type(ns=NAMESPACE, action=marker_type.DELETEALL)
-        _set_header(clear.header, markers.stamp_ns, markers.frame_id)
-        array = array_type(markers=[clear])
-        for box in markers.boxes:
-            marker = marker_type(ns=NAMESPACE, id=box.id, type=marker_type.CUBE)
-            marker.action = marker_type.ADD
-            _set_header(marker.header, markers.stamp_ns, markers.frame_id)
-            position, orientation = marker.pose.position, marker.pose.orientation
-            position.x, position.y, position.z = box.center_xyz_m
-            orientation.x, orientation.y, orientation.z, orientation.w = box.orientation_xyzw
-            marker.scale.x, marker.scale.y, marker.scale.z = box.size_xyz_m
-            marker.color.r, marker.color.g, marker.color.b, marker.color.a = box.color_rgba
-            array.markers.append(marker)
-        self._objects.publish(array)
+        if self._objects is not None:
+            marker_type, array_type = self._marker_types
+            self._objects.publish(marker_array_msg(marker_type, array_type, markers))
+        if self._detections is not None:
+            self._detections.publish(detection_array_msg(self._vision, markers))
 
     def publish_static_transform(self, transform: StaticTransform) -> None:
-        if self._tf_static is None:
-            return
-        stamped_type, message_type = self._tf_types
-        stamped = stamped_type(child_frame_id=transform.child_frame_id)
-        _set_header(stamped.header, transform.stamp_ns, transform.frame_id)
-        translation, rotation = stamped.transform.translation, stamped.transform.rotation
-        translation.x, translation.y, translation.z = transform.translation_xyz_m
-        rotation.x, rotation.y, rotation.z, rotation.w = transform.rotation_xyzw
-        self._tf_static.publish(message_type(transforms=[stamped]))
+        if self._tf_static is not None:
+            stamped_type, message_type = self._tf_types
+            self._tf_static.publish(tf_msg(stamped_type, message_type, transform))
 
 
 def ros_messages(package: str) -> Any:
@@ -185,9 +246,13 @@ def ros_messages(package: str) -> Any:
     return importlib.import_module(f"{package}.msg")
 
 
-def _say_not_published(package: str, topic: str) -> None:
+SYSTEM_ROS_HINT = "no wheel ships it; a system ROS 2 has it"
+VISION_MSGS_HINT = "no wheel ships it; apt install ros-$ROS_DISTRO-vision-msgs"
+
+
+def _say_not_published(package: str, topic: str, hint: str = SYSTEM_ROS_HINT) -> None:
     log.warning(
-        f"{package} is not importable (no wheel ships it; a system ROS 2 has it): "
+        f"{package} is not importable ({hint}): "
         f"{topic} is not published by this node; `overgrid rmw-zenoh` always carries it"
     )
 

@@ -1,9 +1,13 @@
-"""``map/objects`` as the fields of a visualization_msgs/MarkerArray, independent of any ROS
-library: one CUBE per tracked object (its oriented footprint, from the floor to its top), after a
-DELETEALL, so a track that ended disappears from RViz without bookkeeping of ids.
+"""``map/objects`` as oriented boxes in the robots' map frame, independent of any ROS library: the
+fields of both object messages.
 
-Markers rather than a typed message: vision_msgs has no wheel and is not in rosbags' stores, and a
-MarkerArray is what every ROS 2 robot can show and read (id, pose, size) with no extra package.
+- visualization_msgs/MarkerArray: one CUBE per tracked object (its oriented footprint, from the
+  floor to its top), after a DELETEALL, so a track that ended disappears from RViz without
+  bookkeeping of ids. Every ROS 2 robot can show and read it (id, pose, size) with no extra package.
+- vision_msgs/Detection3DArray: the typed form a perception or planning node consumes, one
+  Detection3D per track (its box, its id, its class as the one hypothesis). vision_msgs has no
+  wheel: the native output registers its definitions with rosbags (services/ros2/cdr.py), the rclpy
+  node publishes it where vision_msgs is importable.
 """
 
 from __future__ import annotations
@@ -18,17 +22,21 @@ NAMESPACE = "overgrid_objects"
 MIN_HEIGHT_M = 0.01
 """A box needs some height to be drawn; a flat object's top can read 0."""
 COLOR_RGBA = {"static": (0.55, 0.55, 0.6, 0.8), "moving": (1.0, 0.45, 0.0, 0.9)}
+TRACK_SCORE = 1.0
+"""ObjectHypothesis ``score`` of a track's class: a confirmed track, not a classifier's guess."""
 
 
 @dataclass(frozen=True)
 class BoxMarker:
-    """One CUBE marker: centre and size in metres, orientation as a quaternion (x, y, z, w)."""
+    """One tracked object's box: centre and size in metres, orientation as a quaternion (x, y, z,
+    w); its class ("static", "moving") and the colour the marker shows it in."""
 
     id: int
     center_xyz_m: tuple[float, float, float]
     orientation_xyzw: tuple[float, float, float, float]
     size_xyz_m: tuple[float, float, float]
     color_rgba: tuple[float, float, float, float]
+    object_class: str
 
 
 @dataclass(frozen=True)
@@ -51,6 +59,7 @@ def object_markers(header: ObjectsHeader, frame_id: str, world_in_map: PlanarPos
                 orientation_xyzw=yaw.quaternion_xyzw,
                 size_xyz_m=(tracked.size_m[0], tracked.size_m[1], height_m),
                 color_rgba=COLOR_RGBA[tracked.object_class],
+                object_class=tracked.object_class,
             )
         )
     return ObjectMarkers(header.stamp_ns, frame_id, tuple(boxes))

@@ -29,6 +29,10 @@ class Ros2Settings(ZenohSettings):
         "/map_objects",
         description="visualization_msgs/MarkerArray topic: a box per tracked object",
     )
+    detections_topic: str = Field(
+        "/map_detections",
+        description="vision_msgs/Detection3DArray topic: the tracked objects, typed",
+    )
     tf_static_topic: str = Field(
         "/tf_static", description="tf2_msgs/TFMessage topic of the world → map static transform"
     )
@@ -40,6 +44,20 @@ class Ros2Settings(ZenohSettings):
     )
     map_reliability: ReliabilityName = Field("reliable", description="/map reliability")
     map_depth: int = Field(1, ge=1, description="/map history depth")
+    height_durability: DurabilityName = Field(
+        "transient_local", description="height layer durability (transient_local: late joiners)"
+    )
+    height_reliability: ReliabilityName = Field("reliable", description="height layer reliability")
+    height_depth: int = Field(1, ge=1, description="height layer history depth")
+    objects_durability: DurabilityName = Field(
+        "transient_local",
+        description="durability of both objects topics (transient_local: late joiners get the "
+        "last objects)",
+    )
+    objects_reliability: ReliabilityName = Field(
+        "reliable", description="reliability of both objects topics"
+    )
+    objects_depth: int = Field(1, ge=1, description="history depth of both objects topics")
     updates_depth: int = Field(10, ge=1, description="/map_updates history depth")
     world_in_map: CommaList = Field(
         default_factory=lambda: ["0", "0", "0"],
@@ -72,12 +90,16 @@ class Ros2Settings(ZenohSettings):
 
     @property
     def map_qos(self) -> TopicQos:
-        return TopicQos(
-            Reliability[self.map_reliability.upper()],
-            Durability[self.map_durability.upper()],
-            History.KEEP_LAST,
-            self.map_depth,
-        )
+        return _keep_last(self.map_reliability, self.map_durability, self.map_depth)
+
+    @property
+    def height_qos(self) -> TopicQos:
+        return _keep_last(self.height_reliability, self.height_durability, self.height_depth)
+
+    @property
+    def objects_qos(self) -> TopicQos:
+        """Of the MarkerArray and the Detection3DArray alike."""
+        return _keep_last(self.objects_reliability, self.objects_durability, self.objects_depth)
 
     @property
     def tf_static_qos(self) -> TopicQos:
@@ -89,6 +111,12 @@ class Ros2Settings(ZenohSettings):
         return TopicQos(
             Reliability.RELIABLE, Durability.VOLATILE, History.KEEP_LAST, self.updates_depth
         )
+
+
+def _keep_last(reliability: ReliabilityName, durability: DurabilityName, depth: int) -> TopicQos:
+    return TopicQos(
+        Reliability[reliability.upper()], Durability[durability.upper()], History.KEEP_LAST, depth
+    )
 
 
 class RmwZenohSettings(Ros2Settings):
