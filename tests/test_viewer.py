@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import http.client
 import io
+import json
 import os
 import re
 import shutil
@@ -21,17 +22,20 @@ import numpy as np
 import pytest
 import zenoh
 
-from common.client import latest
+from common.client import MapUnavailable, latest
 from common.codec import WIRE_ENCODING, encode
 from common.lattice import Window
 from common.mapfiles import PGM_FREE, PGM_OCCUPIED, PICTURE_COLORS
 from common.messages import CALIB_KIND, OBJECTS_KIND, ObjectsHeader, TrackedObject
 from common.occupancy_map import OccupancyMap
 from common.png import decode_png
+from common.settings import parse_settings
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.evaluation.metrics import seen_by_cameras
 from services.viewer.address import available_port, page_url
+from services.viewer.feed import FeedState
 from services.viewer.footprints import clip_convex, pair_footprint
+from services.viewer.server import ViewSettings, exposure_warning, status_message
 from services.viewer.status import TileRates, objects_for_page, pair_states
 from services.viewer.wire import (
     CHUNK_CELLS,
@@ -58,6 +62,9 @@ CHROMIUM_ARGS = [
 ]
 RESOLUTION_M = 0.05
 FLOOR_SIZE_M = (6.0, 5.0)
+ALIVE_RGB = (0x1F, 0x9D, 0x45)
+"""The page's colours of a live pair's footprint and of tracked objects (app.js COLORS)."""
+OBJECT_RGB = (0x15, 0x65, 0xC0)
 
 
 def _map(occupancy: np.ndarray, i0: int = 0, j0: int = 0, version: int = 1) -> OccupancyMap:
@@ -199,11 +206,13 @@ def test_pair_states_from_health_calibrations_and_depth_health() -> None:
     assert not rows[1]["alive"] and not rows[1]["known_to_fusion"] and rows[1]["footprint_m"]
 
 
-def _tracked(id_: int, velocity_mps: tuple[float, float]) -> TrackedObject:
+def _tracked(
+    id_: int, velocity_mps: tuple[float, float], center_m: tuple[float, float] = (1.0, 2.0)
+) -> TrackedObject:
     return TrackedObject(
         id=id_,
         object_class="moving" if any(velocity_mps) else "static",
-        center_m=(1.0, 2.0),
+        center_m=center_m,
         size_m=(0.8, 0.5),
         yaw_rad=0.3,
         top_m=1.1,
@@ -231,6 +240,31 @@ def test_objects_reach_the_page_with_what_it_draws() -> None:
             "partial": False,
         }
     ]
+
+
+def test_the_map_is_stale_only_once_fusion_is_silent_for_stale_after_s() -> None:
+    def status(answered_s: float | None, ok: bool, stale_after_s: float = 3.0) -> dict[str, Any]:
+        state = FeedState(fusion_answered_s=answered_s, fusion_ok=ok)
+        message: dict[str, Any] = json.loads(status_message(state, 1000.0, stale_after_s))
+        return message
+
+    one_lost_query = status(999.0, False)  # answered 1 s ago, the last query went unanswered
+    assert not one_lost_query["stale"] and not one_lost_query["fusion_ok"]
+    assert one_lost_query["fusion_silent_s"] == 1.0
+    assert status(996.5, False)["stale"] and status(996.5, True)["stale"]  # 3.5 s > 3 s
+    assert not status(996.5, False, stale_after_s=10.0)["stale"]
+    assert status(None, False)["stale"]  # never answered: no map to trust
+
+
+def test_serving_beyond_loopback_without_a_token_is_warned_of() -> None:
+    def settings(*args: str) -> ViewSettings:
+        return parse_settings(ViewSettings, list(args), "overgrid view", "")
+
+    assert exposure_warning(settings()) is None
+    assert exposure_warning(settings("--http-host", "::1")) is None
+    assert exposure_warning(settings("--http-host", "0.0.0.0", "--token", "long-enough")) is None
+    warning = exposure_warning(settings("--http-host", "0.0.0.0"))
+    assert warning is not None and "0.0.0.0" in warning and "--token" in warning
 
 
 def test_address_helpers() -> None:
@@ -290,10 +324,13 @@ def test_token_loopback_and_read_only(bus: Bus, tmp_path: Path) -> None:
     assert _request(port, "/").status == 401
     assert _request(port, "/?token=wrong-token").status == 401
     good = _request(port, "/?token=secret-token")
-    assert good.status == 200 and "overgrid_token=secret-token" in good.getheader("Set-Cookie", "")
+    # One cookie per port: a viewer on another port of this host keeps its own.
+    cookie = {"Cookie": f"overgrid_token_{port}=secret-token"}
+    assert good.status == 200 and cookie["Cookie"] in good.getheader("Set-Cookie", "")
     assert "default-src 'self'" in good.getheader("Content-Security-Policy", "")
-    assert _request(port, "/", headers={"Cookie": "overgrid_token=secret-token"}).status == 200
-    cookie = {"Cookie": "overgrid_token=secret-token"}
+    assert _request(port, "/", headers=cookie).status == 200
+    other_port = {"Cookie": f"overgrid_token_{port + 1}=secret-token"}
+    assert _request(port, "/", headers=other_port).status == 401
     assert _request(port, "/", "POST", cookie).status == 405
     assert _request(port, "/", headers={**cookie, "Host": "rebound.example:80"}).status == 403
     upgrade = {
@@ -379,6 +416,15 @@ def _serve_calibrations(session: zenoh.Session) -> list[Any]:
     return queryables
 
 
+def _value_at(session: zenoh.Session, x_m: float, y_m: float) -> int | None:
+    """The map's value at (x, y) as fusion serves it; None while fusion does not answer (on a
+    loaded machine it may take a while to start)."""
+    try:
+        return latest(session, timeout_s=2).value_at(x_m, y_m)
+    except MapUnavailable:
+        return None
+
+
 def _window_m(x0: float, y0: float, x1: float, y1: float) -> Window:
     return Window.covering(x0, y0, x1, y1, RESOLUTION_M)
 
@@ -395,6 +441,22 @@ def _drawn_as(page: Any, x_m: float, y_m: float, color: str) -> str:
         f"() => {{ const p = window.overgridView.pixelAt({x_m}, {y_m});"
         f" return Math.abs(p[0] - {r}) + Math.abs(p[1] - {g}) + Math.abs(p[2] - {b}) < 12; }}"
     )
+
+
+def _drawn_near(
+    page: Any, x_m: float, y_m: float, rgb: tuple[int, int, int], radius_px: int = 2
+) -> bool:
+    """Whether a canvas pixel within ``radius_px`` of world point (x, y) has colour ``rgb``: for
+    lines, which are thin and antialiased."""
+    pixels = page.evaluate(f"window.overgridView.pixelsNear({x_m}, {y_m}, {radius_px})")
+    return any(sum(abs(a - b) for a, b in zip(p, rgb, strict=True)) < 30 for p in pixels)
+
+
+def _service_pid(process: subprocess.Popen[bytes]) -> int:
+    """The service itself under the ``timeout`` that Bus.start wraps it in."""
+    found = subprocess.run(["pgrep", "-P", str(process.pid)], capture_output=True, text=True)
+    (pid,) = found.stdout.split()
+    return int(pid)
 
 
 def _readout_at(page: Any, corner: dict[str, float], x_m: float, y_m: float) -> str:
@@ -419,6 +481,9 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
     problems: list[str] = []
     page.on("console", lambda m: problems.append(m.text) if m.type == "error" else None)
     page.on("pageerror", lambda error: problems.append(str(error)))
+    asked: list[str] = []  # every URL the page asks for: its own origin only (sites are offline)
+    page.on("request", lambda request: asked.append(request.url))
+    page.on("websocket", lambda socket: asked.append(socket.url))
     queryables = _serve_calibrations(bus.session)
     fusion_args = (
         "fusion",
@@ -441,13 +506,13 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
     def land(window: Window, logodds: float, height_m: float = 0.0) -> None:
         tiles.put(tile_payload("p0", window, logodds, seq=next(seq), height_m=height_m))
 
-    wait_for(lambda: latest(bus.session, timeout_s=5).version >= 0, 30, "fusion")
+    wait_for(lambda: _value_at(bus.session, 0.0, 0.0) is not None, 60, "fusion")
 
     def scene_fused() -> bool:  # until fusion's subscription reaches the router, puts go nowhere
         land(_window_m(0.5, 0.5, 5.5, 4.5), -2.0)  # free floor
         land(_window_m(2.0, 2.0, 2.6, 2.6), 3.0, height_m=1.2)  # a box
         time.sleep(0.2)
-        return latest(bus.session).value_at(2.3, 2.3) > 65
+        return (_value_at(bus.session, 2.3, 2.3) or 0) > 65
 
     wait_for(scene_fused, 20, "the box in the map")
 
@@ -457,6 +522,18 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
     page.wait_for_selector('#pairs li[data-pair="p0"][data-state="alive"]')
     page.wait_for_selector('#pairs li[data-pair="p0"]:has-text("floor model")')  # depth health
     assert page.is_hidden("#banner")
+    assert page.inner_text("#summary").endswith("1/1 pairs alive")
+
+    # While tiles flow, the pair's frame rate (tiles/s at fusion) and capture → map latency.
+    detail = page.locator('#pairs li[data-pair="p0"] .detail')
+
+    def rates_shown() -> bool:
+        land(_window_m(0.5, 3.0, 1.5, 4.5), -2.0)  # more free floor, away from the box
+        time.sleep(0.1)
+        rates = r"frame rate (?!0\.0)\d+\.\d\sHz · latency \d+\sms"
+        return re.search(rates, detail.inner_text()) is not None
+
+    wait_for(rates_shown, 15, "the pair's frame rate and latency in the panel")
 
     # Zoom keeps the point under the pointer in place; a drag pans; "fit" shows the whole map.
     corner = page.locator("#map").bounding_box()
@@ -478,11 +555,27 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
     page.wait_for_function(_drawn_as(page, 2.3, 2.3, "occupied"))
     assert page.evaluate("window.overgridView.state.view.pxPerM") == pytest.approx(fitted)
 
-    # A tile lands: the open page shows it within a second, no reload.
+    # The pair's footprint outlined in the live colour (zoomed out: it reaches past the map).
+    page.mouse.move(corner["x"] + corner["width"] / 2, corner["y"] + corner["height"] / 2)
+    page.mouse.wheel(0, 400)
+    page.wait_for_function(f"() => window.overgridView.state.view.pxPerM < {0.8 * fitted}")
+    footprint = page.evaluate("window.overgridView.state.status.pairs[0].footprint_m")
+    (ax, ay), (bx, by) = sorted(footprint, key=lambda point: point[1])[:2]  # its edge of least y
+    assert _drawn_near(page, (ax + bx) / 2, (ay + by) / 2, ALIVE_RGB)
+    assert not _drawn_near(page, (ax + bx) / 2, (ay + by) / 2 + 0.3, ALIVE_RGB)  # a line, no fill
+    page.click("#fit")
+
+    # A tile lands: the open page shows it within a second, no reload, from a changed rectangle
+    # (whole maps go when the page connects and when most of the map changed: the first height
+    # layer).
+    frames_before = page.evaluate("({...window.overgridView.state.frames})")
     before = _rgb(page, 4.3, 1.3)
     land(_window_m(4.0, 1.0, 4.6, 1.6), 3.0, height_m=0.8)
     page.wait_for_function(_drawn_as(page, 4.3, 1.3, "occupied"), timeout=1000)
     assert before == PICTURE_COLORS["free"]
+    frames = page.evaluate("window.overgridView.state.frames")
+    assert frames["map"] == frames_before["map"] >= 1, (frames_before, frames)
+    assert frames["rect"] > frames_before["rect"], (frames_before, frames)
     _screenshot(page, tmp_path, "viewer-live.png")
 
     # The cell under the pointer, with the height layer the viewer fetches beside the updates.
@@ -531,12 +624,16 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
     # A depth process dies: its pair shows dead.
     bus.kill(depth)
     page.wait_for_selector('#pairs li[data-pair="p0"][data-state="dead"]', timeout=10_000)
+    assert page.inner_text("#summary").endswith("0/1 pairs alive")
 
     # Fusion stops: the page warns that the map is stale, then recovers when fusion is back.
     fusion.send_signal(signal.SIGINT)
     fusion.wait(15)
     page.wait_for_selector('#banner[data-kind="stale"]', state="visible", timeout=10_000)
     assert "stale" in page.inner_text("#banner")
+    # What the panel knows of the pairs is as fusion last told it: greyed, and not counted alive.
+    page.wait_for_selector('#pairs li.stale[data-pair="p0"][data-state="unknown"]')
+    assert page.inner_text("#summary").endswith("1 pair, state unknown")
     _screenshot(page, tmp_path, "viewer-stale.png")
     # "Last observed" never asks fusion: with fusion gone the viewer still answers it.
     box_i, box_j = int(4.3 / RESOLUTION_M), int(1.3 / RESOLUTION_M)
@@ -549,14 +646,17 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
     land(_window_m(1.0, 1.0, 1.4, 1.4), 3.0)
     page.wait_for_function(_drawn_as(page, 1.2, 1.2, "occupied"), timeout=5000)
     assert problems == []
+    origin = f"127.0.0.1:{port}"
+    assert f"ws://{origin}/ws" in asked
+    assert [
+        url for url in asked if not url.startswith((f"http://{origin}/", f"ws://{origin}/"))
+    ] == []
     for queryable in queryables:
         queryable.undeclare()
 
 
 @pytest.mark.process
-def test_the_page_reconnects_to_a_restarted_viewer(
-    bus: Bus, tmp_path: Path, browser_page: Any
-) -> None:
+def test_objects_and_a_rejected_token(bus: Bus, tmp_path: Path, browser_page: Any) -> None:
     page = browser_page
     port = free_port()
     viewer = bus.start("view", "--http-port", str(port), log_path=tmp_path / "view.log")
@@ -565,21 +665,57 @@ def test_the_page_reconnects_to_a_restarted_viewer(
     page.wait_for_selector('#banner[data-kind="stale"]')  # no fusion on this bus: never answered
     assert "not answered yet" in page.inner_text("#banner")
     assert "not served" in page.inner_text("#objects")
-    # Objects appear once map/objects answers (here the test answers it, as fusion does).
-    tracked = ObjectsHeader(
-        version=1, stamp_ns=2, objects=[_tracked(7, (0.5, 0.0)), _tracked(8, (0.0, 0.0))]
-    )
-    payload = encode(OBJECTS_KIND, tracked)
+    # Objects appear once map/objects answers (here the test answers it, as fusion does): in the
+    # panel, and on the canvas outlined, with an arrow for the one that moves.
+    moving, standing = _tracked(7, (0.5, 0.0)), _tracked(8, (0.0, 0.0), center_m=(3.0, 1.0))
+    payload = encode(OBJECTS_KIND, ObjectsHeader(version=1, stamp_ns=2, objects=[moving, standing]))
     queryable = bus.session.declare_queryable(
         "map/objects", lambda query: query.reply("map/objects", payload)
     )
     page.wait_for_selector('#objects:has-text("2 tracked, 1 moving: 7 (0.5 m/s)")')
     queryable.undeclare()  # type: ignore[no-untyped-call]
+    for tracked in (moving, standing):
+        (x, y), (length, _), yaw = tracked.center_m, tracked.size_m, tracked.yaw_rad
+        back_x, back_y = x - length / 2 * np.cos(yaw), y - length / 2 * np.sin(yaw)
+        assert _drawn_near(page, back_x, back_y, OBJECT_RGB), tracked.id  # the outline's back edge
+    assert _drawn_near(page, 1.2, 2.0, OBJECT_RGB, radius_px=1)  # 7's arrow, inside its outline
+    assert not _drawn_near(page, 3.2, 1.0, OBJECT_RGB, radius_px=1)  # 8 stands: no arrow
+    _screenshot(page, tmp_path, "viewer-objects.png")
+    # The viewer comes back wanting another token: the page says so, not "reconnecting".
     bus.kill(viewer)
     page.wait_for_selector('#banner[data-kind="disconnected"]', timeout=10_000)
     assert "reconnecting" in page.inner_text("#banner")
+    bus.start(
+        "view", "--http-port", str(port), "--token", "another-token", log_path=tmp_path / "v2.log"
+    )
+    page.wait_for_selector('#banner[data-kind="rejected"]', timeout=15_000)
+    assert "token rejected" in page.inner_text("#banner")
+
+
+@pytest.mark.process
+def test_the_page_recovers_from_a_viewer_that_stopped_answering(
+    bus: Bus, tmp_path: Path, browser_page: Any
+) -> None:
+    """A dead link: the viewer's process is stopped, so its sockets stay open and say nothing. The
+    page gives up on its socket and tries anew at once (a socket closed on a silent peer stays
+    CLOSING for tens of seconds), and follows the viewer started in its place."""
+    page = browser_page
+    port = free_port()
+    hung = bus.start("view", "--http-port", str(port), log_path=tmp_path / "view.log")
+    _wait_http(port)
+    page.goto(f"http://127.0.0.1:{port}/")
+    page.wait_for_selector('#banner[data-kind="stale"]')  # connected (no fusion on this bus)
+    try:
+        # Silent for 3.5 s: the page's watchdog gives up on the socket, a new one follows at once.
+        with page.expect_websocket(timeout=8_000):
+            os.kill(_service_pid(hung), signal.SIGSTOP)
+            page.wait_for_selector('#banner[data-kind="disconnected"]', timeout=8_000)
+    finally:
+        bus.kill(hung)  # SIGKILL ends a stopped process too, and frees the port
     bus.start("view", "--http-port", str(port), log_path=tmp_path / "view-again.log")
-    page.wait_for_selector('#banner[data-kind="stale"]', timeout=20_000)  # connected again
+    _wait_http(port)
+    page.wait_for_selector('#banner[data-kind="stale"]', timeout=8_000)  # connected again
+    assert page.evaluate("window.overgridView.state.connected")
 
 
 @pytest.mark.process
@@ -597,7 +733,7 @@ def test_a_fusion_that_lost_its_map_is_followed_anew(
             window = _window_m(x0, y0, x0 + 0.5, y0 + 0.5)
             tiles.put(tile_payload("p0", window, logodds, seq=next(seq)))
             time.sleep(0.05)
-        return latest(bus.session).value_at(x0 + 0.25, y0 + 0.25) > 65
+        return (_value_at(bus.session, x0 + 0.25, y0 + 0.25) or 0) > 65
 
     first = bus.start("fusion", "--state-dir", str(tmp_path / "a"), log_path=tmp_path / "a.log")
     port = free_port()

@@ -63,6 +63,8 @@ class FeedState:
     fusion_answered_s: float | None = None
     """When map/health last answered (epoch seconds); None: never yet."""
     fusion_ok: bool = False
+    """Whether the last map/health query was answered; the page's stale warning goes by
+    ``fusion_answered_s`` (silent longer than --stale-after-s), not by one lost query."""
     map_health: dict[str, Any] | None = None
     pairs: list[dict[str, Any]] = field(default_factory=list)
     objects: list[dict[str, Any]] | None = None

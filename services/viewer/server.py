@@ -41,11 +41,11 @@ from common.settings import ZenohSettings, parse_settings
 from common.zenoh_session import open_session
 from services.viewer.address import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, LOOPBACK_HOSTS, page_url
 from services.viewer.feed import FeedPeriods, FeedState, MapFeed
+from services.viewer.status import fusion_status
 from services.viewer.wire import NO_HEIGHT_MM, MapLayers, frames_between, full_frame
 
 log = logging.getLogger("view")
 STATIC = Path(__file__).with_name("static")
-TOKEN_COOKIE = "overgrid_token"
 MAX_QUEUED_MESSAGES = 64
 """A page further behind than this gets one full map instead of the backlog."""
 HEARTBEAT_S = 1.0
@@ -91,14 +91,11 @@ def hello_message(settings: ViewSettings) -> str:
 
 
 def status_message(state: FeedState, now_s: float, stale_after_s: float) -> str:
-    silent_s = None if state.fusion_answered_s is None else now_s - state.fusion_answered_s
     layers = state.layers
     return json.dumps(
         {
             "type": "status",
-            "fusion_ok": state.fusion_ok,
-            "fusion_silent_s": None if silent_s is None else round(silent_s, 2),
-            "stale": not state.fusion_ok or silent_s is None or silent_s > stale_after_s,
+            **fusion_status(state.fusion_answered_s, state.fusion_ok, now_s, stale_after_s),
             "map": None
             if layers is None
             else {
@@ -213,6 +210,22 @@ BROADCASTER = web.AppKey("broadcaster", Broadcaster)
 FEED = web.AppKey("feed", MapFeed)
 
 
+def token_cookie(port: int | None) -> str:
+    """The cookie that carries the token, one per port: browsers keep cookies per host, not per
+    port, so two viewers on one box (two `up` runs) must not overwrite each other's."""
+    return f"overgrid_token_{port or 80}"
+
+
+def exposure_warning(settings: ViewSettings) -> str | None:
+    """What to say at start when the page is served beyond this box with no token."""
+    if settings.http_host in LOOPBACK_HOSTS or settings.token is not None:
+        return None
+    return (
+        f"serving on {settings.http_host} without --token: anyone who reaches this port sees "
+        "the map; set --token (or OVERGRID_TOKEN)"
+    )
+
+
 def _same_origin(request: web.Request) -> bool:
     """A page of another site must not read the map through the visitor's browser."""
     origin = request.headers.get("Origin")
@@ -232,10 +245,11 @@ def guard(settings: ViewSettings) -> Middleware:
             raise web.HTTPMethodNotAllowed(request.method, ["GET", "HEAD"])
         if loopback and (request.url.host or "") not in LOOPBACK_HOSTS:
             raise web.HTTPForbidden(text="this viewer answers on its loopback address only")
+        cookie = token_cookie(request.url.port)
         if settings.token is not None:
             given = (
                 request.query.get("token")
-                or request.cookies.get(TOKEN_COOKIE)
+                or request.cookies.get(cookie)
                 or request.headers.get("Authorization", "").removeprefix("Bearer ")
             )
             if not hmac.compare_digest(given.encode(), settings.token.encode()):
@@ -250,7 +264,7 @@ def guard(settings: ViewSettings) -> Middleware:
             response.headers["X-Content-Type-Options"] = "nosniff"
             response.headers["Referrer-Policy"] = "no-referrer"
             if settings.token is not None and request.query.get("token"):
-                response.set_cookie(TOKEN_COOKIE, settings.token, httponly=True, samesite="Strict")
+                response.set_cookie(cookie, settings.token, httponly=True, samesite="Strict")
         return response
 
     return middleware
@@ -388,6 +402,8 @@ async def serve(settings: ViewSettings, feed: MapFeed, stop: threading.Event) ->
 
 def main(settings: ViewSettings) -> None:
     setup_logging("view", settings.log_level)
+    if (warning := exposure_warning(settings)) is not None:
+        log.warning(warning)
     stop = stop_on_signals()
     periods = FeedPeriods(health_s=settings.health_period_s, height_s=settings.height_period_s)
     with open_session(settings) as session:

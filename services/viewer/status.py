@@ -49,6 +49,20 @@ def _floor_model(*rows: dict[str, Any]) -> str | None:
     return None
 
 
+def fusion_status(
+    answered_s: float | None, fusion_ok: bool, now_s: float, stale_after_s: float
+) -> dict[str, Any]:
+    """Whether the page's map is stale: fusion silent for longer than ``stale_after_s`` (or never
+    heard). One unanswered health query is not enough: a query lost on a busy link must not flash
+    the warning; ``fusion_ok`` (the last query's outcome) goes along as information."""
+    silent_s = None if answered_s is None else max(now_s - answered_s, 0.0)
+    return {
+        "fusion_ok": fusion_ok,
+        "fusion_silent_s": None if silent_s is None else round(silent_s, 2),
+        "stale": silent_s is None or silent_s > stale_after_s,
+    }
+
+
 def pair_states(
     health: dict[str, Any] | None,
     rates: TileRates,

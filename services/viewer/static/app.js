@@ -17,6 +17,9 @@
   const COLORS = { alive: "#1f9d45", dead: "#d32f2f", unknown: "#e0a100", object: "#1565c0", axisX: "#d32f2f", axisY: "#1f9d45" };
   const MIN_SPEED_MPS = 0.05; // slower is drawn as standing still: no arrow
   const SERVER_SILENT_S = 3.5; // the server sends status every second: silence means a lost link
+  const CONNECT_TIMEOUT_S = 5; // a viewer that accepts the connection but never answers is as gone
+  const RETRY_MIN_MS = 500;
+  const RETRY_MAX_MS = 5000;
   const CELL_QUERY_MS = 250; // "last observed" is asked at most this often, and only for a new cell
   const CELL_REFRESH_MS = 1000; // … or again for the same cell (the viewer's layer is about this old)
   const HEIGHT_RAMP = [[48, 18, 59], [70, 134, 251], [27, 229, 181], [164, 252, 60], [251, 185, 56], [228, 70, 10], [122, 4, 3]];
@@ -28,9 +31,14 @@
     view: { cx: 0, cy: 0, pxPerM: 40 },
     userMoved: false,
     socket: null,
+    socketStartedMs: 0,
     connected: false,
+    rejected: false, // the viewer answered 401: this page's token is not (or no longer) the one
+    probing: false,
+    retryTimer: null,
     lastMessageMs: 0,
-    retryMs: 500,
+    retryMs: RETRY_MIN_MS,
+    frames: { map: 0, rect: 0 }, // frames received, by type: after the first map, rectangles
     pointer: null,
     drawQueued: false,
     // The viewer's answer for the cell under the pointer: {key, lastSeenS, nowS, receivedMs}.
@@ -195,9 +203,13 @@
   }
 
   function pairState(pair) {
-    if (!state.status || state.status.stale) return "unknown";
+    if (!state.status || stale()) return "unknown";
     if (pair.alive) return "alive";
     return pair.known_to_fusion ? "dead" : "no-depth";
+  }
+
+  function stale() {
+    return Boolean(state.status && state.status.stale);
   }
 
   function pairLine(pair) {
@@ -335,6 +347,10 @@
     return value === null || value === undefined ? "—" : `${Number(value).toFixed(digits)}\u00a0${unit}`;
   }
 
+  function ago(seconds) {
+    return seconds === null || seconds === undefined ? "—" : `${fmt(seconds, 1, "s")} ago`;
+  }
+
   function renderPanel() {
     const status = state.status;
     pairsList.replaceChildren();
@@ -349,6 +365,7 @@
       const li = document.createElement("li");
       li.dataset.pair = pair.pair;
       li.dataset.state = s;
+      li.classList.toggle("stale", stale()); // the details are as fusion last told them
       const name = document.createElement("span");
       name.className = "name";
       name.textContent = pair.pair;
@@ -359,7 +376,7 @@
       detail.className = "detail";
       detail.textContent =
         `frame rate ${fmt(pair.frame_rate_hz, 1, "Hz")} · latency ${fmt(pair.capture_to_map_ms, 0, "ms")}\n` +
-        `last tile ${fmt(pair.last_tile_age_s, 1, "s")} ago` +
+        `last tile ${ago(pair.last_tile_age_s)}` +
         (pair.floor_model ? ` · floor model ${pair.floor_model}` : "") +
         (pair.footprint_m ? "" : " · no calibration");
       detail.style.whiteSpace = "pre-line";
@@ -410,8 +427,13 @@
     const parts = [];
     if (map) parts.push(`map v${map.version} · ${map.cols}×${map.rows} cells @ ${Math.round(map.resolution_m * 100)} cm`);
     if (status && status.map && status.map.capture_age_s !== null) parts.push(`newest capture ${status.map.capture_age_s.toFixed(1)} s ago`);
-    if (status) {
-      const alive = status.pairs.filter((p) => p.alive).length;
+    if (status && status.pairs.length === 0) {
+      parts.push("no pairs yet");
+    } else if (status && stale()) {
+      const n = status.pairs.length;
+      parts.push(`${n} pair${n === 1 ? "" : "s"}, state unknown`); // as the panel says
+    } else if (status) {
+      const alive = status.pairs.filter((p) => pairState(p) === "alive").length;
       parts.push(`${alive}/${status.pairs.length} pairs alive`);
     }
     summary.textContent = parts.join(" · ") || (state.connected ? "waiting for the map…" : "connecting…");
@@ -421,19 +443,23 @@
     let kind = null;
     let text = "";
     const silentS = (performance.now() - state.lastMessageMs) / 1000;
-    if (!state.connected) {
+    if (!state.connected && state.rejected) {
+      kind = "rejected";
+      text = "Access token rejected by the viewer — open the URL `overgrid view` printed";
+    } else if (!state.connected) {
       kind = "disconnected";
       text = "Connection to the viewer lost — reconnecting…";
     } else if (silentS > SERVER_SILENT_S) {
       kind = "disconnected";
       text = `No word from the viewer for ${silentS.toFixed(0)} s — reconnecting…`;
-    } else if (state.status && state.status.stale) {
+    } else if (stale()) {
       kind = "stale";
       const since = state.status.fusion_silent_s;
+      const limit = state.hello ? ` (the limit is ${state.hello.stale_after_s} s)` : "";
       text =
         since === null
           ? "Map unavailable: the fusion service has not answered yet"
-          : `Map is stale: the fusion service has not answered for ${since.toFixed(0)} s — showing the last map`;
+          : `Map is stale: no answer from the fusion service for ${since.toFixed(0)} s${limit} — showing the last map`;
     }
     banner.hidden = kind === null;
     banner.dataset.kind = kind || "";
@@ -510,15 +536,20 @@
 
   // ---- socket -------------------------------------------------------------------------------
   function connect() {
+    state.retryTimer = null;
     const url = new URL("ws", location.href);
     url.protocol = location.protocol === "https:" ? "wss:" : "ws:";
     url.search = "";
     const socket = new WebSocket(url);
     socket.binaryType = "arraybuffer";
     state.socket = socket;
+    state.socketStartedMs = performance.now();
+    let opened = false;
     socket.onopen = () => {
+      opened = true;
       state.connected = true;
-      state.retryMs = 500;
+      state.rejected = false;
+      state.retryMs = RETRY_MIN_MS;
       state.lastMessageMs = performance.now();
       renderBanner();
     };
@@ -536,6 +567,7 @@
         }
       } else {
         const frame = readFrame(event.data);
+        state.frames[frame.header.type] = (state.frames[frame.header.type] || 0) + 1;
         if (frame.header.type === "map") onMapFrame(frame);
         else if (frame.header.type === "rect") onRectFrame(frame);
       }
@@ -543,21 +575,53 @@
       renderBanner();
     };
     socket.onclose = () => {
-      if (state.socket !== socket) return;
-      state.connected = false;
-      state.socket = null;
-      renderBanner();
-      setTimeout(connect, state.retryMs);
-      state.retryMs = Math.min(state.retryMs * 2, 5000);
+      if (!opened) probeToken(); // a refused handshake says nothing of why: ask over HTTP
+      abandon(socket);
     };
     socket.onerror = () => socket.close();
+  }
+
+  // Give up on a socket and try a new one (after the back-off). Its handlers go first: a socket
+  // whose peer stopped answering stays CLOSING for tens of seconds after close(), and must
+  // neither hold up the next attempt nor speak after it.
+  function abandon(socket) {
+    socket.onopen = socket.onmessage = socket.onclose = socket.onerror = null;
+    if (socket.readyState === WebSocket.CONNECTING || socket.readyState === WebSocket.OPEN) socket.close();
+    if (state.socket !== socket) return;
+    state.socket = null;
+    state.connected = false;
+    renderBanner();
+    renderSummary();
+    if (state.retryTimer === null) state.retryTimer = setTimeout(connect, state.retryMs);
+    state.retryMs = Math.min(state.retryMs * 2, RETRY_MAX_MS);
+  }
+
+  // Whether the viewer turns this page away (401: it was restarted with another --token) rather
+  // than being unreachable: the same cookie and origin as the socket, on a cheap read.
+  function probeToken() {
+    if (state.probing) return;
+    state.probing = true;
+    fetch("cell?i=0&j=0", { cache: "no-store", signal: AbortSignal.timeout(2000) })
+      .then((response) => {
+        state.rejected = response.status === 401;
+      })
+      .catch(() => {
+        state.rejected = false; // unreachable: the plain "reconnecting" is right
+      })
+      .finally(() => {
+        state.probing = false;
+        renderBanner();
+      });
   }
 
   setInterval(() => {
     renderBanner();
     renderReadout(); // the age of "last observed" goes on
-    const silentS = (performance.now() - state.lastMessageMs) / 1000;
-    if (state.connected && silentS > SERVER_SILENT_S && state.socket) state.socket.close();
+    const socket = state.socket;
+    if (!socket) return;
+    const nowMs = performance.now();
+    if (state.connected && (nowMs - state.lastMessageMs) / 1000 > SERVER_SILENT_S) abandon(socket);
+    else if (!state.connected && (nowMs - state.socketStartedMs) / 1000 > CONNECT_TIMEOUT_S) abandon(socket);
   }, 1000);
 
   // ---- pointer: pan, zoom, readout ----------------------------------------------------------
@@ -623,6 +687,16 @@
       draw();
       const [sx, sy] = worldToScreen(x, y);
       return Array.from(ctx.getImageData(Math.round(sx), Math.round(sy), 1, 1).data);
+    },
+    // The [r, g, b] of every pixel within `radius` px of world point (x, y): for thin lines.
+    pixelsNear(x, y, radius) {
+      draw();
+      const [sx, sy] = worldToScreen(x, y);
+      const size = 2 * radius + 1;
+      const data = ctx.getImageData(Math.round(sx) - radius, Math.round(sy) - radius, size, size).data;
+      const pixels = [];
+      for (let k = 0; k < data.length; k += 4) pixels.push([data[k], data[k + 1], data[k + 2]]);
+      return pixels;
     },
   };
 
