@@ -228,6 +228,30 @@ def test_a_wall_face_along_the_baseline_puts_no_ring_of_obstacles_before_it() ->
     assert (occupied & inside).sum() > 0.6 * inside.sum()
 
 
+def test_a_pallets_deck_is_no_free_floor_between_its_boards() -> None:
+    """Rule 9: a EUR pallet turned so its deck boards run across the baseline shows the floor
+    between them; the cells whose centres fall in those slots are the pallet's, not free floor
+    (45 % of its inner cells were observed free before the rule, 5 % with it)."""
+    pallet = ObjectSpec(
+        name="pallet",
+        shape="pallet",
+        center_xy_m=(5.0, 4.0),
+        yaw_rad=1.54,
+        size_m=(1.2, 0.8, 0.144),
+    )
+    scene = SceneSpec(floor="concrete", objects=[pallet], markings=[])
+    pair = Pair(scene)
+    pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
+    free_shares = []
+    for _ in range(12):
+        tile = pipeline.process(*pair.next()).tile
+        inner = _eroded(footprint_mask(scene.truth_objects(0)[0], tile.window, 0.05), 1)
+        observed = inner & (tile.count > 0)
+        free_shares.append(((tile.logodds < 0) & observed).sum() / max(observed.sum(), 1))
+    pair.close()
+    assert float(np.mean(free_shares[-6:])) < 0.15
+
+
 def test_row_support_vouches_only_for_what_the_measurements_bounding_a_run_agree_on() -> None:
     """Rules 6 and 7 on hand-made rows: anchors are the measured pixels."""
     nan = np.nan
@@ -309,6 +333,7 @@ def _synthetic_geometry() -> floor_model.FloorGeometry:
         camera_height_m=SYNTHETIC_HEIGHT_M,
         focal_baseline_px_m=SYNTHETIC_FOCAL_BASELINE,
         nadir_px=(width / 2, height / 2),
+        floor_px_per_m=277.0 / SYNTHETIC_HEIGHT_M,
     )
 
 

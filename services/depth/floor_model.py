@@ -46,6 +46,9 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
    upper quartile's height: a plain top whose one measured edge cannot bridge it (the other lies beside the
    occlusion). Like 6 and 7, it only ever adds obstacles or takes evidence away, never clears a
    cell.
+9. Floor seen through a gap narrower than 12 cm between surfaces in the band (a pallet's deck
+   between its boards) belongs to them: no robot passes there, and a cell whose centre falls in
+   the slot is the pallet's.
 
 Learning (never from pixels where something stands), every ``learn_every`` frames:
 
@@ -168,6 +171,8 @@ ROW_TOLERANCE_M = 0.1
 REGION_EDGE_PX = 5
 """A measurement within (this − 1) / 2 px of a departed region lies on its edge (rule 8)."""
 REGION_MIN_RAISED = 10
+GAP_CLOSED_M = 0.12
+"""Floor seen through a gap narrower than this between surfaces in the band is theirs (rule 9)."""
 REGION_TOP_QUANTILE = 0.75
 
 
@@ -249,6 +254,8 @@ class FloorGeometry:
     """f·b: depth z = f·b / d."""
     nadir_px: tuple[float, float]
     """Where vertical lines vanish in the rectified left image (the point below the camera)."""
+    floor_px_per_m: float
+    """Pixels a metre of floor spans below the camera (focal length over camera height)."""
 
     @staticmethod
     def from_rectifier(rectifier: Rectifier, rays_world: F32) -> FloorGeometry:
@@ -268,6 +275,7 @@ class FloorGeometry:
             camera_height_m=height_m,
             focal_baseline_px_m=focal_baseline,
             nadir_px=(float(nadir[0]), float(nadir[1])),
+            floor_px_per_m=rectifier.focal_px / height_m,
         )
 
     def height_m(self, disparity_px: F32) -> F32:
@@ -520,6 +528,8 @@ class FloorModel:
         self._beyond_probe = probe(-SEED_PROBE_PX - LINE_ACROSS_PX)
         self._gain = (1.0, 1.0)
         self._set_floor(self.geometry.floor_disparity_px)
+        gap_px = GAP_CLOSED_M * geometry.floor_px_per_m
+        self._gap_kernel = np.ones((2 * math.ceil(gap_px / 2) + 1,) * 2, np.uint8)
         # Compile the row scan (or load it from numba's cache) now, not in the first frame.
         row_support(np.zeros((1, 1), np.float32), np.zeros((1, 1), np.bool_), 1, ROW_TOLERANCE_M)
 
@@ -663,6 +673,7 @@ class FloorModel:
         self._fill_departed_regions(measured, ~np.isfinite(measured) & ~observed & departs)  # 8
         # Floor observations sit at height 0 (measurements are corrected to the calibration's floor).
         out = np.where(observed, self.geometry.floor_disparity_px, measured).astype(np.float32)
+        self._close_gaps(out)  # rule 9
 
         relearn = departed > cfg.relearn_share
         if relearn or self.frames % cfg.learn_every == 0:
@@ -702,6 +713,23 @@ class FloorModel:
         count = int(np.count_nonzero(modelled))
         departed = 0.0 if count < MIN_FIT_PIXELS else 1.0 - float(np.count_nonzero(both)) / count
         return both & textured_alike, departed
+
+    def _close_gaps(self, evidence: F32) -> None:
+        """Rule 9, in place: floor evidence in a gap narrower than GAP_CLOSED_M between surfaces
+        in the obstacle band (a morphological closing of the band's pixels) takes the highest of
+        them: a pallet's deck shows the floor between its boards, and a cell whose centre falls
+        in such a slot is the pallet's (nav2's rasterisation, and no robot passes there)."""
+        height = self.geometry.height_m(evidence)
+        with np.errstate(invalid="ignore"):
+            band = height >= self.obstacle_min_m
+        closed = cv2.morphologyEx(band.view(np.uint8), cv2.MORPH_CLOSE, self._gap_kernel) > 0
+        gap = closed & ~band & np.isfinite(height)
+        if gap.any():
+            top: F32 = np.asarray(
+                cv2.dilate(np.where(band, height, -np.inf).astype(np.float32), self._gap_kernel),
+                np.float32,
+            )
+            evidence[gap] = self.geometry.disparity_px(top)[gap]
 
     def _fill_departed_regions(self, measured: F32, holes: Mask) -> None:
         """Rule 8, in place: each connected region of ``holes`` (no evidence, and the image departs
