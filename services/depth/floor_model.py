@@ -173,6 +173,9 @@ REGION_EDGE_PX = 5
 REGION_MIN_RAISED = 10
 GAP_CLOSED_M = 0.12
 """Floor seen through a gap narrower than this between surfaces in the band is theirs (rule 9)."""
+GAP_KERNEL_MAX_PX = 31
+"""The closing's kernel at most (a calibration of absurd focal length is refused later, by the
+disparity band it implies; it must not ask for a kernel of terabytes first)."""
 REGION_TOP_QUANTILE = 0.75
 
 
@@ -528,7 +531,7 @@ class FloorModel:
         self._beyond_probe = probe(-SEED_PROBE_PX - LINE_ACROSS_PX)
         self._gain = (1.0, 1.0)
         self._set_floor(self.geometry.floor_disparity_px)
-        gap_px = GAP_CLOSED_M * geometry.floor_px_per_m
+        gap_px = min(GAP_CLOSED_M * geometry.floor_px_per_m, GAP_KERNEL_MAX_PX)
         self._gap_kernel = np.ones((2 * math.ceil(gap_px / 2) + 1,) * 2, np.uint8)
         # Compile the row scan (or load it from numba's cache) now, not in the first frame.
         row_support(np.zeros((1, 1), np.float32), np.zeros((1, 1), np.bool_), 1, ROW_TOLERANCE_M)
