@@ -22,6 +22,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from common.client import MapUnavailable, health
+
 REPO = Path(__file__).resolve().parents[1]
 PROCESS_LIFETIME_S = 240
 
@@ -120,6 +122,15 @@ def bus() -> Iterator[Bus]:
     finally:
         bus.stop_all()
         session.close()  # type: ignore[no-untyped-call]
+
+
+def fusion_answers(bus: Bus) -> bool:
+    """Whether fusion answers map/health yet: it starts in 1.5-2.5 s here, longer on a loaded
+    machine, and a wait must not end at the first query that finds nothing."""
+    try:
+        return "map" in health(bus.session, timeout_s=5)
+    except MapUnavailable:
+        return False
 
 
 def wait_for(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:

@@ -15,7 +15,7 @@ from common.codec import WIRE_ENCODING
 from common.lattice import Window
 from common.mapfiles import read_map_server
 from common.png import decode_png
-from tests.conftest import REPO, Bus, wait_for
+from tests.conftest import REPO, Bus, fusion_answers, wait_for
 from tests.tiles import tile_arrays, tile_payload
 
 pytestmark = pytest.mark.process
@@ -43,7 +43,7 @@ def test_fusion_serves_map_and_health_and_survives_bad_tiles(bus: Bus, tmp_path:
     fusion = _start_fusion(bus, tmp_path / "state")
     publisher = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
     other = bus.session.declare_publisher("depth/p1/tile", encoding=WIRE_ENCODING)
-    wait_for(lambda: "map" in _health(bus), 30, "fusion to answer map/health")
+    wait_for(lambda: fusion_answers(bus), 30, "fusion to answer map/health")
     for seq in range(3):
         publisher.put(tile_payload("p0", A, 1.0, seq=seq, height_m=0.7))
         other.put(tile_payload("p1", B, -0.5, seq=seq))
@@ -124,7 +124,7 @@ def test_fusion_serves_map_and_health_and_survives_bad_tiles(bus: Bus, tmp_path:
 def test_restart_restores_the_map_and_version_never_goes_back(bus: Bus, tmp_path: Path) -> None:
     fusion = _start_fusion(bus, tmp_path / "state")
     publisher = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
-    wait_for(lambda: "map" in _health(bus), 30, "fusion to start")
+    wait_for(lambda: fusion_answers(bus), 30, "fusion to start")
     for seq in range(5):
         publisher.put(tile_payload("p0", A, 0.9, seq=seq))
         time.sleep(0.05)
@@ -134,7 +134,7 @@ def test_restart_restores_the_map_and_version_never_goes_back(bus: Bus, tmp_path
     assert fusion.wait(10) == 0
 
     _start_fusion(bus, tmp_path / "state")
-    wait_for(lambda: "map" in _health(bus), 30, "fusion to restart")
+    wait_for(lambda: fusion_answers(bus), 30, "fusion to restart")
     after = latest(bus.session, layers=("logodds",), timeout_s=10)
     assert after.version >= before.version
     np.testing.assert_array_equal(after.occupancy, before.occupancy)
@@ -150,7 +150,7 @@ def test_restart_restores_the_map_and_version_never_goes_back(bus: Bus, tmp_path
 def test_follower_keeps_a_copy_current_from_updates(bus: Bus, tmp_path: Path) -> None:
     _start_fusion(bus, tmp_path / "state")
     publisher = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
-    wait_for(lambda: "map" in _health(bus), 30, "fusion to start")
+    wait_for(lambda: fusion_answers(bus), 30, "fusion to start")
     publisher.put(tile_payload("p0", Window(0, 0, 64, 64), -0.4, seq=0))
     wait_for(lambda: latest(bus.session, timeout_s=10).version >= 1, 10, "a first map")
     follower = MapFollower(bus.session, timeout_s=10)
@@ -175,7 +175,7 @@ def test_updates_carry_the_changed_cells_not_their_bounding_box(bus: Bus, tmp_pa
     between them; a follower replays them and stays equal to map/latest."""
     bus.start("fusion", "--state-dir", str(tmp_path / "state"), "--publish-interval-s", "1")
     publisher = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
-    wait_for(lambda: "map" in _health(bus), 30, "fusion to start")
+    wait_for(lambda: fusion_answers(bus), 30, "fusion to start")
     publisher.put(tile_payload("p0", Window(0, 0, 20, 20), -1.0, seq=0))
     publisher.put(tile_payload("p0", Window(4900, 4900, 20, 20), -1.0, seq=1))
     corners = Window(0, 0, 4928, 4928)

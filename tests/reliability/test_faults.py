@@ -9,7 +9,7 @@ import pytest
 from common.client import health, latest
 from common.codec import WIRE_ENCODING
 from common.lattice import Window
-from tests.conftest import Bus, wait_for
+from tests.conftest import Bus, fusion_answers, wait_for
 from tests.tiles import tile_payload
 
 pytestmark = pytest.mark.process
@@ -66,7 +66,7 @@ def test_sigkilled_fusion_restarts_with_its_map(bus: Bus, tmp_path: Path) -> Non
     args = ("fusion", "--state-dir", str(state), "--save-interval-s", "1")
     fusion = bus.start(*args)
     publisher = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
-    wait_for(lambda: "map" in health(bus.session, timeout_s=5), 30, "fusion up")
+    wait_for(lambda: fusion_answers(bus), 30, "fusion up")
     for seq in range(20):
         window = Window(seq * 10, 0, 10, 10)
         publisher.put(tile_payload("p0", window, 1.0, seq=seq))
@@ -77,7 +77,7 @@ def test_sigkilled_fusion_restarts_with_its_map(bus: Bus, tmp_path: Path) -> Non
     bus.kill(fusion)
 
     bus.start(*args)
-    wait_for(lambda: "map" in health(bus.session, timeout_s=5), 30, "fusion back")
+    wait_for(lambda: fusion_answers(bus), 30, "fusion back")
     after = latest(bus.session)
     assert after.version >= before.version  # never goes backwards
     assert (after.occupancy == before.occupancy).all()  # nothing lost beyond one save interval

@@ -11,7 +11,7 @@ from common.client import MapFollower, health, latest
 from common.codec import WIRE_ENCODING
 from common.lattice import Window
 from common.occupancy_map import OccupancyMap
-from tests.conftest import Bus, wait_for
+from tests.conftest import Bus, fusion_answers, wait_for
 from tests.tiles import tile_payload
 
 pytestmark = pytest.mark.process
@@ -53,7 +53,7 @@ def test_sigkill_loses_at_most_a_second_and_followers_see_the_new_map(
     )
     fusion = bus.start(*args)
     publisher = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
-    wait_for(lambda: "map" in health(bus.session, timeout_s=5), 60, "fusion up")
+    wait_for(lambda: fusion_answers(bus), 60, "fusion up")
     publisher.put(tile_payload("p0", Window(0, 0, 200, 40), -1.0, seq=0))  # free floor
     wait_for(lambda: latest(bus.session).version >= 1, 10, "a first map")
     follower = MapFollower(bus.session, timeout_s=10)
@@ -79,7 +79,7 @@ def test_sigkill_loses_at_most_a_second_and_followers_see_the_new_map(
     stream(0.5)  # into the void: nobody fuses these
 
     bus.start(*args)
-    wait_for(lambda: "map" in health(bus.session, timeout_s=5), 60, "fusion back")
+    wait_for(lambda: fusion_answers(bus), 60, "fusion back")
     restored = _layered(bus)
     answer = health(bus.session)
     assert answer["map"]["epoch"] > before_epoch

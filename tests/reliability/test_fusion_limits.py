@@ -13,7 +13,7 @@ import zenoh
 from common.client import health, latest
 from common.codec import WIRE_ENCODING
 from common.lattice import Window
-from tests.conftest import Bus, wait_for
+from tests.conftest import Bus, fusion_answers, wait_for
 from tests.tiles import tile_payload
 
 pytestmark = pytest.mark.process
@@ -27,7 +27,7 @@ def _health(bus: Bus) -> dict[str, Any]:
 
 def _start(bus: Bus, state_dir: Path, *extra: str, log_path: Path | None = None) -> None:
     bus.start("fusion", "--state-dir", str(state_dir), *extra, log_path=log_path)
-    wait_for(lambda: "map" in _health(bus), 60, "fusion up")
+    wait_for(lambda: fusion_answers(bus), 60, "fusion up")
 
 
 def test_the_pair_is_the_keys_and_a_future_stamp_locks_nobody_out(bus: Bus, tmp_path: Path) -> None:

@@ -13,7 +13,7 @@ from common.client import health, latest
 from common.codec import WIRE_ENCODING
 from common.lattice import Window
 from services.fusion.persistence import CHUNK_LOG
-from tests.conftest import Bus, assert_one_line_exit_2, run_overgrid, wait_for
+from tests.conftest import Bus, assert_one_line_exit_2, fusion_answers, run_overgrid, wait_for
 from tests.tiles import tile_payload
 
 pytestmark = pytest.mark.process
@@ -72,7 +72,7 @@ def test_a_corrupt_state_is_set_aside_and_the_map_starts_empty(bus: Bus, tmp_pat
     (state / CHUNK_LOG).write_bytes(b"\x00garbage" * 100)
     log_path = tmp_path / "fusion.log"
     bus.start("fusion", "--state-dir", str(state), "--save-interval-s", "0.2", log_path=log_path)
-    wait_for(lambda: "map" in health(bus.session, timeout_s=5), 60, "fusion up")
+    wait_for(lambda: fusion_answers(bus), 60, "fusion up")
     assert health(bus.session)["map"]["known_cells"] == 0
     assert "state unusable, set aside" in log_path.read_text()
     assert len(list(state.glob(f"{CHUNK_LOG}.corrupt-*"))) == 1

@@ -23,7 +23,7 @@ from common.codec import WIRE_ENCODING, encode
 from common.lattice import Window
 from common.messages import STEREO_KIND, StereoFrameHeader
 from services.camera_sim.rig import RigSpec, layout_pairs
-from tests.conftest import Bus, wait_for
+from tests.conftest import Bus, fusion_answers, wait_for
 from tests.tiles import tile_arrays, tile_payload
 
 pytestmark = pytest.mark.process
@@ -60,7 +60,7 @@ def _fuzzed(rng: random.Random, seq: int) -> tuple[str, bytes]:
 def test_fuzzed_tiles_are_counted_by_reason_and_good_ones_land(bus: Bus, tmp_path: Path) -> None:
     # Ten thousand messages queue up: a generous age bound keeps the good tiles among them fresh.
     bus.start("fusion", "--state-dir", str(tmp_path / "state"), "--max-tile-age-s", "120")
-    wait_for(lambda: "map" in health(bus.session, timeout_s=5), 30, "fusion up")
+    wait_for(lambda: fusion_answers(bus), 30, "fusion up")
     # BLOCK: on a burst, Zenoh's default drops; here every message must reach fusion to be counted.
     publisher, good_pub = (
         bus.session.declare_publisher(

@@ -10,7 +10,7 @@ import pytest
 from common.client import MapUnavailable, health, latest
 from common.codec import WIRE_ENCODING
 from common.lattice import Window
-from tests.conftest import Bus, wait_for
+from tests.conftest import Bus, fusion_answers, wait_for
 from tests.tiles import tile_payload
 
 pytestmark = pytest.mark.process
@@ -22,7 +22,7 @@ TILE_RATE_HZ = 40.0
 
 def test_fifty_clients_while_tiles_stream(bus: Bus, tmp_path: Path) -> None:
     bus.start("fusion", "--state-dir", str(tmp_path / "state"), "--bounds", "0,0,50,50")
-    wait_for(lambda: "map" in health(bus.session, timeout_s=5), 30, "fusion up")
+    wait_for(lambda: fusion_answers(bus), 30, "fusion up")
     publisher = bus.session.declare_publisher("depth/p0/tile", encoding=WIRE_ENCODING)
     stop = threading.Event()
     replies: list[list[float]] = [[] for _ in range(CLIENTS)]

@@ -11,8 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from common.client import MapUnavailable, health
-from tests.conftest import REPO, Bus, free_port, wait_for
+from tests.conftest import REPO, Bus, free_port, fusion_answers, wait_for
 
 pytestmark = pytest.mark.process
 
@@ -28,15 +27,6 @@ def _start(args: list[str], log: Path) -> subprocess.Popen[bytes]:
         stderr=subprocess.STDOUT,
         start_new_session=True,
     )
-
-
-def _answers_health(bus: Bus) -> bool:
-    """Whether fusion answers map/health yet (on a loaded machine it may start slower than one
-    query's timeout)."""
-    try:
-        return "map" in health(bus.session, timeout_s=2)
-    except MapUnavailable:
-        return False
 
 
 def _running_in_group(pgid: int) -> bool:
@@ -74,7 +64,7 @@ def test_sigterm_stops_the_service_within_2_s(
     process = _start([*args, *bus.flags()], log)
     try:
         if ready == "fusion":
-            wait_for(lambda: _answers_health(bus), 30, "fusion up")
+            wait_for(lambda: fusion_answers(bus), 30, "fusion up")
         else:
             marker = b"msg=started"
             wait_for(lambda: marker in log.read_bytes(), 60, f"{ready} started")
