@@ -29,6 +29,7 @@ from services.viewer.address import LOOPBACK_HOSTS
 from services.viewer.server import ViewSettings
 from tests.conftest import PROCESS_LIFETIME_S, REPO, free_port, wait_for
 from tests.reliability.test_security import PASSWORDS, _client_config, certs  # noqa: F401
+from tests.test_ros2_native import late_joiner
 from tests.tiles import tile_payload
 
 SETTINGS: dict[str, type[ZenohSettings]] = {
@@ -80,22 +81,6 @@ USERS = {**PASSWORDS, "ros2": "pw-ros2"}
 def _data_key(topic: str, ros_type: str) -> str:
     package, _, name = ros_type.split("/")
     return f"{DOMAIN}/{topic}/{package}::msg::dds_::{name}_/{cdr.type_hash('jazzy', ros_type)}"
-
-
-def _late_joiner(
-    session: zenoh.Session, key: str
-) -> tuple[zenoh.ext.AdvancedSubscriber[None], queue.Queue[zenoh.Sample]]:
-    """Subscribed as rmw_zenoh subscribes a transient_local reader: it asks the cache."""
-    samples: queue.Queue[zenoh.Sample] = queue.Queue()
-    subscriber = zenoh.ext.declare_advanced_subscriber(
-        session,
-        key,
-        samples.put,
-        history=zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
-        recovery=zenoh.ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
-        subscriber_detection=True,
-    )
-    return subscriber, samples
 
 
 @pytest.mark.process
@@ -151,9 +136,9 @@ def test_the_router_lets_the_ros2_user_publish_the_map_and_no_more(
 
         wait_for(lambda: len(graph()) == 7, 10, "the node and its six publishers in the graph")
         assert sum("/NN/%/%/overgrid_map" in token for token in graph()) == 1
-        maps = _late_joiner(robot, _data_key("map", cdr.OCCUPANCY_GRID))
-        transforms = _late_joiner(robot, _data_key("tf_static", cdr.TF_MESSAGE))
-        detections = _late_joiner(robot, _data_key("map_detections", cdr.DETECTION_3D_ARRAY))
+        maps = late_joiner(robot, _data_key("map", cdr.OCCUPANCY_GRID))
+        transforms = late_joiner(robot, _data_key("tf_static", cdr.TF_MESSAGE))
+        detections = late_joiner(robot, _data_key("map_detections", cdr.DETECTION_3D_ARRAY))
         grid = cdr.decode(
             "jazzy", bytes(maps[1].get(timeout=10).payload.to_bytes()), cdr.OCCUPANCY_GRID
         )
