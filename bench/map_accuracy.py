@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from common.lattice import Window, reframe
+from common.lattice import reframe
 from common.occupancy_map import UNKNOWN
 from services.camera_sim import truth as scene_truth
 from services.camera_sim.capture import StereoCapture
@@ -43,13 +43,6 @@ from services.fusion.params import GridParams
 
 START_S = 1_700_000_000.0
 """Scene time of the first capture (movers' poses are a function of it)."""
-
-
-def truth_window(sim: CameraSimParams, resolution_m: float) -> Window:
-    scene = sim.scene_spec()
-    margin = scene.wall_thickness_m
-    x1, y1 = scene.floor_size_m
-    return Window.covering(-margin, -margin, x1 + margin, y1 + margin, resolution_m)
 
 
 Arrays = tuple[npt.NDArray[np.int8], npt.NDArray[np.bool_], npt.NDArray[np.bool_]]
@@ -83,7 +76,7 @@ def run(
     config = depth.pipeline_config()
     pipelines = [DepthPipeline(capture.calibration, config) for capture in captures]
     grid = FusedGrid(GridParams(resolution_m=config.resolution_m))
-    window = truth_window(sim, config.resolution_m)
+    window = scene.window(config.resolution_m)
     r = config.resolution_m
     static = [o for o in scene.truth_objects(START_S) if not o.moving]
     seen = metrics.seen_by_cameras(

@@ -16,6 +16,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
 
+from common.lattice import Window
 from common.messages import TruthObject
 
 ShapeKind = Literal["box", "cylinder", "shelf", "pallet"]
@@ -109,6 +110,12 @@ class SceneSpec(BaseModel):
     objects: list[ObjectSpec] = Field(default_factory=list)
     movers: list[MoverSpec] = Field(default_factory=list)
     markings: list[MarkingSpec] = Field(default_factory=list)
+
+    def window(self, resolution_m: float) -> Window:
+        """The lattice window of the floor and its walls: what ``sim/truth`` rasterises."""
+        margin = self.wall_thickness_m
+        x_m, y_m = self.floor_size_m
+        return Window.covering(-margin, -margin, x_m + margin, y_m + margin, resolution_m)
 
     def truth_objects(self, t_s: float) -> list[TruthObject]:
         """Every object's box/cylinder at time ``t_s``, walls included."""

@@ -14,7 +14,7 @@ import zenoh
 
 from common import keys
 from common.codec import WIRE_ENCODING, encode
-from common.lattice import Window, check_resolution
+from common.lattice import check_resolution
 from common.lifecycle import stop_on_signals
 from common.logs import setup_logging
 from common.messages import CALIB_KIND, STEREO_KIND, TRUTH_KIND, StereoFrameHeader, TruthHeader
@@ -137,14 +137,7 @@ def parse_truth_query(parameters: dict[str, str], now_ns: int) -> TruthQuery:
 def truth_payload(scene: SceneSpec, lighting: Lighting, query: TruthQuery) -> bytes:
     stamp_s = query.stamp_ns / 1e9
     objects = scene.truth_objects(stamp_s)
-    margin = scene.wall_thickness_m
-    window = Window.covering(
-        -margin,
-        -margin,
-        scene.floor_size_m[0] + margin,
-        scene.floor_size_m[1] + margin,
-        query.resolution_m,
-    )
+    window = scene.window(query.resolution_m)
     if window.cols * window.rows > TRUTH_MAX_CELLS:
         raise TruthQueryError(
             f"resolution={query.resolution_m:g} gives a grid of {window.cols}×{window.rows}: "
