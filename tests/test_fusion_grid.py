@@ -15,6 +15,7 @@ from services.fusion.grid import (
     chunk_window,
     update_parts,
 )
+from tests.tiles import dirty_window
 
 P = GridParams()
 
@@ -158,8 +159,8 @@ def test_dirty_window_collects_changes_until_taken() -> None:
     grid = FusedGrid(P)
     _integrate(grid, Window(0, 0, 5, 5), 1.0)
     _integrate(grid, Window(10, 10, 5, 5), 1.0)
-    assert grid.take_dirty() == Window(0, 0, 15, 15)
-    assert grid.take_dirty().empty
+    assert dirty_window(grid) == Window(0, 0, 15, 15)
+    assert dirty_window(grid).empty
 
 
 def test_growth_beyond_the_limit_changes_nothing() -> None:
@@ -204,9 +205,9 @@ def test_decay_visits_only_chunks_that_may_be_stale() -> None:
     _integrate(grid, Window(0, 0, 10, 10), 2.0, stamp_ns=int(100e9))
     _integrate(grid, Window(640, 640, 10, 10), 2.0, stamp_ns=int(103e9))
     grid.freeze()
-    grid.take_dirty()
+    dirty_window(grid)
     assert grid.decay(now_s=103.5, elapsed_s=1.0) == 100  # the old chunk only
-    assert grid.changed == {(0, 0)} and grid.take_dirty() == Window(0, 0, 64, 64)
+    assert grid.changed == {(0, 0)} and dirty_window(grid) == Window(0, 0, 64, 64)
 
 
 def test_the_served_assembler_pastes_changes_and_matches_a_full_assembly() -> None:

@@ -16,6 +16,7 @@ from services.depth.projection import WorldPoints
 from services.evaluation.objects import match_static, score_movers
 from services.fusion.grid import FusedGrid, GridParams
 from services.fusion.objects import ObjectTracker, merge_capture
+from tests.tiles import dirty_window
 
 PITCH_M = 0.02
 """Floor spacing of the synthetic pixels (about a half-resolution pixel at an object's top)."""
@@ -264,7 +265,7 @@ def test_the_predicted_layer_covers_a_mover_ahead_and_clears_behind() -> None:
     left = cell(x_now - 0.3, 2.0)
     assert not grid.layer("predicted")[left]
     assert grid.served_occupancy()[left] == evidence[left]
-    assert grid.version > version and not grid.take_dirty().empty
+    assert grid.version > version and not dirty_window(grid).empty
     # The mover gone: the layer empties once, then costs nothing.
     assert grid.set_predicted([]) and not grid.layer("predicted").any()
     assert not grid.set_predicted([])

@@ -9,6 +9,7 @@ import numpy as np
 from common.codec import encode
 from common.lattice import Window
 from common.messages import TILE_KIND, TileHeader
+from services.fusion.grid import FusedGrid
 
 
 def tile_arrays(
@@ -44,3 +45,11 @@ def tile_payload(
     return encode(
         TILE_KIND, header, arrays if arrays is not None else tile_arrays(window, logodds, height_m)
     )
+
+
+def dirty_window(grid: FusedGrid) -> Window:
+    """The bounding window of the cells ``grid`` changed since they were last taken (taking them)."""
+    bounding = Window(0, 0, 0, 0)
+    for cells in grid.take_dirty_parts().values():
+        bounding = bounding.union(cells)
+    return bounding

@@ -434,13 +434,6 @@ class FusedGrid:
         dirty, self.dirty = self.dirty, {}
         return dirty
 
-    def take_dirty(self) -> Window:
-        """The bounding window of the cells changed since last taken."""
-        bounding = Window(0, 0, 0, 0)
-        for cells in self.take_dirty_parts().values():
-            bounding = bounding.union(cells)
-        return bounding
-
     def freeze(self) -> tuple[FrozenMap, set[ChunkKey]]:
         """An immutable copy of the map now, and the chunks changed since the last one; costs
         those chunks only."""
