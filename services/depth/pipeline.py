@@ -18,6 +18,8 @@ from common.lattice import check_resolution
 from common.sensor_model import SensorModelParams
 from services.depth.floor_model import FloorGeometry, FloorModel, FloorModelConfig
 from services.depth.inverse_model import Tile, build_tile
+from services.depth.object_edges import ImageView, refine_on_edges
+from services.depth.objects import Detection, PixelGrid, detect_objects
 from services.depth.projection import WorldPoints, project_to_world
 from services.depth.stereo import DisparityChain, MatcherConfig, Rectifier
 
@@ -44,6 +46,8 @@ class FrameResult:
     stage_ms: dict[str, float]
     evidence_disparity_px: npt.NDArray[np.float32]
     """What the tile was built from: ``disparity_px`` under the floor model's evidence rules."""
+    left_rect: npt.NDArray[np.uint8]
+    """The rectified left image (objects' outlines are refined on it)."""
 
 
 def to_gray(image: np.ndarray) -> npt.NDArray[np.uint8]:
@@ -63,6 +67,13 @@ class DepthPipeline:
         self.config = config
         self.rectifier = Rectifier.from_calibration(calib, config.downscale)
         self.rays_world = self.rectifier.pixel_rays_world()
+        self.image_view = ImageView(
+            self.rectifier.focal_px,
+            self.rectifier.cx_px,
+            self.rectifier.cy_px,
+            self.rectifier.R_world_rect,
+            self.rectifier.C_world,
+        )
         self.min_disparity, self.num_disparities = self.rectifier.disparity_band(
             -SEARCH_MARGIN_M, config.model.obstacle_max_m + SEARCH_MARGIN_M
         )
@@ -126,7 +137,22 @@ class DepthPipeline:
             disparity_px=disparity,
             stage_ms=stage_ms,
             evidence_disparity_px=evidence,
+            left_rect=left_rect,
         )
+
+    def detect_objects(self, result: FrameResult) -> list[Detection]:
+        """The frame's objects: measured on its points (objects.detect_objects), each outline then
+        refined on the left image's edges (object_edges.refine_on_edges)."""
+        rectifier = self.rectifier
+        found = detect_objects(
+            result.points,
+            PixelGrid.from_valid(np.isfinite(result.evidence_disparity_px)),
+            camera_height_m=float(rectifier.C_world[2]),
+            pixel_angle_rad=1.0 / rectifier.focal_px,
+            left_margin_px=self.min_disparity + self.num_disparities,
+            params=self.config.model,
+        )
+        return [refine_on_edges(d, result.left_rect, self.image_view) for d in found]
 
     def floor_health(self) -> dict[str, object]:
         """The floor model's state for ``depth/{pair}/health``."""

@@ -31,7 +31,7 @@ from services.depth.intake import (
     decode_calibration,
     decode_stereo_frame,
 )
-from services.depth.objects import PixelGrid, detect_objects, detections_header
+from services.depth.objects import detections_header
 from services.depth.pipeline import DepthPipeline
 from services.depth.settings import DepthSettings
 from services.depth.sources import InputError, check_recording, load_calibration, recorded_frames
@@ -175,15 +175,7 @@ class TilePublisher:
         self.published += 1
         # After the tile: measuring objects must not delay the map's evidence.
         started = time.perf_counter()
-        rectifier = pipeline.rectifier
-        detections = detect_objects(
-            result.points,
-            PixelGrid.from_valid(np.isfinite(result.evidence_disparity_px)),
-            camera_height_m=float(rectifier.C_world[2]),
-            pixel_angle_rad=1.0 / float(rectifier.focal_px),
-            left_margin_px=pipeline.min_disparity + pipeline.num_disparities,
-            params=pipeline.config.model,
-        )
+        detections = pipeline.detect_objects(result)
         self._objects.put(
             encode(DETECTIONS_KIND, detections_header(detections, self.pair, seq, stamp_ns))
         )

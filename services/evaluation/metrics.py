@@ -19,9 +19,13 @@ from common.lattice import Window, reframe
 from common.mapfiles import FREE_THRESH, OCCUPIED_THRESH
 from common.messages import TruthObject
 from common.occupancy_map import UNKNOWN, OccupancyMap
+from common.sensor_model import SensorModelParams
 from services.camera_sim.truth import footprint_mask
 
 Mask = npt.NDArray[np.bool_]
+_MODEL = SensorModelParams()
+OBSTACLE_BAND_M = (_MODEL.obstacle_min_m, _MODEL.obstacle_max_m)
+"""Truth is judged on the band the depth service's sensor model calls an obstacle."""
 OCCUPIED_MIN = round(OCCUPIED_THRESH * 100)
 FREE_MAX = round(FREE_THRESH * 100)
 

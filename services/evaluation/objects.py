@@ -11,7 +11,7 @@ import numpy as np
 
 from common.footprints import corners
 from common.messages import TrackedObject, TruthObject
-from services.evaluation.metrics import true_extent
+from services.evaluation.metrics import OBSTACLE_BAND_M, true_extent
 
 MATCH_MARGIN_M = 0.15
 """A track belongs to a truth object whose footprint, grown by this, holds the track's centre."""
@@ -49,6 +49,20 @@ class ObjectMatch:
             100 * abs(self.length_m - self.true_length_m) / self.true_length_m,
             100 * abs(self.width_m - self.true_width_m) / self.true_width_m,
         )
+
+
+def blocking_static(
+    objects: Sequence[TruthObject], floor_size_m: tuple[float, float]
+) -> list[TruthObject]:
+    """The static objects a map should show: on the floor (not its walls), tall enough to block."""
+    return [
+        obj
+        for obj in objects
+        if not obj.moving
+        and 0 <= obj.center_m[0] <= floor_size_m[0]
+        and 0 <= obj.center_m[1] <= floor_size_m[1]
+        and obj.top_m >= OBSTACLE_BAND_M[0]
+    ]
 
 
 def match_static(

@@ -39,7 +39,6 @@ from common.messages import (
     TruthObject,
 )
 from common.occupancy_map import OccupancyMap
-from common.sensor_model import SensorModelParams
 from common.settings import ZenohSettings, parse_settings
 from common.zenoh_session import open_session
 from services.camera_sim import truth as scene_truth
@@ -47,10 +46,8 @@ from services.camera_sim.truth import footprint_mask, top_heights
 from services.evaluation import metrics
 from services.evaluation import objects as object_scores
 from services.evaluation.lighting import TimelineScore, step_phases
+from services.evaluation.metrics import OBSTACLE_BAND_M
 
-_MODEL = SensorModelParams()
-OBSTACLE_BAND_M = (_MODEL.obstacle_min_m, _MODEL.obstacle_max_m)
-"""Truth is judged on the band the depth service's sensor model calls an obstacle."""
 MAX_RECORD_S = 120.0
 """The recorder keeps this much history: a long ``up`` run is scored on its last two minutes."""
 TIMELINE_PERIOD_S = 0.5
@@ -267,18 +264,8 @@ class Evaluator:
             )
         return out
 
-    def _inside_floor(self, center_m: Sequence[float]) -> bool:
-        return 0 <= center_m[0] <= self.floor_size_m[0] and 0 <= center_m[1] <= self.floor_size_m[1]
-
     def static_objects(self, truth: Truth) -> list[TruthObject]:
-        """The static objects a map should show: on the floor, tall enough to block."""
-        return [
-            obj
-            for obj in truth.header.objects
-            if not obj.moving
-            and self._inside_floor(obj.center_m)
-            and obj.top_m >= OBSTACLE_BAND_M[0]
-        ]
+        return object_scores.blocking_static(truth.header.objects, self.floor_size_m)
 
     def objects(self, occupancy_map: OccupancyMap, truth: Truth) -> list[metrics.ObjectSize]:
         occupied = metrics.occupancy_on(occupancy_map, self.window) >= metrics.OCCUPIED_MIN

@@ -1,0 +1,269 @@
+"""An object's top face refined on the left image's edges: its sides where the image shows them,
+below the pixel, where stereo's points only bound them to a pixel or two (DESIGN.md, Objects).
+
+Why: a top face's points end where the matcher's window stops straddling its edge, a pixel or two
+either way (2–5 cm at a half-resolution pixel), and a round top loses its rim to the rectangle
+fit. The image itself shows the outline as a step of grey. The top is flat at a known height, so
+the left image is sampled on that plane (a homography), where the face has its true shape; each
+side moves to the nearest strong step along its normal, near where the points put it, in the grey
+averaged along the side, so texture cancels and only an edge running the whole side counts. A round
+top is found the same way, per sector of rings around its centre, and a circle fitted to them. The
+outline whose steps are stronger wins; a side with no step (no contrast: a grey box on a grey
+floor) keeps the points' estimate.
+
+Pure numpy + OpenCV (one remap per object).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from services.depth.objects import Detection
+
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class EdgeConfig:
+    step_m: float = 0.004
+    """Sampling step on the top's plane, along a side's normal (a fifth of a processed pixel)."""
+    search_m: float = 0.07
+    """A side is looked for this far either side of where the points put it: their error is a
+    pixel or two plus the matcher's fattening (measured up to 5 cm on the simulated site)."""
+    along_share: float = 0.7
+    """The central share of a side whose grey is averaged: its corners blur into the next side."""
+    min_step_grey: float = 6.0
+    """A step weaker than this (grey levels, across one pixel's footprint) is texture or noise."""
+    nearest_share: float = 0.5
+    """Of the steps at least this share of the strongest, the nearest to the points' side is
+    taken: a low object's side face ends in a second step (side to floor) just outside its top's."""
+    sectors: int = 12
+    """A round top's rim is found in this many sectors, and a circle fitted through them (at least
+    half of them: a top as grey as the floor shows only the rim before its dark side face)."""
+    round_max_aspect: float = 1.25
+    """Only a footprint this close to square may be a round top."""
+
+
+@dataclass(frozen=True)
+class ImageView:
+    """Where a world point falls in the rectified left image: its pinhole (focal and principal
+    point, processed pixels), rotation rectified-left → world and camera centre."""
+
+    focal_px: float
+    cx_px: float
+    cy_px: float
+    R_world_rect: F64
+    C_world: F64
+
+    def pixels(
+        self, x_m: F64, y_m: F64, height_m: float
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """Image column and row of world points at one height (NaN behind the camera)."""
+        r = self.R_world_rect
+        dx, dy, dz = x_m - self.C_world[0], y_m - self.C_world[1], height_m - self.C_world[2]
+        x_rect, y_rect, z_rect = (r[0, i] * dx + r[1, i] * dy + r[2, i] * dz for i in range(3))
+        z_rect = np.where(z_rect > 1e-6, z_rect, np.nan)
+        u = self.focal_px * x_rect / z_rect + self.cx_px
+        v = self.focal_px * y_rect / z_rect + self.cy_px
+        return u.astype(np.float32), v.astype(np.float32)
+
+
+def _sample(
+    image: npt.NDArray[np.float32], view: ImageView, x_m: F64, y_m: F64, top_m: float
+) -> F64:
+    """Grey at world points on the plane at ``top_m``; NaN outside the image."""
+    u, v = view.pixels(x_m, y_m, top_m)
+    height, width = image.shape
+    inside = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
+    grey = cv2.remap(
+        image, np.nan_to_num(u, nan=-1.0), np.nan_to_num(v, nan=-1.0), cv2.INTER_LINEAR
+    ).astype(np.float64)
+    return np.where(inside, grey, np.nan)
+
+
+def _step_at(
+    grey: F64, offsets_m: F64, lag: int, side_band_m: float, config: EdgeConfig
+) -> tuple[float, float] | None:
+    """Where along a profile (grey averaged along an edge, sampled at ``offsets_m`` outward from
+    the points' edge) the top's edge lies, sub-sample, and its step; None if no step is strong.
+
+    The strong step nearest the points' edge, except on a side the camera sees: its face shows
+    as a band ``side_band_m`` wide outside the top's edge, often ending in the stronger step
+    (side to floor). A step that far inside the chosen one, of the other sign (the band darker or
+    lighter than both its neighbours), is the top's edge."""
+    if np.isnan(grey).any():
+        return None
+    outward = grey[2 * lag :] - grey[: -2 * lag]
+    step = np.abs(outward)
+    at = offsets_m[lag:-lag]
+    strongest = float(step.max(initial=0.0))
+    if strongest < config.min_step_grey:
+        return None
+    peaks = [
+        k
+        for k in range(1, len(step) - 1)
+        if step[k] >= max(step[k - 1], config.min_step_grey) and step[k] > step[k + 1]
+    ]
+    strong = [k for k in peaks if step[k] >= config.nearest_share * strongest]
+    if not strong:
+        return None  # the strongest step lies at the end of the search: past where it may be
+    sample_m = float(at[1] - at[0])
+    positions = {k: float(at[k]) + sample_m * _vertex(step[k - 1 : k + 2]) for k in peaks}
+    k = min(strong, key=lambda p: abs(positions[p]))
+    tolerance_m = max(lag * sample_m, 0.01)
+    if side_band_m > tolerance_m:
+        inner = [
+            p
+            for p in peaks
+            if abs(positions[p] - (positions[k] - side_band_m)) <= tolerance_m
+            and outward[p] * outward[k] < 0
+        ]
+        if inner:
+            k = max(inner, key=lambda p: step[p])
+    return positions[k], float(step[k])
+
+
+def _vertex(three: F64) -> float:
+    """Sub-sample offset of a parabola's vertex through three samples around a peak."""
+    a, b, c = three
+    return float(0.5 * (a - c) / (a - 2 * b + c)) if a - 2 * b + c < 0 else 0.0
+
+
+def _side_band_m(
+    view: ImageView, edge_xy_m: tuple[float, float], normal_xy: tuple[float, float], top_m: float
+) -> float:
+    """How wide (along the outward normal, on the top's plane) the side face below an edge shows:
+    its foot at the floor appears toward the camera's nadir by top/height of its distance from it;
+    0 for a side facing away from the camera."""
+    nadir_x, nadir_y, height_m = (float(v) for v in view.C_world)
+    toward_nadir = normal_xy[0] * (nadir_x - edge_xy_m[0]) + normal_xy[1] * (nadir_y - edge_xy_m[1])
+    return max(0.0, toward_nadir * top_m / height_m)
+
+
+def _offsets(config: EdgeConfig, lag: int) -> F64:
+    reach = config.search_m + lag * config.step_m
+    return np.arange(-reach, reach + config.step_m / 2, config.step_m)
+
+
+def _refine_box(
+    image: npt.NDArray[np.float32],
+    view: ImageView,
+    d: Detection,
+    pixel_m: float,
+    config: EdgeConfig,
+) -> tuple[Detection, float] | None:
+    """The four sides moved to their steps; the mean step size, or None if no side had one."""
+    lag = max(1, round(pixel_m / 2 / config.step_m))
+    offsets = _offsets(config, lag)
+    c, s = math.cos(d.yaw_rad), math.sin(d.yaw_rad)
+    half = (d.length_m / 2, d.width_m / 2)
+    bounds = [-half[0], half[0], -half[1], half[1]]  # along low/high, across low/high
+    strengths = []
+    for side, (axis, sign) in enumerate(((0, -1), (0, 1), (1, -1), (1, 1))):
+        other = half[1 - axis] * config.along_share
+        along = np.linspace(-other, other, max(3, math.ceil(2 * other / config.step_m)))
+        normal = sign * half[axis] + sign * offsets  # outward positive
+        if axis == 0:
+            u, w = normal[:, None], along[None, :]
+        else:
+            u, w = along[None, :], normal[:, None]
+        x = d.center_xy_m[0] + c * u - s * w
+        y = d.center_xy_m[1] + s * u + c * w
+        nu, nw = (sign, 0.0) if axis == 0 else (0.0, sign)
+        edge_u, edge_w = nu * half[0], nw * half[1]
+        band = _side_band_m(
+            view,
+            (
+                d.center_xy_m[0] + c * edge_u - s * edge_w,
+                d.center_xy_m[1] + s * edge_u + c * edge_w,
+            ),
+            (c * nu - s * nw, s * nu + c * nw),
+            d.top_m,
+        )
+        # Rows: offsets along the normal; columns: along the side.
+        grey = _sample(image, view, x, y, d.top_m).mean(axis=1)
+        found = _step_at(grey, offsets, lag, band, config)
+        if found is None:
+            continue
+        bounds[side] = sign * (half[axis] + found[0])
+        strengths.append(found[1])
+    if not strengths:
+        return None
+    du, dw = (bounds[0] + bounds[1]) / 2, (bounds[2] + bounds[3]) / 2
+    length, width = bounds[1] - bounds[0], bounds[3] - bounds[2]
+    yaw = d.yaw_rad
+    if width > length:
+        length, width, yaw = width, length, (yaw + math.pi / 2) % math.pi
+    center = (d.center_xy_m[0] + c * du - s * dw, d.center_xy_m[1] + s * du + c * dw)
+    return (
+        replace(d, center_xy_m=center, length_m=length, width_m=width, yaw_rad=yaw),
+        float(np.mean(strengths)),
+    )
+
+
+def _refine_round(
+    image: npt.NDArray[np.float32],
+    view: ImageView,
+    d: Detection,
+    pixel_m: float,
+    config: EdgeConfig,
+) -> tuple[Detection, float] | None:
+    """A circle through the rim found in each sector of rings around the centre."""
+    lag = max(1, round(pixel_m / 2 / config.step_m))
+    offsets = _offsets(config, lag)
+    radius = (d.length_m + d.width_m) / 4
+    per_sector = 8
+    angles = (np.arange(config.sectors * per_sector) + 0.5) * (
+        2 * math.pi / (config.sectors * per_sector)
+    )
+    radii = np.maximum(radius + offsets, 0.0)
+    x = d.center_xy_m[0] + radii[:, None] * np.cos(angles)[None, :]
+    y = d.center_xy_m[1] + radii[:, None] * np.sin(angles)[None, :]
+    grey = _sample(image, view, x, y, d.top_m).reshape(len(radii), config.sectors, per_sector)
+    rim_x, rim_y, strengths = [], [], []
+    for k in range(config.sectors):
+        theta = (k + 0.5) * 2 * math.pi / config.sectors
+        normal = (math.cos(theta), math.sin(theta))
+        rim = (d.center_xy_m[0] + radius * normal[0], d.center_xy_m[1] + radius * normal[1])
+        band = _side_band_m(view, rim, normal, d.top_m)
+        found = _step_at(grey[:, k].mean(axis=1), offsets, lag, band, config)
+        if found is None:
+            continue
+        rim_x.append((radius + found[0]) * math.cos(theta))
+        rim_y.append((radius + found[0]) * math.sin(theta))
+        strengths.append(found[1])
+    if len(strengths) < config.sectors // 2:
+        return None  # a circle through less than half its rim is a guess
+    # Kåsa's algebraic circle fit: x² + y² = 2ax + 2by + c.
+    px, py = np.asarray(rim_x), np.asarray(rim_y)
+    design = np.column_stack([2 * px, 2 * py, np.ones_like(px)])
+    (a, b, k0), *_ = np.linalg.lstsq(design, px**2 + py**2, rcond=None)
+    fitted = math.sqrt(max(k0 + a * a + b * b, 0.0))
+    center = (d.center_xy_m[0] + a, d.center_xy_m[1] + b)
+    return (
+        replace(d, center_xy_m=center, length_m=2 * fitted, width_m=2 * fitted),
+        float(np.mean(strengths)),
+    )
+
+
+def refine_on_edges(
+    detection: Detection,
+    left_rect: npt.NDArray[np.uint8],
+    view: ImageView,
+    config: EdgeConfig = EdgeConfig(),
+) -> Detection:
+    """The detection with its sides (or rim) moved onto the image's steps where it shows them."""
+    image = left_rect.astype(np.float32)
+    pixel_m = max(view.C_world[2] - detection.top_m, 0.1) / view.focal_px
+    box = _refine_box(image, view, detection, pixel_m, config)
+    best = box
+    if detection.length_m <= config.round_max_aspect * detection.width_m:
+        round_top = _refine_round(image, view, detection, pixel_m, config)
+        if round_top is not None and (box is None or round_top[1] > box[1]):
+            best = round_top
+    return detection if best is None else best[0]
