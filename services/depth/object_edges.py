@@ -163,33 +163,41 @@ def _refine_box(
     c, s = math.cos(d.yaw_rad), math.sin(d.yaw_rad)
     half = (d.length_m / 2, d.width_m / 2)
     bounds = [-half[0], half[0], -half[1], half[1]]  # along low/high, across low/high
-    strengths = []
-    for side, (axis, sign) in enumerate(((0, -1), (0, 1), (1, -1), (1, 1))):
+    sides = ((0, -1), (0, 1), (1, -1), (1, 1))
+    xs, ys, widths, bands = [], [], [], []
+    for axis, sign in sides:
         other = half[1 - axis] * config.along_share
-        along = np.linspace(-other, other, max(3, math.ceil(2 * other / config.step_m)))
+        # Along the side, a sample every half pixel: enough to average texture out.
+        along = np.linspace(-other, other, max(3, math.ceil(4 * other / pixel_m)))
         normal = sign * half[axis] + sign * offsets  # outward positive
         if axis == 0:
             u, w = normal[:, None], along[None, :]
         else:
             u, w = along[None, :], normal[:, None]
-        x = d.center_xy_m[0] + c * u - s * w
-        y = d.center_xy_m[1] + s * u + c * w
+        xs.append(d.center_xy_m[0] + c * u - s * w)
+        ys.append(d.center_xy_m[1] + s * u + c * w)
+        widths.append(along.size)
         nu, nw = (sign, 0.0) if axis == 0 else (0.0, sign)
         edge_u, edge_w = nu * half[0], nw * half[1]
-        band = _side_band_m(
-            view,
-            (
-                d.center_xy_m[0] + c * edge_u - s * edge_w,
-                d.center_xy_m[1] + s * edge_u + c * edge_w,
-            ),
-            (c * nu - s * nw, s * nu + c * nw),
-            d.top_m,
+        bands.append(
+            _side_band_m(
+                view,
+                (
+                    d.center_xy_m[0] + c * edge_u - s * edge_w,
+                    d.center_xy_m[1] + s * edge_u + c * edge_w,
+                ),
+                (c * nu - s * nw, s * nu + c * nw),
+                d.top_m,
+            )
         )
-        # Rows: offsets along the normal; columns: along the side.
-        grey = _sample(image, view, x, y, d.top_m).mean(axis=1)
-        found = _step_at(grey, offsets, lag, band, config)
+    # One lookup for all four sides. Rows: offsets along the normal; columns: along a side.
+    grey = _sample(image, view, np.hstack(xs), np.hstack(ys), d.top_m)
+    strengths = []
+    for side, columns in enumerate(np.split(grey, np.cumsum(widths)[:-1], axis=1)):
+        found = _step_at(columns.mean(axis=1), offsets, lag, bands[side], config)
         if found is None:
             continue
+        axis, sign = sides[side]
         bounds[side] = sign * (half[axis] + found[0])
         strengths.append(found[1])
     if not strengths:
