@@ -96,7 +96,7 @@ def test_a_box_top_is_measured_to_a_centimetre_from_a_prior_off_by_several(yaw: 
     image = _render(center, size, yaw, top, round_top=False, top_grey=95.0)
     # As the points give it: 4 cm long, 3 cm narrow, 2 cm off centre.
     prior = Detection((center[0] + 0.02, center[1] - 0.015), 0.87, 0.44, yaw, top, 500, False)
-    refined = refine_on_edges(prior, image, VIEW)
+    refined = refine_on_edges([prior], image, VIEW)[0]
     assert abs(refined.length_m - size[0]) < 0.01 and abs(refined.width_m - size[1]) < 0.01
     assert math.dist(refined.center_xy_m, center) < 0.01
     assert refined.yaw_rad == prior.yaw_rad
@@ -107,7 +107,7 @@ def test_a_round_top_is_a_circle_of_its_diameter() -> None:
     image = _render(center, (diameter, diameter), 0.0, top, round_top=True, top_grey=90.0)
     # The rectangle fit to a disc's points falls short of its rim.
     prior = Detection((center[0] - 0.01, center[1] + 0.01), 0.37, 0.35, 0.3, top, 300, False)
-    refined = refine_on_edges(prior, image, VIEW)
+    refined = refine_on_edges([prior], image, VIEW)[0]
     assert refined.length_m == refined.width_m
     assert abs(refined.length_m - diameter) < 0.01
     assert math.dist(refined.center_xy_m, center) < 0.01
@@ -118,7 +118,7 @@ def test_a_side_without_contrast_keeps_the_points_place() -> None:
     # faces beyond them); the far sides meet the floor unseen and stay where the points put them.
     image = _render((5.6, 4.4), (0.8, 0.5), 0.0, 1.0, round_top=False, top_grey=FLOOR_GREY)
     prior = Detection((5.61, 4.4), 0.84, 0.52, 0.0, 1.0, 400, False)
-    refined = refine_on_edges(prior, image, VIEW)
+    refined = refine_on_edges([prior], image, VIEW)[0]
     x_low, x_high = (
         refined.center_xy_m[0] - refined.length_m / 2,
         refined.center_xy_m[0] + refined.length_m / 2,
@@ -135,5 +135,5 @@ def test_a_side_without_contrast_keeps_the_points_place() -> None:
 def test_an_outline_outside_the_image_is_left_as_it_is() -> None:
     image = _render((5.0, 4.0), (0.8, 0.5), 0.0, 1.0, round_top=False, top_grey=95.0)
     far = Detection((9.0, 4.0), 0.8, 0.5, 0.0, 1.0, 400, True)
-    assert refine_on_edges(far, image, VIEW) == far
-    assert refine_on_edges(replace(far, top_m=5.99), image, VIEW) == replace(far, top_m=5.99)
+    assert refine_on_edges([far], image, VIEW)[0] == far
+    assert refine_on_edges([replace(far, top_m=5.99)], image, VIEW)[0] == replace(far, top_m=5.99)

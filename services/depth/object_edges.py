@@ -145,21 +145,41 @@ def _side_band_m(
     return max(0.0, toward_nadir * top_m / height_m)
 
 
-def _offsets(config: EdgeConfig, lag: int) -> F64:
-    reach = config.search_m + lag * config.step_m
-    return np.arange(-reach, reach + config.step_m / 2, config.step_m)
+@dataclass(frozen=True)
+class _Across:
+    """How an edge's profile is sampled across it, for one top's height: its pixel's footprint
+    there, the step's lag (half a pixel each way, in samples) and the offsets from the points'
+    edge, outward positive."""
+
+    pixel_m: float
+    lag: int
+    offsets_m: F64
+
+    @staticmethod
+    def at(top_m: float, view: ImageView, config: EdgeConfig) -> _Across:
+        pixel_m = max(float(view.C_world[2]) - top_m, 0.1) / view.focal_px
+        lag = max(1, round(pixel_m / 2 / config.step_m))
+        reach = config.search_m + lag * config.step_m
+        offsets = np.arange(-reach, reach + config.step_m / 2, config.step_m)
+        return _Across(pixel_m, lag, offsets)
+
+
+def _world(d: Detection, along_m: F64 | float, across_m: F64 | float) -> tuple[F64, F64]:
+    """World x, y of points given in the detection's frame (along its yaw, across it)."""
+    c, s = math.cos(d.yaw_rad), math.sin(d.yaw_rad)
+    x = d.center_xy_m[0] + c * np.asarray(along_m) - s * np.asarray(across_m)
+    y = d.center_xy_m[1] + s * np.asarray(along_m) + c * np.asarray(across_m)
+    return x, y
 
 
 def _refine_box(
     image: npt.NDArray[np.float32],
     view: ImageView,
     d: Detection,
-    pixel_m: float,
+    across: _Across,
     config: EdgeConfig,
 ) -> tuple[Detection, float] | None:
     """The four sides moved to their steps; the mean step size, or None if no side had one."""
-    lag = max(1, round(pixel_m / 2 / config.step_m))
-    offsets = _offsets(config, lag)
     c, s = math.cos(d.yaw_rad), math.sin(d.yaw_rad)
     half = (d.length_m / 2, d.width_m / 2)
     bounds = [-half[0], half[0], -half[1], half[1]]  # along low/high, across low/high
@@ -168,33 +188,24 @@ def _refine_box(
     for axis, sign in sides:
         other = half[1 - axis] * config.along_share
         # Along the side, a sample every half pixel: enough to average texture out.
-        along = np.linspace(-other, other, max(3, math.ceil(4 * other / pixel_m)))
-        normal = sign * half[axis] + sign * offsets  # outward positive
+        along = np.linspace(-other, other, max(3, math.ceil(4 * other / across.pixel_m)))
+        normal = sign * half[axis] + sign * across.offsets_m  # outward positive
         if axis == 0:
-            u, w = normal[:, None], along[None, :]
+            x, y = _world(d, normal[:, None], along[None, :])
         else:
-            u, w = along[None, :], normal[:, None]
-        xs.append(d.center_xy_m[0] + c * u - s * w)
-        ys.append(d.center_xy_m[1] + s * u + c * w)
+            x, y = _world(d, along[None, :], normal[:, None])
+        xs.append(x)
+        ys.append(y)
         widths.append(along.size)
         nu, nw = (sign, 0.0) if axis == 0 else (0.0, sign)
-        edge_u, edge_w = nu * half[0], nw * half[1]
-        bands.append(
-            _side_band_m(
-                view,
-                (
-                    d.center_xy_m[0] + c * edge_u - s * edge_w,
-                    d.center_xy_m[1] + s * edge_u + c * edge_w,
-                ),
-                (c * nu - s * nw, s * nu + c * nw),
-                d.top_m,
-            )
-        )
+        edge_x, edge_y = _world(d, nu * half[0], nw * half[1])
+        normal_xy = (c * nu - s * nw, s * nu + c * nw)
+        bands.append(_side_band_m(view, (float(edge_x), float(edge_y)), normal_xy, d.top_m))
     # One lookup for all four sides. Rows: offsets along the normal; columns: along a side.
     grey = _sample(image, view, np.hstack(xs), np.hstack(ys), d.top_m)
     strengths = []
     for side, columns in enumerate(np.split(grey, np.cumsum(widths)[:-1], axis=1)):
-        found = _step_at(columns.mean(axis=1), offsets, lag, bands[side], config)
+        found = _step_at(columns.mean(axis=1), across.offsets_m, across.lag, bands[side], config)
         if found is None:
             continue
         axis, sign = sides[side]
@@ -207,9 +218,15 @@ def _refine_box(
     yaw = d.yaw_rad
     if width > length:
         length, width, yaw = width, length, (yaw + math.pi / 2) % math.pi
-    center = (d.center_xy_m[0] + c * du - s * dw, d.center_xy_m[1] + s * du + c * dw)
+    center_x, center_y = _world(d, du, dw)
     return (
-        replace(d, center_xy_m=center, length_m=length, width_m=width, yaw_rad=yaw),
+        replace(
+            d,
+            center_xy_m=(float(center_x), float(center_y)),
+            length_m=length,
+            width_m=width,
+            yaw_rad=yaw,
+        ),
         float(np.mean(strengths)),
     )
 
@@ -218,18 +235,16 @@ def _refine_round(
     image: npt.NDArray[np.float32],
     view: ImageView,
     d: Detection,
-    pixel_m: float,
+    across: _Across,
     config: EdgeConfig,
 ) -> tuple[Detection, float] | None:
     """A circle through the rim found in each sector of rings around the centre."""
-    lag = max(1, round(pixel_m / 2 / config.step_m))
-    offsets = _offsets(config, lag)
     radius = (d.length_m + d.width_m) / 4
     per_sector = 8
     angles = (np.arange(config.sectors * per_sector) + 0.5) * (
         2 * math.pi / (config.sectors * per_sector)
     )
-    radii = np.maximum(radius + offsets, 0.0)
+    radii = np.maximum(radius + across.offsets_m, 0.0)
     x = d.center_xy_m[0] + radii[:, None] * np.cos(angles)[None, :]
     y = d.center_xy_m[1] + radii[:, None] * np.sin(angles)[None, :]
     grey = _sample(image, view, x, y, d.top_m).reshape(len(radii), config.sectors, per_sector)
@@ -239,7 +254,7 @@ def _refine_round(
         normal = (math.cos(theta), math.sin(theta))
         rim = (d.center_xy_m[0] + radius * normal[0], d.center_xy_m[1] + radius * normal[1])
         band = _side_band_m(view, rim, normal, d.top_m)
-        found = _step_at(grey[:, k].mean(axis=1), offsets, lag, band, config)
+        found = _step_at(grey[:, k].mean(axis=1), across.offsets_m, across.lag, band, config)
         if found is None:
             continue
         rim_x.append((radius + found[0]) * math.cos(theta))
@@ -260,18 +275,21 @@ def _refine_round(
 
 
 def refine_on_edges(
-    detection: Detection,
+    detections: list[Detection],
     left_rect: npt.NDArray[np.uint8],
     view: ImageView,
     config: EdgeConfig = EdgeConfig(),
-) -> Detection:
-    """The detection with its sides (or rim) moved onto the image's steps where it shows them."""
+) -> list[Detection]:
+    """The frame's detections with their sides (or rims) moved onto the image's steps where it
+    shows them."""
     image = left_rect.astype(np.float32)
-    pixel_m = max(view.C_world[2] - detection.top_m, 0.1) / view.focal_px
-    box = _refine_box(image, view, detection, pixel_m, config)
-    best = box
-    if detection.length_m <= config.round_max_aspect * detection.width_m:
-        round_top = _refine_round(image, view, detection, pixel_m, config)
-        if round_top is not None and (box is None or round_top[1] > box[1]):
-            best = round_top
-    return detection if best is None else best[0]
+    out = []
+    for detection in detections:
+        across = _Across.at(detection.top_m, view, config)
+        best = _refine_box(image, view, detection, across, config)
+        if detection.length_m <= config.round_max_aspect * detection.width_m:
+            round_top = _refine_round(image, view, detection, across, config)
+            if round_top is not None and (best is None or round_top[1] > best[1]):
+                best = round_top
+        out.append(detection if best is None else best[0])
+    return out

@@ -152,7 +152,7 @@ class DepthPipeline:
             left_margin_px=self.min_disparity + self.num_disparities,
             params=self.config.model,
         )
-        return [refine_on_edges(d, result.left_rect, self.image_view) for d in found]
+        return refine_on_edges(found, result.left_rect, self.image_view)
 
     def floor_health(self) -> dict[str, object]:
         """The floor model's state for ``depth/{pair}/health``."""
