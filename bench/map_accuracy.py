@@ -150,15 +150,9 @@ def object_sizes(tracker: ObjectTracker, static: list[TruthObject]) -> dict[str,
     ``map/objects``: the mean and max of the length and width errors over the objects found."""
     tracks = [t for t in tracker.objects() if t.object_class == "static"]
     matches = object_scores.match_static(tracks, static)
-    found = [m for m in matches if m.tracks >= 1]
-    errors = [e for m in found for e in m.errors_pct]
-    complete = [e for m in found if not m.partial for e in m.errors_pct]
     return {
-        "length_error_mean_pct": float(np.mean(errors)) if errors else float("nan"),
-        "length_error_max_pct": max(errors, default=float("nan")),
-        "length_error_mean_pct_complete": float(np.mean(complete)) if complete else float("nan"),
-        "length_error_max_pct_complete": max(complete, default=float("nan")),
-        "static_found": f"{len(found)}/{len(matches)}",
+        **object_scores.size_errors(matches),
+        "static_found": f"{sum(m.tracks >= 1 for m in matches)}/{len(matches)}",
         "static_split": sum(m.tracks > 1 for m in matches),
         "static_merged": sum(m.merged for m in matches),
         "tracked_objects": {

@@ -96,6 +96,20 @@ def match_static(
     return out
 
 
+def size_errors(matches: Sequence[ObjectMatch]) -> dict[str, float]:
+    """The headline size figures over the objects found: mean and max of their length and width
+    errors (%), over all of them and over those seen whole (not ``partial``)."""
+    found = [m for m in matches if m.tracks >= 1]
+    errors = [e for m in found for e in m.errors_pct]
+    complete = [e for m in found if not m.partial for e in m.errors_pct]
+    return {
+        "length_error_mean_pct": float(np.mean(errors)) if errors else math.nan,
+        "length_error_max_pct": max(errors, default=math.nan),
+        "length_error_mean_pct_complete": float(np.mean(complete)) if complete else math.nan,
+        "length_error_max_pct_complete": max(complete, default=math.nan),
+    }
+
+
 def _in_polygon(polygon: np.ndarray, xy_m: tuple[float, float]) -> bool:
     x, y = xy_m
     for (ax, ay), (bx, by) in zip(polygon, np.roll(polygon, -1, axis=0), strict=True):

@@ -283,14 +283,8 @@ class Evaluator:
             return {"length_error_mean_pct": math.nan, "length_error_max_pct": math.nan}
         static = [t for t in tracks if t.object_class == "static"]
         matches = object_scores.match_static(static, self.static_objects(truth))
-        found = [m for m in matches if m.tracks >= 1]
-        errors = [e for m in found for e in m.errors_pct]
-        complete = [e for m in found if not m.partial for e in m.errors_pct]
         return {
-            "length_error_mean_pct": _mean(errors),
-            "length_error_max_pct": max(errors, default=math.nan),
-            "length_error_mean_pct_complete": _mean(complete),
-            "length_error_max_pct_complete": max(complete, default=math.nan),
+            **object_scores.size_errors(matches),
             "tracked_objects": [
                 {
                     "name": m.name,
