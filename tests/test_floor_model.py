@@ -78,7 +78,7 @@ def test_floor_test_flags_a_raised_textured_patch_and_not_the_floor() -> None:
     pair.close()
     rectifier = Rectifier.from_calibration(pair.capture.calibration, 2)
     geometry = floor_model.FloorGeometry.from_rectifier(rectifier, rectifier.pixel_rays_world())
-    model = floor_model.FloorModel(geometry, 0.1)
+    model = floor_model.FloorModel(geometry, (0.1, 2.0))
     left_rect, right_rect = (np.array(image) for image in rectifier.rectify(left, right))
     for _ in range(12):  # let it fit the published calibration's residual first
         model.update(left_rect, right_rect, np.full(left_rect.shape, np.nan, np.float32))
@@ -366,7 +366,7 @@ def test_a_disparity_offset_of_the_calibration_is_taken_off_every_measurement() 
     patch_m = 0.5
     truth_px = geometry.floor_disparity_px.copy()
     truth_px[patch] = SYNTHETIC_FOCAL_BASELINE / (SYNTHETIC_HEIGHT_M - patch_m)
-    model = floor_model.FloorModel(geometry, 0.1)
+    model = floor_model.FloorModel(geometry, (0.1, 2.0))
     chain = DisparityChain(MatcherConfig(), 16, 32)
     for _ in range(24):
         left, right = _textured_pair(truth_px + offset_px, rng, texture)
@@ -396,7 +396,7 @@ def test_a_plain_surface_of_the_floors_grey_over_a_textured_floor_is_never_floor
     texture = np.float32(128.0) + grain * np.float32(
         5.0 / float(grain.std())
     )  # weak, like concrete
-    model = floor_model.FloorModel(geometry, 0.1)
+    model = floor_model.FloorModel(geometry, (0.1, 2.0))
     chain = DisparityChain(MatcherConfig(), 16, 32)
     for _ in range(16):
         left, right = _textured_pair(geometry.floor_disparity_px, rng, texture)
@@ -430,7 +430,7 @@ def test_a_plain_raised_top_of_the_floors_grey_is_filled_from_its_measured_outli
     width, height = SYNTHETIC_SIZE
     grain = cv2.GaussianBlur(rng.normal(0.0, 1.0, (height, width)).astype(np.float32), (0, 0), 0.8)
     texture = np.float32(128.0) + grain * np.float32(5.0 / float(grain.std()))
-    model = floor_model.FloorModel(geometry, 0.1)
+    model = floor_model.FloorModel(geometry, (0.1, 2.0))
     chain = DisparityChain(MatcherConfig(), 16, 32)
     for _ in range(16):
         left, right = _textured_pair(geometry.floor_disparity_px, rng, texture)
@@ -465,3 +465,24 @@ def test_a_plain_raised_top_of_the_floors_grey_is_filled_from_its_measured_outli
         heights = geometry.height_m(evidence)[inner]
     assert float(np.mean(np.abs(heights - top_m) < 0.15)) > 0.8  # without rule 8: 6 %
     assert float(np.mean(np.abs(heights) < 0.05)) < 0.02  # never floor
+
+
+def test_a_plain_top_is_filled_from_its_outlines_measurements_in_the_band_only() -> None:
+    """Rule 8 on a forklift seen from beside it (the case that broke it): its plain top's outline
+    holds the top's measurements on one side and, on the others, the matcher's picks at the top
+    of its search (2.9 m here), which outnumber them. Above the band is no top to fill with: the
+    hole takes the top's height, an obstacle, and not 2.9 m, which gives the map no evidence."""
+    geometry = _synthetic_geometry()
+    model = floor_model.FloorModel(geometry, (0.1, 2.0))
+    width, height = SYNTHETIC_SIZE
+    heights = np.zeros((height, width), np.float32)
+    hole = np.zeros((height, width), np.bool_)
+    hole[90:150, 150:230] = True
+    heights[hole] = np.nan
+    heights[90:150, 147:150] = 0.8  # the top's measured edge
+    heights[87:90, 150:230] = heights[150:153, 150:230] = 2.9  # picks at the search's top
+    heights[90:150, 230:233] = 2.9
+    measured = geometry.disparity_px(heights)
+    model._fill_departed_regions(measured, hole)
+    filled = geometry.height_m(measured)[hole]
+    assert np.allclose(filled, 0.8, atol=1e-3)  # before: 2.9 m, no obstacle in the map

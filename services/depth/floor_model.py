@@ -43,9 +43,10 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
    surface, unless the background says floor there.
 8. A region still without evidence where the image departs from the floor's background
    (something stands there) and whose edges hold measurements in the band is a surface at their
-   upper quartile's height: a plain top whose one measured edge cannot bridge it (the other lies beside the
-   occlusion). Like 6 and 7, it only ever adds obstacles or takes evidence away, never clears a
-   cell.
+   upper quartile's height: a plain top whose one measured edge cannot bridge it (the other lies
+   beside the occlusion). Measurements above the band (the matcher's picks at the top of its
+   search) do not count. Like 6 and 7, it only ever adds obstacles or takes evidence away, never
+   clears a cell.
 9. Floor seen through a gap narrower than 12 cm between surfaces in the band (a pallet's deck
    between its boards) belongs to them: no robot passes there, and a cell whose centre falls in
    the slot is the pallet's.
@@ -489,11 +490,14 @@ class FloorModel:
     """Floor test, background per camera, and the evidence rules of the module docstring."""
 
     def __init__(
-        self, geometry: FloorGeometry, obstacle_min_m: float, config: FloorModelConfig | None = None
+        self,
+        geometry: FloorGeometry,
+        obstacle_band_m: tuple[float, float],
+        config: FloorModelConfig | None = None,
     ) -> None:
         self.config = config or FloorModelConfig()
         self.geometry = geometry
-        self.obstacle_min_m = obstacle_min_m
+        self.obstacle_min_m, self.obstacle_max_m = obstacle_band_m
         height, width = geometry.floor_disparity_px.shape
         self.shape = (height, width)
         v, u = np.mgrid[0:height, 0:width].astype(np.float32)
@@ -751,7 +755,9 @@ class FloorModel:
         height = self.geometry.height_m(measured)
         edge = np.isfinite(height) & (region_near > 0)
         region, edge_height = region_near[edge], height[edge]
-        raised = edge_height >= self.obstacle_min_m
+        # Above the band is no top to fill with: the matcher's pick at the top of its search
+        # (a forklift's plain top next to its dark front face read 2.9 m and was no obstacle).
+        raised = (edge_height >= self.obstacle_min_m) & (edge_height <= self.obstacle_max_m)
         raised_count = np.bincount(region[raised], minlength=count)
         fill = raised_count >= REGION_MIN_RAISED
         fill[0] = False  # label 0: not a hole

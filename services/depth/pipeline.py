@@ -83,7 +83,7 @@ class DepthPipeline:
         self.floor_model = (
             FloorModel(
                 FloorGeometry.from_rectifier(self.rectifier, self.rays_world),
-                config.model.obstacle_min_m,
+                (config.model.obstacle_min_m, config.model.obstacle_max_m),
                 config.floor,
             )
             if config.floor.enabled
