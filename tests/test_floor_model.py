@@ -136,13 +136,14 @@ def test_background_flags_an_inserted_object_and_ignores_a_brightness_change() -
         result = pipeline.process(*empty.next())
     assert pipeline.floor_health()["state"] == "ready"
     floor = _eroded(empty.depth_small() > float(CALIB.left.position_world[2]) - 0.01, 8)
-    assert _floor_height_share(pipeline, result.evidence_disparity_px, floor) > 0.9
+    learned_share = _floor_height_share(pipeline, result.evidence_disparity_px, floor)
+    assert learned_share > 0.9
 
     # A global step of the light (or exposure): the floor is still the floor.
     left, right = empty.next()
     darker = [(image.astype(np.float32) * 0.7).astype(np.uint8) for image in (left, right)]
     result = pipeline.process(*darker)
-    assert _floor_height_share(pipeline, result.evidence_disparity_px, floor) > 0.9
+    assert _floor_height_share(pipeline, result.evidence_disparity_px, floor) > learned_share - 0.01
 
     # A uniform crate put down on the learned floor departs from the background: never floor.
     with_box.t_s = empty.t_s
@@ -228,14 +229,24 @@ def test_a_wall_face_along_the_baseline_puts_no_ring_of_obstacles_before_it() ->
     assert (occupied & inside).sum() > 0.6 * inside.sum()
 
 
-def test_a_pallets_deck_is_no_free_floor_between_its_boards() -> None:
+@pytest.mark.parametrize(
+    ("center_xy_m", "free_max"),
+    [((5.0, 4.0), 0.15), ((8.6, 3.4), 0.4)],
+    ids=["near-nadir", "off-nadir"],
+)
+def test_a_pallets_deck_is_no_free_floor_between_its_boards(
+    center_xy_m: tuple[float, float], free_max: float
+) -> None:
     """Rule 9: a EUR pallet turned so its deck boards run across the baseline shows the floor
     between them; the cells whose centres fall in those slots are the pallet's, not free floor
-    (45 % of its inner cells were observed free before the rule, 5 % with it)."""
+    (45 % of its inner cells were observed free before the rule, 5 % with it). Seen from 3 m
+    aside, 70 % were free while the floor test's agreement on the deck (its windows mixed with
+    the floor between the boards) overruled the matcher (rule 0) and pulled the matcher's
+    offset fit up by 0.3 px there; 25 % since."""
     pallet = ObjectSpec(
         name="pallet",
         shape="pallet",
-        center_xy_m=(5.0, 4.0),
+        center_xy_m=center_xy_m,
         yaw_rad=1.54,
         size_m=(1.2, 0.8, 0.144),
     )
@@ -249,7 +260,7 @@ def test_a_pallets_deck_is_no_free_floor_between_its_boards() -> None:
         observed = inner & (tile.count > 0)
         free_shares.append(((tile.logodds < 0) & observed).sum() / max(observed.sum(), 1))
     pair.close()
-    assert float(np.mean(free_shares[-6:])) < 0.15
+    assert float(np.mean(free_shares[-6:])) < free_max
 
 
 def test_row_support_vouches_only_for_what_the_measurements_bounding_a_run_agree_on() -> None:

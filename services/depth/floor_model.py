@@ -17,9 +17,11 @@ on the rectified images at the processing resolution:
 
 Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile is built from):
 
-0. Near the floor (residual shift under a pixel, textured) the floor test's measurement replaces
-   the matcher's: a 14 cm pallet is half a pixel at the processing resolution, below what the
-   matcher's search resolves reliably.
+0. Near the floor (residual shift under a pixel, textured) the floor test measures where the
+   matcher has nothing: a 14 cm pallet is half a pixel at the processing resolution, below what
+   the matcher's search resolves reliably. It never overrules the matcher: its window straddles a
+   pallet's boards and the floor between them and "agrees" on a shift between the two (on
+   ``--seed 1`` a pallet's middle boards read floor).
 1. Fattening: an object disparity on an untextured pixel is the matcher's window dragging a nearby
    edge onto smooth floor; where both cameras match their floor backgrounds and the floor test does
    not contradict, it becomes a floor observation.
@@ -30,8 +32,8 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
    also "agrees" under the floor warp (it has no texture to disagree with).
 4. A pixel whose appearance departs from the background and has no disparity gives no evidence
    (unknown); it is occupied only where stereo or the floor test measures it in the obstacle band.
-5. Shadows lie on the floor: on texture the floor test still agrees (rule 0 measures the floor), on
-   a plain floor a shadow is a departure (rule 4: unknown), never an obstacle.
+5. Shadows lie on the floor: on texture stereo still measures the floor (rule 0 where the matcher
+   has nothing), on a plain floor a shadow is a departure (rule 4: unknown), never an obstacle.
 6. Along the baseline, the matcher fills an untextured run of a row from the measurements that bound
    it: its value there is kept only where every measurement bounding the run within reach agrees
    with it (a plain top between its two edges). A dark vertical face between a top and the floor, a
@@ -576,12 +578,19 @@ class FloorModel:
 
     def _fit_matcher_offset(self, disparity: F32, test: FloorTest) -> None:
         """Fit the matcher's offset on the floor: its disparity minus the calibration's floor
-        disparity at pixels the floor test confirms as floor. Fitted on the matcher's own
-        disparities rather than taken from the floor test's fit: the two measure the same
-        residual through different biases (about 0.1 px apart on the renders)."""
+        disparity where it measures the floor (on texture along x, within ``floor_tolerance_px``
+        of the floor the floor test has fitted). Fitted on the matcher's own disparities rather
+        than taken from the floor test's fit: the two measure the same residual through different
+        biases (about 0.1 px apart on the renders). Not on the pixels where the floor test agrees:
+        on concrete they are few, and a pallet's strongly textured deck (half a pixel up, its
+        windows mixed with the floor between its boards) was a quarter of them, pulling the
+        offset up by 0.3 px around it and the deck under the obstacle band."""
         step = 2
         matched = disparity[::step, ::step]
-        on_floor = test.agree[::step, ::step] & np.isfinite(matched)
+        with np.errstate(invalid="ignore"):
+            on_floor = test.matchable[::step, ::step] & (
+                np.abs(matched - self.floor_now[::step, ::step]) <= self.config.floor_tolerance_px
+            )
         if int(on_floor.sum()) < MIN_FIT_PIXELS:
             return
         beyond = matched - self.geometry.floor_disparity_px[::step, ::step]
@@ -634,8 +643,8 @@ class FloorModel:
         with np.errstate(invalid="ignore"):
             near_floor = floor_now + test.shift_px
             # Rule 0: near the floor, on strong texture, the floor test measures where the matcher
-            # has nothing, or overrules it where it agrees with the floor (fattening on texture).
-            refined = np.isfinite(near_floor) & (~valid | test.agree)
+            # has nothing.
+            refined = np.isfinite(near_floor) & ~valid
             at_floor = valid & (
                 np.abs(disparity - self.matcher_offset_px - self.geometry.floor_disparity_px)
                 <= cfg.floor_tolerance_px
@@ -655,7 +664,7 @@ class FloorModel:
         # The matcher's interpolation (a disparity without texture along x) is a weak measurement:
         # an obstacle there, where both cameras see the floor's background, is the matcher's
         # window dragging a nearby edge over smooth floor (rule 1, fattening).
-        interpolated = valid & ~refined & ~test.matchable
+        interpolated = valid & ~test.matchable
         observed = matches & ((interpolated & ~at_floor) | (~valid & ~refined))
         height_now = self.geometry.height_m(measured)
         support = row_support(
