@@ -52,7 +52,8 @@ class StereoFrameHeader(_Header):
 
 
 class TileHeader(_OnLattice):
-    """``depth/{pair}/tile``: arrays ``logodds`` (f4), ``height_m`` (f4, NaN unseen), ``count`` (u2).
+    """``depth/{pair}/tile``: arrays ``logodds`` (f4), ``height_m`` (f4, NaN unseen), ``count`` (u2)
+    and, optionally, ``hidden`` (u1: 1 where a cell without an update has its floor hidden now).
 
     The arrays cover lattice window (i0, j0, cols, rows); ``[row, col] = [j - j0, i - i0]``.
     """

@@ -20,6 +20,7 @@ from services.camera_sim.truth import footprint_mask
 from services.depth import floor_model
 from services.depth.pipeline import DepthPipeline, PipelineConfig
 from services.depth.stereo import DisparityChain, MatcherConfig, Rectifier
+from services.fusion.grid import FusedGrid, GridParams
 from tests.conftest import REPO, Bus
 
 FLOOR_M = (12.0, 10.0)
@@ -497,3 +498,44 @@ def test_a_plain_top_is_filled_from_its_outlines_measurements_in_the_band_only()
     model._fill_departed_regions(measured, hole)
     filled = geometry.height_m(measured)[hole]
     assert np.allclose(filled, 0.8, atol=1e-3)  # before: 2.9 m, no obstacle in the map
+
+
+def test_a_person_stepping_onto_mapped_floor_leaves_no_free_cells_behind_its_dark_sides() -> None:
+    """Rule 10 and the map: a person in dark clothes steps onto floor the map holds free, near the
+    image's edge, so that only the lower part of the body is in view (its top is not: nothing
+    measures its height). The departed pixels hide the floor; the map forgets its free belief
+    there instead of keeping it (45 % of the inner cells stayed free without the rule)."""
+    person = ObjectSpec(
+        name="person",
+        shape="cylinder",
+        center_xy_m=(9.0, 5.0),
+        size_m=(0.5, 0.5, 1.75),
+        rgba=(0.2, 0.2, 0.25, 1.0),
+        plain=True,
+    )
+    empty, with_person = (
+        Pair(SceneSpec(floor="concrete", objects=objects, markings=LANES))
+        for objects in ([], [person])
+    )
+    pipeline = DepthPipeline(empty.capture.calibration, PipelineConfig())
+    grid = FusedGrid(GridParams())
+
+    def fuse(frame: tuple[np.ndarray, np.ndarray]) -> None:
+        tile = pipeline.process(*frame).tile
+        grid.integrate(tile.window, tile.logodds, tile.height_m, tile.count, 0, tile.hidden)
+
+    for _ in range(17):
+        fuse(empty.next())
+    inner = _eroded(
+        footprint_mask(with_person.renderer.scene.truth_objects(0)[0], grid.window, 0.05), 1
+    )
+    occupancy = grid.served_occupancy()[inner]
+    assert float(np.mean((occupancy >= 0) & (occupancy <= 25))) > 0.8  # mapped free
+    with_person.t_s = empty.t_s
+    for _ in range(3):
+        fuse(with_person.next())
+    empty.close()
+    with_person.close()
+    occupancy = grid.served_occupancy()[inner]
+    assert float(np.mean((occupancy >= 0) & (occupancy <= 25))) < 0.35
+    assert float(np.mean(occupancy == -1)) > 0.2  # forgotten, not guessed occupied

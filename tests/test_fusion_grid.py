@@ -305,3 +305,29 @@ def test_restore_leaves_out_what_lies_beyond_the_limits_not_everything() -> None
     np.testing.assert_array_equal(
         restored.layer("logodds"), saved.window_of("logodds", restored.window)
     )
+
+
+def test_a_hidden_cell_believed_free_turns_unknown_and_no_other_changes() -> None:
+    """A tile names the cells whose floor something hides now (floor model, rule 10): a free
+    belief there is out of date and goes; an occupied one, an unknown one and every cell the tile
+    does not name keep theirs."""
+    grid = FusedGrid(P)
+    w = Window(0, 0, 3, 1)
+    _integrate(grid, Window(0, 0, 1, 1), -2.0)  # believed free
+    _integrate(grid, Window(1, 0, 1, 1), 2.0, height=0.5)  # believed occupied
+    free_elsewhere = Window(0, 1, 3, 1)
+    _integrate(grid, free_elsewhere, -2.0)
+    grid.integrate(
+        w,
+        np.zeros(w.shape, np.float32),
+        np.full(w.shape, np.nan, np.float32),
+        np.zeros(w.shape, np.uint16),
+        2,
+        np.ones(w.shape, np.bool_),
+    )
+    known, logodds = grid.layer("known"), grid.layer("logodds")
+    assert not known[0, 0] and logodds[0, 0] == 0.0  # was free: unknown now
+    assert known[0, 1] and logodds[0, 1] > 0  # occupied: kept
+    assert not known[0, 2]  # unknown: stays unknown
+    assert known[1, :3].all() and (logodds[1, :3] < 0).all()  # not named: still free
+    assert grid.served_occupancy()[0, 0] == -1

@@ -52,6 +52,11 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
 9. Floor seen through a gap narrower than 12 cm between surfaces in the band (a pallet's deck
    between its boards) belongs to them: no robot passes there, and a cell whose centre falls in
    the slot is the pallet's.
+10. Where the image still departs from the background and no rule made evidence, the floor is
+    *hidden* now (:attr:`FloorModel.hidden`): something stands in the pixel's ray (a plain mover,
+    a person whose top is out of view), or a shadow darkens a plain floor. Its floor cell is no
+    longer known to be free: the tile says so and the map forgets a free belief there (unknown,
+    never occupied). Not in a frame that re-learns, where the whole image departs.
 
 Learning (never from pixels where something stands), every ``learn_every`` frames:
 
@@ -518,6 +523,8 @@ class FloorModel:
         self.tolerance = np.zeros((2, height, width), np.float32)
         """max(match_sigmas·σ, match_min_gray, match_relative·mean), kept with the model."""
         self._modelled = np.zeros((height, width), np.bool_)
+        self.hidden = np.zeros((height, width), np.bool_)
+        """Rule 10, of the last frame: pixels whose floor is hidden by something standing there."""
         self.confirmed = np.zeros((height, width), np.uint8)
         self.frames = 0
         self.relearned = 0
@@ -692,6 +699,8 @@ class FloorModel:
         self._close_gaps(out)  # rule 9
 
         relearn = departed > cfg.relearn_share
+        # Rule 10 (not in a frame that re-learns: there the whole image departs).
+        self.hidden = departs & ~np.isfinite(out) & (not relearn)
         if relearn or self.frames % cfg.learn_every == 0:
             self._learn(left, warped, inside, test, measured, at_floor, matches, relearn)
         if self.frames % cfg.offset_every == cfg.offset_every // 2:  # not in a learning frame

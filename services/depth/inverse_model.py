@@ -35,18 +35,42 @@ class Tile:
     """Top height seen in the cell; NaN where the cell got no update."""
     count: npt.NDArray[np.uint16]
     """Pixels aggregated into the cell's update; 0 means no update."""
+    hidden: npt.NDArray[np.bool_]
+    """No update, but the floor there is hidden by something standing in the view (floor model,
+    rule 10): a free belief there is out of date."""
 
     def arrays(self) -> dict[str, np.ndarray]:
-        return {"logodds": self.logodds, "height_m": self.height_m, "count": self.count}
+        return {
+            "logodds": self.logodds,
+            "height_m": self.height_m,
+            "count": self.count,
+            "hidden": self.hidden.view(np.uint8),
+        }
 
 
 def build_tile(
-    points: WorldPoints, resolution_m: float, params: SensorModelParams, min_cell_pixels: int = 3
+    points: WorldPoints,
+    resolution_m: float,
+    params: SensorModelParams,
+    min_cell_pixels: int = 3,
+    hidden_xy_m: npt.NDArray[np.float32] | None = None,
 ) -> Tile:
+    """The frame's tile. ``hidden_xy_m`` (2 × N): floor points of the pixels whose floor is
+    hidden; a cell holding at least ``min_cell_pixels`` of them, and no more measured pixels than
+    hidden ones, is *hidden* unless its measurement says occupied (its free reading is the
+    matcher's window dragging the floor onto what hides it)."""
     keep = in_model_range(points.height_m, points.height_sigma_m, params)
     x, y = points.x_m[keep], points.y_m[keep]
     height, sigma = points.height_m[keep], points.height_sigma_m[keep]
-    if x.size == 0:
+    hidden_x, hidden_y = (
+        (hidden_xy_m[0], hidden_xy_m[1])
+        if hidden_xy_m is not None
+        else (np.zeros(0, np.float32), np.zeros(0, np.float32))
+    )
+    i, j = cell_of(x, resolution_m), cell_of(y, resolution_m)  # 1-D each: contiguous min/max
+    hidden_i, hidden_j = cell_of(hidden_x, resolution_m), cell_of(hidden_y, resolution_m)
+    all_i, all_j = np.concatenate([i, hidden_i]), np.concatenate([j, hidden_j])
+    if all_i.size == 0:
         empty = Window(0, 0, 0, 0)
         return Tile(
             empty,
@@ -54,10 +78,13 @@ def build_tile(
             np.zeros((0, 0), np.float32),
             np.zeros((0, 0), np.float32),
             np.zeros((0, 0), np.uint16),
+            np.zeros((0, 0), np.bool_),
         )
-    i, j = cell_of(x, resolution_m), cell_of(y, resolution_m)  # 1-D each: contiguous min/max
     window = Window(
-        int(i.min()), int(j.min()), int(i.max() - i.min()) + 1, int(j.max() - j.min()) + 1
+        int(all_i.min()),
+        int(all_j.min()),
+        int(all_i.max() - all_i.min()) + 1,
+        int(all_j.max() - all_j.min()) + 1,
     )
     rows, cols = window.shape
     flat = (j - window.j0) * cols + (i - window.i0)
@@ -75,12 +102,18 @@ def build_tile(
         logodds(cell_occupancy_probability(obstacle, pixels.astype(np.float64), params)),
         0.0,
     )
+    hidden_pixels = np.bincount(
+        (hidden_j - window.j0) * cols + (hidden_i - window.i0), minlength=size
+    )
+    hidden = (hidden_pixels >= min_cell_pixels) & (hidden_pixels >= pixels) & (update <= 0.0)
+    updated &= ~hidden
     return Tile(
         window=window,
         resolution_m=resolution_m,
-        logodds=update.astype(np.float32).reshape(rows, cols),
+        logodds=np.where(updated, update, 0.0).astype(np.float32).reshape(rows, cols),
         height_m=np.where(updated, top, np.nan).astype(np.float32).reshape(rows, cols),
         count=np.where(updated, np.minimum(pixels, COUNT_MAX), 0)
         .astype(np.uint16)
         .reshape(rows, cols),
+        hidden=hidden.reshape(rows, cols),
     )

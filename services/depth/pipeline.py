@@ -67,6 +67,12 @@ class DepthPipeline:
         self.config = config
         self.rectifier = Rectifier.from_calibration(calib, config.downscale)
         self.rays_world = self.rectifier.pixel_rays_world()
+        depth_to_floor = -self.rectifier.C_world[2] / self.rays_world[2]
+        self.floor_xy_m = (
+            self.rectifier.C_world[:2, None, None] + depth_to_floor * self.rays_world[:2]
+        ).astype(np.float32)
+        """Where each pixel's ray meets the floor (2 × H × W): the floor cell a hidden pixel
+        speaks for (the cameras never move, so once)."""
         self.image_view = ImageView(
             self.rectifier.focal_px,
             self.rectifier.cx_px,
@@ -121,7 +127,11 @@ class DepthPipeline:
         )
         times.append(time.perf_counter())
         tile = build_tile(
-            points, self.config.resolution_m, self.config.model, self.config.min_cell_pixels
+            points,
+            self.config.resolution_m,
+            self.config.model,
+            self.config.min_cell_pixels,
+            None if self.floor_model is None else self.floor_xy_m[:, self.floor_model.hidden],
         )
         times.append(time.perf_counter())
         # "disparity" is the whole chain: matcher and its optional stages (stereo.DisparityChain).

@@ -304,11 +304,15 @@ class FusedGrid:
         tile_height_m: npt.NDArray[np.float32],
         count: npt.NDArray[np.uint16],
         stamp_ns: int,
+        hidden: npt.NDArray[np.bool_] | None = None,
     ) -> Window:
         """Add one tile's evidence; returns the map cells it touched. A refused tile changes
-        nothing (no chunk, no growth)."""
+        nothing (no chunk, no growth). ``hidden``: cells without an update whose floor is hidden
+        now (see ``rules.combine_tile``)."""
         part = self._admit(tile_window)
         stamp_s = stamp_ns / 1e9
+        if hidden is None:
+            hidden = np.zeros(tile_window.shape, np.bool_)
         for key in chunk_keys(part):
             cw = chunk_window(key)
             sub = part.intersect(cw)
@@ -323,6 +327,7 @@ class FusedGrid:
                 logodds_update[in_tile],
                 tile_height_m[in_tile],
                 count[in_tile],
+                hidden[in_tile],
                 stamp_s,
                 self.params.logodds_min,
                 self.params.logodds_max,
@@ -504,4 +509,11 @@ def compile_rules() -> None:
     def decoded(dtype: type[np.generic]) -> npt.NDArray[Any]:
         return np.frombuffer(bytes(4 * np.dtype(dtype).itemsize), dtype).reshape(window.shape)
 
-    grid.integrate(window, decoded(np.float32), decoded(np.float32), decoded(np.uint16), 0)
+    grid.integrate(
+        window,
+        decoded(np.float32),
+        decoded(np.float32),
+        decoded(np.uint16),
+        0,
+        decoded(np.uint8).view(np.bool_),
+    )

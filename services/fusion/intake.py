@@ -22,6 +22,7 @@ REASONS = (
     "resolution",
     "dimensions",
     "nan",
+    "hidden",
     "stale",
     "future",
     "out_of_order",
@@ -53,6 +54,8 @@ class AcceptedTile:
     logodds: npt.NDArray[np.float32]
     height_m: npt.NDArray[np.float32]
     count: npt.NDArray[np.uint16]
+    hidden: npt.NDArray[np.bool_]
+    """Cells without an update whose floor is hidden now (all False if the tile has no layer)."""
 
 
 @dataclass(frozen=True)
@@ -136,6 +139,16 @@ class TileGate:
                     f"layer {name} must be {np.dtype(dtype)} {(h.rows, h.cols)}, got {got}",
                 )
             layers[name] = array
+        hidden = message.arrays.get("hidden")
+        if hidden is None:
+            hidden = np.zeros((h.rows, h.cols), np.uint8)
+        elif hidden.dtype != np.uint8 or hidden.shape != (h.rows, h.cols):
+            raise Rejected(
+                "dimensions",
+                f"layer hidden must be uint8 {(h.rows, h.cols)}, got {hidden.dtype} {hidden.shape}",
+            )
+        elif int(hidden.max(initial=0)) > 1:
+            raise Rejected("hidden", "layer hidden holds values other than 0 and 1")
         observed = layers["count"] > 0
         finite_where_observed = np.less_equal(observed, np.isfinite(layers["height_m"]))
         if not np.isfinite(layers["logodds"]).all() or not finite_where_observed.all():
@@ -147,7 +160,14 @@ class TileGate:
             raise Rejected(
                 "out_of_order", f"tile of {h.pair} is not newer than the last one accepted"
             )
-        return AcceptedTile(h, h.window, layers["logodds"], layers["height_m"], layers["count"])
+        return AcceptedTile(
+            h,
+            h.window,
+            layers["logodds"],
+            layers["height_m"],
+            layers["count"],
+            hidden.view(np.bool_),
+        )
 
     def accepted(self, tile: AcceptedTile) -> None:
         """Record the stamp of a tile the map took (a tile the map refused does not count)."""

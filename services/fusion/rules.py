@@ -18,6 +18,7 @@ from common.occupancy_map import (
     OCCUPANCY_LUT_RANGE,
     OCCUPANCY_LUT_SCALE,
     OCCUPIED,
+    UNKNOWN,
 )
 
 
@@ -50,18 +51,28 @@ def combine_tile(
     update: npt.NDArray[np.float32],
     tile_height_m: npt.NDArray[np.float32],
     count: npt.NDArray[np.uint16],
+    hidden: npt.NDArray[np.bool_],
     stamp_s: float,
     logodds_min: float,
     logodds_max: float,
 ) -> None:
-    """Every rule on every observed cell, in place on the map layers' views of the tile window."""
+    """Every rule on every observed cell, in place on the map layers' views of the tile window.
+    A hidden cell (no update, its floor hidden by something standing there now) that the map
+    believes free is forgotten: unknown, as rule 4 of the floor model says a departure without a
+    measurement is; a cell believed occupied keeps its belief."""
     for row in range(update.shape[0]):
         # Row views: numba then steps through each row as a plain strided vector, about a third faster.
         logodds_row, height_row, known_row = logodds[row], height_m[row], known[row]
         seen_row, occupancy_row = last_seen_s[row], occupancy[row]
         update_row, tile_height_row, count_row = update[row], tile_height_m[row], count[row]
+        hidden_row = hidden[row]
         for col in range(update_row.shape[0]):
             if count_row[col] == 0:
+                if hidden_row[col] and known_row[col] and logodds_row[col] < 0:
+                    logodds_row[col] = 0.0
+                    height_row[col] = np.nan
+                    known_row[col] = False
+                    occupancy_row[col] = UNKNOWN
                 continue  # no pixel fell here: no evidence, the cell keeps what it had
             logodds_row[col] = add_logodds_clamped(
                 logodds_row[col], update_row[col], logodds_min, logodds_max

@@ -159,7 +159,12 @@ class FusionState:
         tile = self.gate.admit(delivery.payload, delivery.arrival_ns, delivery.key)
         try:
             self.grid.integrate(
-                tile.window, tile.logodds, tile.height_m, tile.count, tile.header.stamp_ns
+                tile.window,
+                tile.logodds,
+                tile.height_m,
+                tile.count,
+                tile.header.stamp_ns,
+                tile.hidden,
             )
         except TileOutsideMap as error:
             raise Rejected(error.reason, str(error)) from None
