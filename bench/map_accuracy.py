@@ -103,9 +103,7 @@ def run(
             result = pipeline.process(*capture.capture(stamp_ns))
             tile = result.tile
             if tile.window.cols:
-                grid.integrate(
-                    tile.window, tile.logodds, tile.height_m, tile.count, stamp_ns, tile.hidden
-                )
+                grid.integrate_tile(tile, stamp_ns)
             pair = capture.calibration.pair
             found = detections_header(pipeline.detect_objects(result), pair, k, stamp_ns).detections
             tracker.add(pair, stamp_ns, list(found), k / rate_hz)

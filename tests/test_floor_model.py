@@ -522,7 +522,7 @@ def test_a_person_stepping_onto_mapped_floor_leaves_no_free_cells_behind_its_dar
 
     def fuse(frame: tuple[np.ndarray, np.ndarray]) -> None:
         tile = pipeline.process(*frame).tile
-        grid.integrate(tile.window, tile.logodds, tile.height_m, tile.count, 0, tile.hidden)
+        grid.integrate_tile(tile, 0)
 
     for _ in range(17):
         fuse(empty.next())

@@ -14,7 +14,7 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from itertools import pairwise
 from types import MappingProxyType
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -48,6 +48,22 @@ MAX_UPDATE_PARTS = 8
 """Most ``map/updates`` messages one publish sends: changed chunks far apart go as separate
 rectangles (two small tiles at opposite corners of a large map are two small messages, not their
 bounding box), and beyond this many groups neighbouring groups are merged."""
+
+
+class TileLayers(Protocol):
+    """A tile's layers on its window (``services.depth.inverse_model.Tile``, or one fusion has
+    admitted): what :meth:`FusedGrid.integrate_tile` takes."""
+
+    @property
+    def window(self) -> Window: ...
+    @property
+    def logodds(self) -> npt.NDArray[np.float32]: ...
+    @property
+    def height_m(self) -> npt.NDArray[np.float32]: ...
+    @property
+    def count(self) -> npt.NDArray[np.uint16]: ...
+    @property
+    def hidden(self) -> npt.NDArray[np.bool_]: ...
 
 
 class TileOutsideMap(ValueError):
@@ -338,6 +354,12 @@ class FusedGrid:
         self.stamp_ns = max(self.stamp_ns, stamp_ns)
         self.version += 1
         return part
+
+    def integrate_tile(self, tile: TileLayers, stamp_ns: int) -> Window:
+        """:meth:`integrate` of a tile's layers (a depth pipeline's tile, or one fusion admitted)."""
+        return self.integrate(
+            tile.window, tile.logodds, tile.height_m, tile.count, stamp_ns, tile.hidden
+        )
 
     def _mark(self, key: ChunkKey, cells: Window) -> None:
         self.dirty[key] = self.dirty.get(key, Window(0, 0, 0, 0)).union(cells)

@@ -158,14 +158,7 @@ class FusionState:
     def _tile(self, delivery: Delivery) -> None:
         tile = self.gate.admit(delivery.payload, delivery.arrival_ns, delivery.key)
         try:
-            self.grid.integrate(
-                tile.window,
-                tile.logodds,
-                tile.height_m,
-                tile.count,
-                tile.header.stamp_ns,
-                tile.hidden,
-            )
+            self.grid.integrate_tile(tile, tile.header.stamp_ns)
         except TileOutsideMap as error:
             raise Rejected(error.reason, str(error)) from None
         self.gate.accepted(tile)
