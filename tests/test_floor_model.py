@@ -520,12 +520,12 @@ def test_a_person_stepping_onto_mapped_floor_leaves_no_free_cells_behind_its_dar
     pipeline = DepthPipeline(empty.capture.calibration, PipelineConfig())
     grid = FusedGrid(GridParams())
 
-    def fuse(frame: tuple[np.ndarray, np.ndarray]) -> None:
-        tile = pipeline.process(*frame).tile
-        grid.integrate_tile(tile, 0)
+    def fuse(pair: Pair) -> None:
+        tile = pipeline.process(*pair.next()).tile
+        grid.integrate_tile(tile, int(pair.t_s * 1e9))
 
     for _ in range(17):
-        fuse(empty.next())
+        fuse(empty)
     inner = _eroded(
         footprint_mask(with_person.renderer.scene.truth_objects(0)[0], grid.window, 0.05), 1
     )
@@ -533,7 +533,7 @@ def test_a_person_stepping_onto_mapped_floor_leaves_no_free_cells_behind_its_dar
     assert float(np.mean((occupancy >= 0) & (occupancy <= 25))) > 0.8  # mapped free
     with_person.t_s = empty.t_s
     for _ in range(3):
-        fuse(with_person.next())
+        fuse(with_person)
     empty.close()
     with_person.close()
     occupancy = grid.served_occupancy()[inner]

@@ -309,25 +309,46 @@ def test_restore_leaves_out_what_lies_beyond_the_limits_not_everything() -> None
 
 def test_a_hidden_cell_believed_free_turns_unknown_and_no_other_changes() -> None:
     """A tile names the cells whose floor something hides now (floor model, rule 10): a free
-    belief there is out of date and goes; an occupied one, an unknown one and every cell the tile
-    does not name keep theirs."""
+    belief there is out of date and goes; an occupied one keeps its belief, a cell the tile also
+    measures takes the measurement, and every cell the tile does not name keeps its own."""
     grid = FusedGrid(P)
+    _integrate(grid, Window(0, 0, 1, 1), -2.0, stamp_ns=10**9)  # believed free
+    _integrate(grid, Window(1, 0, 1, 1), 2.0, height=0.5, stamp_ns=10**9)  # believed occupied
+    _integrate(grid, Window(2, 0, 1, 1), -2.0, stamp_ns=10**9)  # free, measured again below
+    _integrate(grid, Window(0, 1, 3, 1), -2.0, stamp_ns=10**9)  # free, not named
     w = Window(0, 0, 3, 1)
-    _integrate(grid, Window(0, 0, 1, 1), -2.0)  # believed free
-    _integrate(grid, Window(1, 0, 1, 1), 2.0, height=0.5)  # believed occupied
-    free_elsewhere = Window(0, 1, 3, 1)
-    _integrate(grid, free_elsewhere, -2.0)
+    count = np.array([[0, 0, 5]], np.uint16)
+    grid.integrate(
+        w,
+        np.array([[0.0, 0.0, 2.0]], np.float32),
+        np.array([[np.nan, np.nan, 0.6]], np.float32),
+        count,
+        2 * 10**9,
+        np.ones(w.shape, np.bool_),
+    )
+    known, logodds = grid.layer("known"), grid.layer("logodds")
+    assert not known[0, 0] and logodds[0, 0] == 0.0  # was free: unknown now
+    assert np.isnan(grid.layer("height_m")[0, 0])
+    assert known[0, 1] and logodds[0, 1] > 0  # occupied: kept
+    assert known[0, 2] and logodds[0, 2] > 0  # measured in the same tile: the measurement
+    assert known[1, :3].all() and (logodds[1, :3] < 0).all()  # not named: still free
+    assert grid.served_occupancy()[0, 0] == -1
+
+
+def test_a_hidden_cell_another_pair_measured_in_the_same_capture_stays_free() -> None:
+    """One pair's hidden cell is the floor behind something as that pair sees it; a pair that
+    measured that floor free in the same capture (stamps a few ms apart) is right about it."""
+    grid = FusedGrid(P)
+    w = Window(0, 0, 2, 1)
+    _integrate(grid, Window(0, 0, 1, 1), -2.0, stamp_ns=10**9)  # the last frame
+    _integrate(grid, Window(1, 0, 1, 1), -2.0, stamp_ns=2 * 10**9)  # another pair, this capture
     grid.integrate(
         w,
         np.zeros(w.shape, np.float32),
         np.full(w.shape, np.nan, np.float32),
         np.zeros(w.shape, np.uint16),
-        2,
+        2 * 10**9 + 5 * 10**6,
         np.ones(w.shape, np.bool_),
     )
-    known, logodds = grid.layer("known"), grid.layer("logodds")
-    assert not known[0, 0] and logodds[0, 0] == 0.0  # was free: unknown now
-    assert known[0, 1] and logodds[0, 1] > 0  # occupied: kept
-    assert not known[0, 2]  # unknown: stays unknown
-    assert known[1, :3].all() and (logodds[1, :3] < 0).all()  # not named: still free
-    assert grid.served_occupancy()[0, 0] == -1
+    known = grid.layer("known")
+    assert not known[0, 0] and known[0, 1]

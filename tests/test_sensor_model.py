@@ -17,8 +17,6 @@ from common.sensor_model import (
     obstacle_likelihood,
     probability,
 )
-from services.depth.inverse_model import build_tile
-from services.depth.projection import WorldPoints
 
 PARAMS = SensorModelParams()
 
@@ -105,36 +103,3 @@ def test_bad_parameters_are_rejected() -> None:
         SensorModelParams(p_hit=0.4)
     with pytest.raises(ValueError, match="band"):
         SensorModelParams(obstacle_min_m=2.5)
-
-
-def test_a_tile_names_a_cell_hidden_only_where_hidden_pixels_outweigh_a_free_reading() -> None:
-    """Floor points of pixels whose floor is hidden (floor model, rule 10): a cell with enough of
-    them and no more measured pixels is hidden and carries no update; a cell measured occupied
-    stays so; a cell better measured than hidden keeps its free reading."""
-    r = 0.05
-
-    def at(cell_x: int, n: int, height_m: float) -> tuple[list[float], list[float]]:
-        return [cell_x * r + r / 2] * n, [height_m] * n
-
-    xs, heights = [], []
-    for cell_x, n, height_m in ((0, 4, 0.0), (1, 4, 0.8), (2, 9, 0.0)):
-        x, h = at(cell_x, n, height_m)
-        xs += x
-        heights += h
-    points = WorldPoints(
-        x_m=np.array(xs, np.float32),
-        y_m=np.full(len(xs), r / 2, np.float32),
-        height_m=np.array(heights, np.float32),
-        height_sigma_m=np.full(len(xs), 0.02, np.float32),
-    )
-    hidden_x = [c * r + r / 2 for c in (0,) * 5 + (1,) * 5 + (2,) * 5 + (3,) * 5 + (4,) * 2]
-    hidden_xy = np.array([hidden_x, [r / 2] * len(hidden_x)], np.float32)
-    tile = build_tile(points, r, SensorModelParams(), 3, hidden_xy)
-    assert (tile.window.i0, tile.window.cols) == (0, 5)
-    hidden, count, update = tile.hidden[0], tile.count[0], tile.logodds[0]
-    assert hidden[0] and count[0] == 0 and update[0] == 0  # 5 hidden over 4 free: hidden
-    assert not hidden[1] and update[1] > 0  # measured occupied: kept
-    assert not hidden[2] and update[2] < 0  # 9 free over 5 hidden: free
-    assert hidden[3] and count[3] == 0  # hidden only
-    assert not hidden[4] and count[4] == 0  # 2 hidden pixels: too few to say
-    assert tile.arrays()["hidden"].dtype == np.uint8

@@ -700,7 +700,7 @@ class FloorModel:
 
         relearn = departed > cfg.relearn_share
         # Rule 10 (not in a frame that re-learns: there the whole image departs).
-        self.hidden = departs & ~np.isfinite(out) & (not relearn)
+        self.hidden = np.zeros_like(departs) if relearn else departs & ~np.isfinite(out)
         if relearn or self.frames % cfg.learn_every == 0:
             self._learn(left, warped, inside, test, measured, at_floor, matches, relearn)
         if self.frames % cfg.offset_every == cfg.offset_every // 2:  # not in a learning frame

@@ -40,12 +40,15 @@ class Tile:
     rule 10): a free belief there is out of date."""
 
     def arrays(self) -> dict[str, np.ndarray]:
-        return {
+        """The layers on the wire; ``hidden`` only where some cell is (a byte a cell otherwise)."""
+        layers: dict[str, np.ndarray] = {
             "logodds": self.logodds,
             "height_m": self.height_m,
             "count": self.count,
-            "hidden": self.hidden.view(np.uint8),
         }
+        if self.hidden.any():
+            layers["hidden"] = self.hidden.view(np.uint8)
+        return layers
 
 
 def build_tile(
@@ -56,9 +59,9 @@ def build_tile(
     hidden_xy_m: npt.NDArray[np.float32] | None = None,
 ) -> Tile:
     """The frame's tile. ``hidden_xy_m`` (2 × N): floor points of the pixels whose floor is
-    hidden; a cell holding at least ``min_cell_pixels`` of them, and no more measured pixels than
-    hidden ones, is *hidden* unless its measurement says occupied (its free reading is the
-    matcher's window dragging the floor onto what hides it)."""
+    hidden; a cell holding at least ``min_cell_pixels`` of them, and at least as many as its
+    measured pixels, is *hidden* and its reading dropped, unless that reading says occupied (a
+    free one there is the matcher's window dragging the floor onto what hides it)."""
     keep = in_model_range(points.height_m, points.height_sigma_m, params)
     x, y = points.x_m[keep], points.y_m[keep]
     height, sigma = points.height_m[keep], points.height_sigma_m[keep]

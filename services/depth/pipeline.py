@@ -67,9 +67,9 @@ class DepthPipeline:
         self.config = config
         self.rectifier = Rectifier.from_calibration(calib, config.downscale)
         self.rays_world = self.rectifier.pixel_rays_world()
-        depth_to_floor = -self.rectifier.C_world[2] / self.rays_world[2]
+        floor_depth_m = -self.rectifier.C_world[2] / self.rays_world[2]
         self.floor_xy_m = (
-            self.rectifier.C_world[:2, None, None] + depth_to_floor * self.rays_world[:2]
+            self.rectifier.C_world[:2, None, None] + floor_depth_m * self.rays_world[:2]
         ).astype(np.float32)
         """Where each pixel's ray meets the floor (2 × H × W): the floor cell a hidden pixel
         speaks for (the cameras never move, so once)."""

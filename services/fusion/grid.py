@@ -329,6 +329,7 @@ class FusedGrid:
         stamp_s = stamp_ns / 1e9
         if hidden is None:
             hidden = np.zeros(tile_window.shape, np.bool_)
+            hidden.flags.writeable = False  # the layout compile_rules warms the kernel for
         for key in chunk_keys(part):
             cw = chunk_window(key)
             sub = part.intersect(cw)
@@ -347,6 +348,7 @@ class FusedGrid:
                 stamp_s,
                 self.params.logodds_min,
                 self.params.logodds_max,
+                self.params.hidden_grace_s,
             )
             chunk.decay_check_s = min(chunk.decay_check_s, stamp_s)
             self.changed.add(key)

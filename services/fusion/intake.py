@@ -140,8 +140,9 @@ class TileGate:
                 )
             layers[name] = array
         hidden = message.arrays.get("hidden")
-        if hidden is None:
+        if hidden is None:  # a producer without the layer (it is sent only where a cell is hidden)
             hidden = np.zeros((h.rows, h.cols), np.uint8)
+            hidden.flags.writeable = False  # as decoded layers are: one compiled kernel for both
         elif hidden.dtype != np.uint8 or hidden.shape != (h.rows, h.cols):
             raise Rejected(
                 "dimensions",

@@ -31,6 +31,15 @@ class GridParams:
     """Narrower than OctoMap's −2 … 3.5: with the depth model's p_hit/p_miss of 0.9/0.1, one
     conclusive observation moves a cell across the occupied (0.65) or free (0.25) threshold, so a
     moved object appears and clears within a frame; ambiguous observations still accumulate."""
+    hidden_grace_s: float = Field(
+        default=0.1,
+        ge=0.0,
+        description="a cell measured this close before a tile's capture keeps its belief where "
+        "that tile names it hidden",
+    )
+    """A pair's hidden cells are the floor behind something as that pair sees it; another pair
+    may measure that floor free in the same capture (stamps a few ms apart). Shorter than a frame
+    interval, so the free cells under an arriving mover, last measured a frame ago, are forgotten."""
     decay_after_s: float = Field(
         default=5.0, gt=0.0, description="unobserved this long, a cell drifts back toward unknown"
     )

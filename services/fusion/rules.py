@@ -55,11 +55,13 @@ def combine_tile(
     stamp_s: float,
     logodds_min: float,
     logodds_max: float,
+    hidden_grace_s: float,
 ) -> None:
     """Every rule on every observed cell, in place on the map layers' views of the tile window.
-    A hidden cell (no update, its floor hidden by something standing there now) that the map
-    believes free is forgotten: unknown, as rule 4 of the floor model says a departure without a
-    measurement is; a cell believed occupied keeps its belief."""
+    A hidden cell (no update, its floor hidden by something standing there now: the floor model's
+    rule 10) that the map believes free is forgotten, unknown, unless a tile measured it within
+    ``hidden_grace_s`` of this capture (another pair sees that floor now); a cell believed
+    occupied keeps its belief."""
     for row in range(update.shape[0]):
         # Row views: numba then steps through each row as a plain strided vector, about a third faster.
         logodds_row, height_row, known_row = logodds[row], height_m[row], known[row]
@@ -68,7 +70,12 @@ def combine_tile(
         hidden_row = hidden[row]
         for col in range(update_row.shape[0]):
             if count_row[col] == 0:
-                if hidden_row[col] and known_row[col] and logodds_row[col] < 0:
+                if (
+                    hidden_row[col]
+                    and known_row[col]
+                    and logodds_row[col] < 0
+                    and stamp_s - seen_row[col] > hidden_grace_s
+                ):
                     logodds_row[col] = 0.0
                     height_row[col] = np.nan
                     known_row[col] = False

@@ -1,0 +1,56 @@
+"""The inverse sensor model's tile: one observation per cell, and the cells named hidden."""
+
+import numpy as np
+
+from common.sensor_model import SensorModelParams
+from services.depth.inverse_model import build_tile
+from services.depth.projection import WorldPoints
+
+R = 0.05
+
+
+def _points(cells: list[tuple[int, int, float]]) -> WorldPoints:
+    """``n`` points at height ``h`` in cell (``i``, 0) for each (i, n, h)."""
+    x = [i * R + R / 2 for i, n, _ in cells for _ in range(n)]
+    heights = [h for _, n, h in cells for _ in range(n)]
+    return WorldPoints(
+        x_m=np.array(x, np.float32),
+        y_m=np.full(len(x), R / 2, np.float32),
+        height_m=np.array(heights, np.float32),
+        height_sigma_m=np.full(len(x), 0.02, np.float32),
+    )
+
+
+def _hidden(per_cell: dict[int, int]) -> np.ndarray:
+    x = [i * R + R / 2 for i, n in per_cell.items() for _ in range(n)]
+    return np.array([x, [R / 2] * len(x)], np.float32)
+
+
+def test_a_cell_is_hidden_only_where_hidden_pixels_outweigh_a_free_reading() -> None:
+    """Floor points of pixels whose floor is hidden (floor model, rule 10): a cell with enough of
+    them and at least as many as its measured pixels is hidden and carries no update; a cell
+    measured occupied stays so; a cell better measured than hidden keeps its free reading."""
+    points = _points([(0, 4, 0.0), (1, 4, 0.8), (2, 9, 0.0), (5, 5, 0.0)])
+    tile = build_tile(
+        points, R, SensorModelParams(), 3, _hidden({0: 5, 1: 5, 2: 5, 3: 5, 4: 2, 5: 5})
+    )
+    assert (tile.window.i0, tile.window.cols) == (0, 6)
+    hidden, count, update = tile.hidden[0], tile.count[0], tile.logodds[0]
+    assert hidden[0] and count[0] == 0 and update[0] == 0  # 5 hidden over 4 free: hidden
+    assert np.isnan(tile.height_m[0, 0])
+    assert not hidden[1] and update[1] > 0  # measured occupied: kept
+    assert not hidden[2] and update[2] < 0  # 9 free over 5 hidden: free
+    assert hidden[3] and count[3] == 0  # hidden only
+    assert not hidden[4] and count[4] == 0  # 2 hidden pixels: too few to say
+    assert hidden[5]  # a tie: hidden
+    assert tile.arrays()["hidden"].dtype == np.uint8
+
+
+def test_a_tile_of_hidden_cells_alone_covers_them_and_a_tile_with_none_sends_no_layer() -> None:
+    params = SensorModelParams()
+    only_hidden = build_tile(_points([]), R, params, 3, _hidden({7: 4, 9: 3}))
+    assert (only_hidden.window.i0, only_hidden.window.cols, only_hidden.window.rows) == (7, 3, 1)
+    assert only_hidden.hidden[0].tolist() == [True, False, True]
+    assert not only_hidden.count.any()
+    measured = build_tile(_points([(0, 5, 0.0)]), R, params, 3, _hidden({}))
+    assert not measured.hidden.any() and "hidden" not in measured.arrays()
