@@ -70,7 +70,13 @@ def test_depth_turns_frames_into_tiles_and_survives_bad_frames(bus: Bus) -> None
     assert "p0" in _alive(bus.session)
 
     # Malformed input on the pair's key: random bytes, a wrong-typed header, a frame of the wrong size.
-    publisher = bus.session.declare_publisher(keys.stereo("p0"), encoding=WIRE_ENCODING)
+    # Blocking, as the camera sim publishes: zenoh's default drops a put when its queue is
+    # congested, and the count below needs every one of these 1–2 MB puts to arrive.
+    publisher = bus.session.declare_publisher(
+        keys.stereo("p0"),
+        encoding=WIRE_ENCODING,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    )
     publisher.put(b"\x00garbage\xff" * 10)
     publisher.put(msgpack.packb({"v": 1, "kind": "stereo", "header": {"pair": "p0", "seq": "x"}}))
     small = np.zeros((240, 320), np.uint8)
