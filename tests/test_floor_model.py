@@ -539,3 +539,19 @@ def test_a_person_stepping_onto_mapped_floor_leaves_no_free_cells_behind_its_dar
     occupancy = grid.served_occupancy()[inner]
     assert float(np.mean((occupancy >= 0) & (occupancy <= 25))) < 0.35
     assert float(np.mean(occupancy == -1)) > 0.2  # forgotten, not guessed occupied
+
+
+def test_a_floor_gap_closes_between_surfaces_in_the_band_only() -> None:
+    """Rule 9 closes floor seen through a slot narrower than 12 cm between surfaces in the band
+    (a pallet's deck); between two of the matcher's picks above the band (2.9 m) it stays floor."""
+    geometry = _synthetic_geometry()
+    model = floor_model.FloorModel(geometry, (0.1, 2.0))
+    width, height = SYNTHETIC_SIZE
+    for surface_m, closed in ((0.14, True), (2.9, False)):
+        heights = np.zeros((height, width), np.float32)
+        heights[100:140, 150:160] = heights[100:140, 162:172] = surface_m  # a 2 px (4 cm) slot
+        evidence = geometry.disparity_px(heights)
+        model._close_gaps(evidence)
+        slot = geometry.height_m(evidence)[105:135, 160:162]
+        assert bool(np.all(np.abs(slot - surface_m) < 1e-3)) == closed
+        assert closed or bool(np.all(np.abs(slot) < 1e-3))

@@ -687,7 +687,7 @@ class FloorModel:
         vouched = np.where(support.anchored, support.consistent, matches & low)
         measured[carried | (interpolated & ~vouched & ~observed)] = np.nan
         with np.errstate(invalid="ignore"):
-            bridged = ~np.isfinite(measured) & ~observed & (support.bridge_m >= self.obstacle_min_m)
+            bridged = ~np.isfinite(measured) & ~observed & self._in_band(support.bridge_m)
         measured[bridged] = self.geometry.disparity_px(support.bridge_m)[bridged]  # rule 7
         # Rule 4: where the image departs from the floor's background, the matcher's filling at
         # the floor (a plain top takes the floor's disparity in from around) is no floor evidence.
@@ -739,14 +739,20 @@ class FloorModel:
         departed = 0.0 if count < MIN_FIT_PIXELS else 1.0 - float(np.count_nonzero(both)) / count
         return both & textured_alike, departed
 
+    def _in_band(self, height_m: F32) -> Mask:
+        """Heights in the obstacle band (NaN: not). Above it is no surface to fill or bridge with:
+        the matcher's picks at the top of its search read there (2.9 m beside a forklift's dark
+        front face)."""
+        with np.errstate(invalid="ignore"):
+            return (height_m >= self.obstacle_min_m) & (height_m <= self.obstacle_max_m)
+
     def _close_gaps(self, evidence: F32) -> None:
         """Rule 9, in place: floor evidence in a gap narrower than GAP_CLOSED_M between surfaces
         in the obstacle band (a morphological closing of the band's pixels) takes the highest of
         them: a pallet's deck shows the floor between its boards, and a cell whose centre falls
         in such a slot is the pallet's (nav2's rasterisation, and no robot passes there)."""
         height = self.geometry.height_m(evidence)
-        with np.errstate(invalid="ignore"):
-            band = height >= self.obstacle_min_m
+        band = self._in_band(height)
         closed = cv2.morphologyEx(band.view(np.uint8), cv2.MORPH_CLOSE, self._gap_kernel) > 0
         gap = closed & ~band & np.isfinite(height)
         if gap.any():
@@ -773,9 +779,7 @@ class FloorModel:
         height = self.geometry.height_m(measured)
         edge = np.isfinite(height) & (region_near > 0)
         region, edge_height = region_near[edge], height[edge]
-        # Above the band is no top to fill with: the matcher's pick at the top of its search
-        # (a forklift's plain top next to its dark front face read 2.9 m and was no obstacle).
-        raised = (edge_height >= self.obstacle_min_m) & (edge_height <= self.obstacle_max_m)
+        raised = self._in_band(edge_height)
         raised_count = np.bincount(region[raised], minlength=count)
         fill = raised_count >= REGION_MIN_RAISED
         fill[0] = False  # label 0: not a hole
