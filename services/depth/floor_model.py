@@ -686,8 +686,7 @@ class FloorModel:
         # Rule 6; with no measurement within reach, only the background vouches (for the floor).
         vouched = np.where(support.anchored, support.consistent, matches & low)
         measured[carried | (interpolated & ~vouched & ~observed)] = np.nan
-        with np.errstate(invalid="ignore"):
-            bridged = ~np.isfinite(measured) & ~observed & self._in_band(support.bridge_m)
+        bridged = ~np.isfinite(measured) & ~observed & self._in_band(support.bridge_m)
         measured[bridged] = self.geometry.disparity_px(support.bridge_m)[bridged]  # rule 7
         # Rule 4: where the image departs from the floor's background, the matcher's filling at
         # the floor (a plain top takes the floor's disparity in from around) is no floor evidence.

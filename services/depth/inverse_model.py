@@ -65,11 +65,7 @@ def build_tile(
     keep = in_model_range(points.height_m, points.height_sigma_m, params)
     x, y = points.x_m[keep], points.y_m[keep]
     height, sigma = points.height_m[keep], points.height_sigma_m[keep]
-    hidden_x, hidden_y = (
-        (hidden_xy_m[0], hidden_xy_m[1])
-        if hidden_xy_m is not None
-        else (np.zeros(0, np.float32), np.zeros(0, np.float32))
-    )
+    hidden_x, hidden_y = np.zeros((2, 0), np.float32) if hidden_xy_m is None else hidden_xy_m
     i, j = cell_of(x, resolution_m), cell_of(y, resolution_m)  # 1-D each: contiguous min/max
     hidden_i, hidden_j = cell_of(hidden_x, resolution_m), cell_of(hidden_y, resolution_m)
     all_i, all_j = np.concatenate([i, hidden_i]), np.concatenate([j, hidden_j])

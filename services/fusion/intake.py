@@ -54,8 +54,8 @@ class AcceptedTile:
     logodds: npt.NDArray[np.float32]
     height_m: npt.NDArray[np.float32]
     count: npt.NDArray[np.uint16]
-    hidden: npt.NDArray[np.bool_]
-    """Cells without an update whose floor is hidden now (all False if the tile has no layer)."""
+    hidden: npt.NDArray[np.bool_] | None
+    """Cells without an update whose floor is hidden now; None if the tile has no such layer."""
 
 
 @dataclass(frozen=True)
@@ -126,12 +126,15 @@ class TileGate:
                 + ("" if self.bounded else " (--max-extent-m around the origin)"),
             )
         layers = {}
-        for name, dtype in (
-            ("logodds", np.float32),
-            ("height_m", np.float32),
-            ("count", np.uint16),
+        for name, dtype, required in (
+            ("logodds", np.float32, True),
+            ("height_m", np.float32, True),
+            ("count", np.uint16, True),
+            ("hidden", np.uint8, False),  # sent only where a cell is hidden
         ):
             array = message.arrays.get(name)
+            if array is None and not required:
+                continue
             if array is None or array.dtype != dtype or array.shape != (h.rows, h.cols):
                 got = "missing" if array is None else f"{array.dtype} {array.shape}"
                 raise Rejected(
@@ -139,16 +142,8 @@ class TileGate:
                     f"layer {name} must be {np.dtype(dtype)} {(h.rows, h.cols)}, got {got}",
                 )
             layers[name] = array
-        hidden = message.arrays.get("hidden")
-        if hidden is None:  # a producer without the layer (it is sent only where a cell is hidden)
-            hidden = np.zeros((h.rows, h.cols), np.uint8)
-            hidden.flags.writeable = False  # as decoded layers are: one compiled kernel for both
-        elif hidden.dtype != np.uint8 or hidden.shape != (h.rows, h.cols):
-            raise Rejected(
-                "dimensions",
-                f"layer hidden must be uint8 {(h.rows, h.cols)}, got {hidden.dtype} {hidden.shape}",
-            )
-        elif int(hidden.max(initial=0)) > 1:
+        hidden = layers.get("hidden")
+        if hidden is not None and int(hidden.max(initial=0)) > 1:
             raise Rejected("hidden", "layer hidden holds values other than 0 and 1")
         observed = layers["count"] > 0
         finite_where_observed = np.less_equal(observed, np.isfinite(layers["height_m"]))
@@ -167,7 +162,7 @@ class TileGate:
             layers["logodds"],
             layers["height_m"],
             layers["count"],
-            hidden.view(np.bool_),
+            None if hidden is None else hidden.view(np.bool_),
         )
 
     def accepted(self, tile: AcceptedTile) -> None:
