@@ -8,7 +8,7 @@ import pytest
 from common.camera import StereoCalibration
 from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
-from services.camera_sim.scene import ObjectSpec, SceneSpec, generate_scene
+from services.camera_sim.scene import MarkingSpec, ObjectSpec, SceneSpec, generate_scene
 
 Rendered = tuple[SceneSpec, list[StereoCalibration], SceneRenderer]
 
@@ -82,6 +82,34 @@ def test_floors_have_the_texture_their_names_promise() -> None:
     assert 0.8 < stds["concrete"] < stds["speckle"] / 4  # weak, but not none
     assert stds["plain"] < 0.5
     assert SceneSpec(floor="textured").floor == "speckle"  # the old name still loads
+
+
+@pytest.mark.parametrize("floor_size_m", [(12.0, 10.0), (9.0, 7.0)])
+def test_markings_are_painted_flat_where_the_scene_puts_them(
+    floor_size_m: tuple[float, float],
+) -> None:
+    # Off the pair's centre (a texture mapped the wrong way round would miss it).
+    centre_xy_m = (floor_size_m[0] / 2 - 1.3, floor_size_m[1] / 2 + 0.9)
+    line = MarkingSpec(center_xy_m=centre_xy_m, size_m=(1.6, 0.08), yaw_rad=0.5)
+    scene = SceneSpec(floor_size_m=floor_size_m, floor="plain", markings=[line])
+    calib = layout_pairs(RigSpec(pair_count=1), floor_size_m)[0]
+    renderer = SceneRenderer(scene, [calib])
+    renderer.set_time(0.0)
+    rgb = renderer.render_rgb("p0_left", 640, 480).astype(np.float64)
+    depth = renderer.render_depth("p0_left", 640, 480)
+    renderer.close()
+    yellowness = rgb[:, :, 0] - rgb[:, :, 2]
+    across = np.array([-np.sin(line.yaw_rad), np.cos(line.yaw_rad)])
+    for along_m in (-0.6, 0.0, 0.6):
+        centre = np.asarray(line.center_xy_m) + along_m * np.array(
+            [np.cos(line.yaw_rad), np.sin(line.yaw_rad)]
+        )
+        u, v, z = calib.left.project([(*centre, 0.0)])[0]
+        assert yellowness[round(v), round(u)] > 100  # paint, where the scene puts it
+        assert depth[round(v), round(u)] == pytest.approx(z, abs=2e-3)  # flat: the floor's depth
+        for side in (-1, 1):  # 3 cm past each edge: bare floor
+            u, v, _ = calib.left.project([(*(centre + side * 0.07 * across), 0.0)])[0]
+            assert abs(yellowness[round(v), round(u)]) < 10
 
 
 def test_movers_follow_their_path_as_a_pure_function_of_time() -> None:

@@ -29,9 +29,13 @@ RAISED = ObjectSpec(
     name="patch", shape="box", center_xy_m=(6.4, 4.6), yaw_rad=0.3, size_m=(1.0, 0.8, 0.5)
 )
 LANES = [
-    MarkingSpec(center_xy_m=(x, 5.0), size_m=(4.0, 0.08), yaw_rad=np.pi / 2) for x in (4.2, 7.8)
+    MarkingSpec(
+        center_xy_m=(x, 5.0), size_m=(4.0, 0.08), yaw_rad=np.pi / 2, rgba=(0.9, 0.9, 0.88, 1.0)
+    )
+    for x in (4.2, 7.8)
 ]
-"""Paint lines across the baseline: all a plain floor gives stereo to measure at floor height."""
+"""Paint lines across the baseline: all a plain floor gives stereo to measure at floor height.
+White: in these renders yellow paint is hardly brighter than a plain floor (render.FLOOR_FINISHES)."""
 PLAIN_BOX = ObjectSpec(
     name="crate",
     shape="box",

@@ -14,17 +14,22 @@ import numpy.typing as npt
 from common.camera import StereoCalibration
 from services.camera_sim.lighting import Lighting
 from services.camera_sim.rig import mujoco_camera_axes
-from services.camera_sim.scene import ObjectSpec, SceneSpec
+from services.camera_sim.scene import MarkingSpec, ObjectSpec, SceneSpec
 
 TEXTURE_PX = 512
-TEXTURE_SPAN_M = 4.0
-"""The speckle texture repeats every 4 m (7.8 mm texels)."""
 CONCRETE_PX = 1024
-CONCRETE_SPAN_M = 8.0
-"""Concrete: 7.8 mm texels too, repeating every 8 m (two control-joint bays)."""
+FLOOR_TEXELS_PER_M = 64.0
+"""The floor's texture density (15.6 mm texels): the speckle tile repeats every 8 m, the concrete
+tile every 16 m (its control joints 8 m apart)."""
+FLOOR_MARGIN_M = 1.0
+"""The floor plane reaches this far past the floor on every side (under the walls)."""
 SURFACE_PX = 256
-SURFACE_SPAN_M = 1.0
-"""Cardboard, wood, fabric: 4 mm texels, repeating every metre."""
+SURFACE_SPAN_M = 2.0
+"""Cardboard, wood, fabric: 7.8 mm texels, repeating every 2 m."""
+PAINT_SUBSAMPLES = 4
+"""A marking's coverage of a floor texel is sampled on a 4 × 4 grid: its edges fall between
+texels as a real line's edge falls between pixels, so the texture's filtering blurs them as a
+lens does."""
 
 
 def procedural_texture(seed: int, size: int = TEXTURE_PX) -> npt.NDArray[np.uint8]:
@@ -64,23 +69,23 @@ def smooth_noise(rng: np.random.Generator, size: int, cell_px: int) -> npt.NDArr
 
 def concrete_texture(seed: int, size: int = CONCRETE_PX) -> npt.NDArray[np.uint8]:
     """Troweled concrete: low-contrast grain and mottling at several scales, a few soft stains,
-    and saw-cut control joints every 4 m. At the cameras' 1–2 cm pixels only a few percent of
-    contrast is left: the weak texture a real floor gives stereo."""
+    and saw-cut control joints. At the cameras' 1–2 cm pixels only a few percent of contrast is
+    left: the weak texture a real floor gives stereo. The tile is periodic; at
+    :data:`FLOOR_TEXELS_PER_M` its stains are 0.4–1.6 m across and its joints 8 m apart."""
     rng = np.random.default_rng(seed + 1_000_003)
     image = np.full((size, size), 0.85)
     for cell_px, contrast in ((1, 0.02), (3, 0.02), (12, 0.025), (48, 0.03), (192, 0.04)):
         image += contrast * smooth_noise(rng, size, cell_px)
-    y, x = np.mgrid[0:size, 0:size] * (CONCRETE_SPAN_M / size)
+    y, x = np.mgrid[0:size, 0:size] / size  # in tiles
     for _ in range(6):
-        cx, cy = rng.uniform(0, CONCRETE_SPAN_M, 2)
-        rx, ry = rng.uniform(0.2, 0.8, 2)
-        dx = (x - cx + CONCRETE_SPAN_M / 2) % CONCRETE_SPAN_M - CONCRETE_SPAN_M / 2
-        dy = (y - cy + CONCRETE_SPAN_M / 2) % CONCRETE_SPAN_M - CONCRETE_SPAN_M / 2
+        cx, cy = rng.uniform(0, 1, 2)
+        rx, ry = rng.uniform(0.025, 0.1, 2)
+        dx = (x - cx + 0.5) % 1.0 - 0.5
+        dy = (y - cy + 0.5) % 1.0 - 0.5
         image *= 1.0 - rng.uniform(0.06, 0.14) * np.exp(-((dx / rx) ** 2 + (dy / ry) ** 2))
-    joint_px = max(1, round(0.005 / (CONCRETE_SPAN_M / size)))
-    for start in (0, size // 2):
-        image[start : start + joint_px, :] *= 0.75
-        image[:, start : start + joint_px] *= 0.75
+    for start in (0, size // 2):  # saw cuts, one texel wide
+        image[start, :] *= 0.75
+        image[:, start] *= 0.75
     return _gray_rgb(255 * image)
 
 
@@ -97,6 +102,85 @@ def surface_texture(seed: int, kind: str, size: int = SURFACE_PX) -> npt.NDArray
     else:
         image += 0.05 * smooth_noise(rng, size, 1) + 0.05 * smooth_noise(rng, size, 6)
     return _gray_rgb(255 * image)
+
+
+FLOOR_FINISHES = {
+    "concrete": ((0.72, 0.72, 0.7), 'specular="0.15" shininess="0.3"'),
+    "speckle": ((1.0, 1.0, 1.0), 'specular="0"'),
+    "plain": ((0.62, 0.62, 0.62), 'specular="0.1" shininess="0.3"'),
+}
+"""Each floor kind's material colour and sheen. MuJoCo lights the material's colour and clamps it
+at 1 before the texture multiplies it (the site's light lifts white to 1.5): the material holds
+the floor's colour, below the clamp, and the texture modulates it; paint brighter than the
+material saturates there, as brighter surfaces do everywhere in these renders."""
+PLAIN_FLOOR_ALBEDO = 0.55
+
+
+def floor_texture_shape(floor_size_m: tuple[float, float]) -> tuple[int, int]:
+    """Rows × columns of the floor texture: the whole floor plane, margins included, once."""
+    fx, fy = floor_size_m
+    return (
+        math.ceil((fy + 2 * FLOOR_MARGIN_M) * FLOOR_TEXELS_PER_M),
+        math.ceil((fx + 2 * FLOOR_MARGIN_M) * FLOOR_TEXELS_PER_M),
+    )
+
+
+def floor_texture(scene: SceneSpec) -> npt.NDArray[np.uint8]:
+    """The floor's colour over the whole floor plane: its kind's surface, then the markings
+    painted on it (paint is flat: a thin box's side face would show as a raised edge).
+
+    Texel (row, col) covers x from ``col / FLOOR_TEXELS_PER_M − FLOOR_MARGIN_M`` and y down from
+    ``floor_y_m + FLOOR_MARGIN_M − row / FLOOR_TEXELS_PER_M``: MuJoCo maps a uniform texture on a
+    plane from its −x, +y corner (checked against the calibration by a render test)."""
+    rows, cols = floor_texture_shape(scene.floor_size_m)
+    material = np.asarray(FLOOR_FINISHES[scene.floor][0], dtype=np.float32)
+    if scene.floor == "plain":
+        surface = _gray_rgb(np.full((1, 1), 255 * PLAIN_FLOOR_ALBEDO / float(material.max())))
+    elif scene.floor == "speckle":
+        surface = procedural_texture(scene.texture_seed)
+    else:
+        surface = concrete_texture(scene.texture_seed)
+    tile_rows, tile_cols = surface.shape[:2]
+    image = surface[np.arange(rows) % tile_rows][:, np.arange(cols) % tile_cols].astype(np.float32)
+    for mark in scene.markings:
+        _paint(image, mark, scene.floor_size_m[1], material)
+    painted: npt.NDArray[np.uint8] = np.clip(np.rint(image), 0, 255).astype(np.uint8)
+    return painted
+
+
+def _paint(
+    image: npt.NDArray[np.float32],
+    mark: MarkingSpec,
+    floor_y_m: float,
+    material: npt.NDArray[np.float32],
+) -> None:
+    """Blend one marking into the floor texture by its coverage of each texel (its colour over the
+    floor's ``material`` colour, saturating where brighter)."""
+    (cx, cy), (length, width) = mark.center_xy_m, mark.size_m
+    c, s = math.cos(mark.yaw_rad), math.sin(mark.yaw_rad)
+    reach_x = abs(c) * length / 2 + abs(s) * width / 2
+    reach_y = abs(s) * length / 2 + abs(c) * width / 2
+    top_m = floor_y_m + FLOOR_MARGIN_M
+    col0 = max(0, math.floor((cx - reach_x + FLOOR_MARGIN_M) * FLOOR_TEXELS_PER_M))
+    col1 = min(image.shape[1], math.ceil((cx + reach_x + FLOOR_MARGIN_M) * FLOOR_TEXELS_PER_M))
+    row0 = max(0, math.floor((top_m - cy - reach_y) * FLOOR_TEXELS_PER_M))
+    row1 = min(image.shape[0], math.ceil((top_m - cy + reach_y) * FLOOR_TEXELS_PER_M))
+    if col1 <= col0 or row1 <= row0:
+        return
+    offsets = (np.arange(PAINT_SUBSAMPLES) + 0.5) / PAINT_SUBSAMPLES
+    col_samples = (np.arange(col0, col1)[:, None] + offsets[None, :]).ravel()
+    row_samples = (np.arange(row0, row1)[:, None] + offsets[None, :]).ravel()
+    dx = col_samples / FLOOR_TEXELS_PER_M - FLOOR_MARGIN_M - cx
+    dy = top_m - row_samples / FLOOR_TEXELS_PER_M - cy
+    along = c * dx[None, :] + s * dy[:, None]
+    across = -s * dx[None, :] + c * dy[:, None]
+    inside = (np.abs(along) <= length / 2) & (np.abs(across) <= width / 2)
+    coverage = inside.reshape(row1 - row0, PAINT_SUBSAMPLES, col1 - col0, PAINT_SUBSAMPLES).mean(
+        axis=(1, 3), dtype=np.float32
+    )[:, :, None]
+    paint = np.minimum(np.asarray(mark.rgba[:3], dtype=np.float32) / material, 1.0) * 255
+    window = image[row0:row1, col0:col1]
+    window += coverage * (paint - window)
 
 
 def _rgba(values: tuple[float, float, float, float]) -> str:
@@ -236,14 +320,19 @@ def _object_geoms(obj: ObjectSpec, rng: np.random.Generator) -> list[str]:
     ]
 
 
-FLOOR_MATERIALS = {"concrete": "concrete", "speckle": "speckle", "plain": "floor_plain"}
 TEXTURES = {
-    "speckle": (TEXTURE_PX, TEXTURE_PX),
     "concrete": (CONCRETE_PX, CONCRETE_PX),
     "cardboard": (SURFACE_PX, SURFACE_PX),
     "wood": (SURFACE_PX, SURFACE_PX),
     "fabric": (SURFACE_PX, SURFACE_PX),
 }
+"""Textures of fixed size (the floor's is sized to the scene)."""
+
+
+def _texrepeat(span_m: float) -> float:
+    """MuJoCo's ``texrepeat`` for a uniform 2-D texture that repeats every ``span_m``: it lays a
+    texture over 2 / texrepeat metres (measured on renders)."""
+    return 2.0 / span_m
 
 
 def scene_mjcf(
@@ -256,18 +345,6 @@ def scene_mjcf(
     bodies: list[str] = []
     for obj in scene.objects:
         bodies += _object_geoms(obj, rng)
-    for k, mark in enumerate(scene.markings):
-        (x, y), (sx, sy) = mark.center_xy_m, mark.size_m
-        bodies.append(
-            _box_geom(
-                f"marking_{k}",
-                (x, y, 0.0005),
-                (sx / 2, sy / 2, 0.0005),
-                mark.yaw_rad,
-                _rgba(mark.rgba),
-                "paint",
-            )
-        )
     for wall in scene.walls():
         half = tuple(v / 2 for v in wall.size_m)
         bodies.append(
@@ -302,10 +379,17 @@ def scene_mjcf(
                 f'xyaxes="{" ".join(f"{v:.6f}" for v in xyaxes)}" fovy="{fovy:.6f}"/>'
             )
     cast = "true" if shadows else "false"
+    floor_rows, floor_cols = floor_texture_shape(scene.floor_size_m)
     textures = "\n    ".join(
         f'<texture name="{name}" type="2d" builtin="flat" width="{w}" height="{h}" rgb1="0.5 0.5 0.5"/>'
-        for name, (w, h) in TEXTURES.items()
+        for name, (w, h) in {**TEXTURES, "floor": (floor_cols, floor_rows)}.items()
     )
+    floor_repeat = (
+        _texrepeat(floor_cols / FLOOR_TEXELS_PER_M),
+        _texrepeat(floor_rows / FLOOR_TEXELS_PER_M),
+    )
+    concrete_repeat = _texrepeat(CONCRETE_PX / FLOOR_TEXELS_PER_M)
+    surface_repeat = _texrepeat(SURFACE_SPAN_M)
     return f"""<mujoco model="overgrid_warehouse">
   <visual>
     <global offwidth="{width}" offheight="{height}"/>
@@ -315,28 +399,28 @@ def scene_mjcf(
   </visual>
   <asset>
     {textures}
-    <material name="speckle" texture="speckle" texuniform="true" texrepeat="{1 / TEXTURE_SPAN_M} {1 / TEXTURE_SPAN_M}" reflectance="0" specular="0"/>
-    <material name="concrete" texture="concrete" texuniform="true" texrepeat="{1 / CONCRETE_SPAN_M} {1 / CONCRETE_SPAN_M}" rgba="0.72 0.72 0.7 1" reflectance="0" specular="0.15" shininess="0.3"/>
-    <material name="floor_plain" rgba="0.55 0.55 0.55 1" reflectance="0" specular="0.1" shininess="0.3"/>
-    <material name="cardboard" texture="cardboard" texuniform="true" texrepeat="{1 / SURFACE_SPAN_M} {1 / SURFACE_SPAN_M}" reflectance="0" specular="0"/>
-    <material name="wood" texture="wood" texuniform="true" texrepeat="{1 / SURFACE_SPAN_M} {1 / SURFACE_SPAN_M}" reflectance="0" specular="0"/>
-    <material name="fabric" texture="fabric" texuniform="true" texrepeat="{1 / SURFACE_SPAN_M} {1 / SURFACE_SPAN_M}" reflectance="0" specular="0"/>
+    <material name="floor" texture="floor" texuniform="true" texrepeat="{floor_repeat[0]!r} {floor_repeat[1]!r}" rgba="{" ".join(map(str, FLOOR_FINISHES[scene.floor][0]))} 1" reflectance="0" {FLOOR_FINISHES[scene.floor][1]}/>
+    <material name="concrete" texture="concrete" texuniform="true" texrepeat="{concrete_repeat} {concrete_repeat}" rgba="0.72 0.72 0.7 1" reflectance="0" specular="0.15" shininess="0.3"/>
+    <material name="cardboard" texture="cardboard" texuniform="true" texrepeat="{surface_repeat} {surface_repeat}" reflectance="0" specular="0"/>
+    <material name="wood" texture="wood" texuniform="true" texrepeat="{surface_repeat} {surface_repeat}" reflectance="0" specular="0"/>
+    <material name="fabric" texture="fabric" texuniform="true" texrepeat="{surface_repeat} {surface_repeat}" reflectance="0" specular="0"/>
     <material name="paint" reflectance="0" specular="0.1" shininess="0.3"/>
     <material name="tape" reflectance="0" specular="0.4" shininess="0.6"/>
   </asset>
   <worldbody>
     <light name="sun0" directional="true" pos="{fx / 3} {fy / 2} 8" dir="0.2 0.1 -1" diffuse="0.45 0.45 0.45" castshadow="{cast}"/>
     <light name="sun1" directional="true" pos="{2 * fx / 3} {fy / 2} 8" dir="-0.2 -0.1 -1" diffuse="0.25 0.25 0.25" castshadow="false"/>
-    <geom name="floor" type="plane" pos="{fx / 2} {fy / 2} 0" size="{fx / 2 + 1} {fy / 2 + 1} 0.1" material="{FLOOR_MATERIALS[scene.floor]}"/>
+    <geom name="floor" type="plane" pos="{fx / 2} {fy / 2} 0" size="{fx / 2 + FLOOR_MARGIN_M} {fy / 2 + FLOOR_MARGIN_M} 0.1" material="floor"/>
     {chr(10).join("    " + b for b in bodies)}
     {chr(10).join("    " + c for c in cameras)}
   </worldbody>
 </mujoco>"""
 
 
-def texture_images(seed: int) -> dict[str, npt.NDArray[np.uint8]]:
+def texture_images(scene: SceneSpec) -> dict[str, npt.NDArray[np.uint8]]:
+    seed = scene.texture_seed
     return {
-        "speckle": procedural_texture(seed),
+        "floor": floor_texture(scene),
         "concrete": concrete_texture(seed),
         **{kind: surface_texture(seed, kind) for kind in ("cardboard", "wood", "fabric")},
     }
@@ -355,7 +439,7 @@ class SceneRenderer:
         self.scene = scene
         self.lighting = lighting or Lighting()
         self.model = mujoco.MjModel.from_xml_string(scene_mjcf(scene, calibrations, shadows))
-        for name, texture in texture_images(scene.texture_seed).items():
+        for name, texture in texture_images(scene).items():
             index = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_TEXTURE, name)
             start = int(self.model.tex_adr[index])
             self.model.tex_data[start : start + texture.size] = texture.reshape(-1)
