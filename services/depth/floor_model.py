@@ -76,7 +76,9 @@ Learning (never from pixels where something stands), every ``learn_every`` frame
   a global scale), the model re-learns from that frame: confirmed pixels restart from it, the rest
   is forgotten.
 - The floor's disparity from the calibration is off by a fraction of a pixel when the calibration
-  is: an affine offset in the pixel is fitted to the pixels measured near the floor.
+  is (a poor one by a pixel at the image's edges): an affine offset in the pixel is fitted to the
+  pixels measured near the floor, started (and started again whenever the floor is found
+  elsewhere) by a coarse fit through the floor's offset in blocks of the image.
 
 Pure numpy/OpenCV, no I/O: the depth pipeline owns one per pair.
 """
@@ -423,6 +425,75 @@ def robust_affine_fit(basis: npt.NDArray[np.float32], values: F32) -> npt.NDArra
     return clipped
 
 
+OFFSET_CAPTURE_PX = 1.5
+"""The coarse offset fit looks for the floor this far either side of the calibration's floor
+disparity (a poor calibration is off by ±1 px at the image's edges: ``--seed 2``'s p0)."""
+OFFSET_BLOCKS = (4, 3)
+"""Columns × rows of image blocks the coarse fit takes one floor offset from each."""
+OFFSET_BIN_PX = 0.05
+OFFSET_OUTLIER_PX = 0.3
+"""A block whose mode lies this far off the blocks' affine fit is not the floor's (a pallet)."""
+
+
+@dataclass(frozen=True)
+class CoarseOffset:
+    """The floor's disparity offset found without a starting guess (:func:`coarse_floor_offset`)."""
+
+    coef: npt.NDArray[np.float64]
+    """Affine a + b·u' + c·v' through the blocks' modes."""
+    modes_px: npt.NDArray[np.float64]
+    """Each block's mode (the floor's offset there), and where it is in (u', v')."""
+    basis: npt.NDArray[np.float64]
+
+
+def coarse_floor_offset(
+    offset_px: F32, usable: Mask, basis: npt.NDArray[np.float32]
+) -> CoarseOffset | None:
+    """The floor's disparity offset (measured minus the calibration's floor disparity) over the
+    image, with no starting guess: in each block the mode of the offsets within
+    ±``OFFSET_CAPTURE_PX`` (the floor is most of what a block's matcher measures near the floor's
+    disparity), then an affine fit through the modes, weighted by their support, dropping blocks
+    off it (one a pallet fills). The fine fits start from it: they only see pixels near their
+    current estimate, and from a wrong start they creep (0.02 px a fit) or never begin."""
+    height, width = offset_px.shape
+    cols, rows = OFFSET_BLOCKS
+    edges = np.arange(-OFFSET_CAPTURE_PX, OFFSET_CAPTURE_PX + OFFSET_BIN_PX / 2, OFFSET_BIN_PX)
+    modes, counts, where = [], [], []
+    with np.errstate(invalid="ignore"):
+        near = usable & (np.abs(offset_px) < OFFSET_CAPTURE_PX)
+    for j in range(rows):
+        for i in range(cols):
+            block = (
+                slice(j * height // rows, (j + 1) * height // rows),
+                slice(i * width // cols, (i + 1) * width // cols),
+            )
+            values = offset_px[block][near[block]]
+            if values.size < MIN_FIT_PIXELS // 4:
+                continue
+            histogram, _ = np.histogram(values, edges)
+            smooth = np.convolve(histogram, np.ones(3), mode="same")
+            peak = int(np.argmax(smooth))
+            centre = (edges[peak] + edges[peak + 1]) / 2
+            around = values[np.abs(values - centre) <= 2 * OFFSET_BIN_PX]
+            modes.append(float(np.median(around)))
+            counts.append(float(around.size))
+            where.append(basis[:, block[0], block[1]].reshape(3, -1).mean(axis=1))
+    if len(modes) < 3:
+        return None
+    a = np.asarray(where, np.float64)
+    b = np.asarray(modes, np.float64)
+    keep = np.ones(len(b), np.bool_)
+    coef = np.zeros(3, np.float64)
+    for _ in range(3):
+        weights = np.sqrt(np.asarray(counts))[keep]
+        coef = np.linalg.lstsq(a[keep] * weights[:, None], b[keep] * weights, rcond=None)[0]
+        keep = np.abs(b - a @ coef) <= OFFSET_OUTLIER_PX
+        if int(keep.sum()) < 3:
+            return None
+    clipped = np.clip(coef, -MAX_RESIDUAL_PX, MAX_RESIDUAL_PX)
+    return CoarseOffset(coef=clipped, modes_px=b[keep], basis=a[keep])
+
+
 class LineOfSight:
     """Pixels whose ray to the floor passes through the column under a measured obstacle point.
 
@@ -598,14 +669,30 @@ class FloorModel:
             on_floor = test.matchable[::step, ::step] & (
                 np.abs(matched - self.floor_now[::step, ::step]) <= self.config.floor_tolerance_px
             )
+        beyond = matched - self.geometry.floor_disparity_px[::step, ::step]
+        coarse = coarse_floor_offset(
+            beyond, test.matchable[::step, ::step], self._basis[:, ::step, ::step]
+        )
+        if coarse is not None:
+            off = np.abs(coarse.modes_px - coarse.basis @ self.matcher_offset_coef)
+            if np.count_nonzero(off > self.config.floor_tolerance_px) >= max(2, off.size // 4):
+                # The fine fit's start is wrong where the floor is: begin again from the blocks.
+                self._set_matcher_offset(coarse.coef)
+                self.residual_coef[0] = coarse.coef
+                row_px = np.tensordot(self.residual_coef[1].astype(np.float32), self._basis, axes=1)
+                self._set_floor(self.geometry.floor_disparity_px + self.matcher_offset_px, row_px)
+                return
         if int(on_floor.sum()) < MIN_FIT_PIXELS:
             return
-        beyond = matched - self.geometry.floor_disparity_px[::step, ::step]
         beyond -= self.matcher_offset_px[::step, ::step]
         basis = self._basis[:, ::step, ::step][:, on_floor].T
-        self.matcher_offset_coef += self.config.offset_rate * robust_affine_fit(
-            basis, beyond[on_floor]
+        self._set_matcher_offset(
+            self.matcher_offset_coef
+            + self.config.offset_rate * robust_affine_fit(basis, beyond[on_floor])
         )
+
+    def _set_matcher_offset(self, coef: npt.NDArray[np.float64]) -> None:
+        self.matcher_offset_coef = coef.astype(np.float64)
         self.matcher_offset_px = np.tensordot(
             self.matcher_offset_coef.astype(np.float32), self._basis, axes=1
         ).astype(np.float32)
