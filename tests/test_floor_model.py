@@ -236,7 +236,7 @@ def test_a_wall_face_along_the_baseline_puts_no_ring_of_obstacles_before_it() ->
 
 @pytest.mark.parametrize(
     ("center_xy_m", "free_max"),
-    [((5.0, 4.0), 0.15), ((8.6, 3.4), 0.4)],
+    [((5.0, 4.0), 0.12), ((8.6, 3.4), 0.12)],
     ids=["near-nadir", "off-nadir"],
 )
 def test_a_pallets_deck_is_no_free_floor_between_its_boards(
@@ -247,7 +247,8 @@ def test_a_pallets_deck_is_no_free_floor_between_its_boards(
     (45 % of its inner cells were observed free before the rule, 5 % with it). Seen from 3 m
     aside, 70 % were free while the floor test's agreement on the deck (its windows mixed with
     the floor between the boards) overruled the matcher (rule 0) and pulled the matcher's
-    offset fit up by 0.3 px there; 25 % since."""
+    offset fit up by 0.3 px there; 25 % since, 6 % with the deck measured again at full
+    resolution (services.depth.low_band)."""
     pallet = ObjectSpec(
         name="pallet",
         shape="pallet",

@@ -18,6 +18,7 @@ from common.lattice import check_resolution
 from common.sensor_model import SensorModelParams
 from services.depth.floor_model import FloorGeometry, FloorModel, FloorModelConfig
 from services.depth.inverse_model import Tile, build_tile
+from services.depth.low_band import LOW_BAND_TOP_M, RAISED_MIN_M, LowBand
 from services.depth.object_edges import ImageView, refine_on_edges
 from services.depth.objects import Detection, PixelGrid, detect_objects
 from services.depth.projection import WorldPoints, project_to_world
@@ -35,6 +36,8 @@ class PipelineConfig:
     model: SensorModelParams = field(default_factory=SensorModelParams)
     min_cell_pixels: int = 3
     floor: FloorModelConfig = field(default_factory=FloorModelConfig)
+    low_band: bool = True
+    """Measure low surfaces again at full resolution (:mod:`services.depth.low_band`)."""
 
 
 @dataclass(frozen=True)
@@ -86,15 +89,26 @@ class DepthPipeline:
         self.disparity_chain = DisparityChain(
             config.matcher, self.min_disparity, self.num_disparities
         )
+        geometry = FloorGeometry.from_rectifier(self.rectifier, self.rays_world)
         self.floor_model = (
             FloorModel(
-                FloorGeometry.from_rectifier(self.rectifier, self.rays_world),
+                geometry,
                 (config.model.obstacle_min_m, config.model.obstacle_max_m),
                 config.floor,
             )
             if config.floor.enabled
             else None
         )
+        self.low_band = (
+            LowBand(calib, config.downscale, config.matcher)
+            if config.low_band and config.downscale > 1
+            else None
+        )
+        self.low_band_px = tuple(
+            geometry.disparity_px(np.full(geometry.ray_down.shape, height_m, np.float32))
+            for height_m in (RAISED_MIN_M, LOW_BAND_TOP_M)
+        )
+        """The disparities of the low band's bounds at each pixel (services.depth.low_band)."""
 
     def check_frame(self, left: np.ndarray, right: np.ndarray) -> None:
         width, height = self.calib.image_size
@@ -108,9 +122,15 @@ class DepthPipeline:
     def process(self, left: np.ndarray, right: np.ndarray) -> FrameResult:
         self.check_frame(left, right)
         times = [time.perf_counter()]
-        left_rect, right_rect = self.rectifier.rectify(to_gray(left), to_gray(right))
+        left_gray, right_gray = to_gray(left), to_gray(right)
+        left_rect, right_rect = self.rectifier.rectify(left_gray, right_gray)
         times.append(time.perf_counter())
         disparity = self.disparity_chain(left_rect, right_rect)
+        if self.low_band is not None:
+            # The bounds as the matcher reads them (its fitted offset on the floor).
+            offset = 0.0 if self.floor_model is None else self.floor_model.matcher_offset_px
+            low, high = (bound + offset for bound in self.low_band_px)
+            disparity = self.low_band.refine(left_gray, right_gray, disparity, low, high)
         times.append(time.perf_counter())
         evidence = disparity
         if self.floor_model is not None:

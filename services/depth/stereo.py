@@ -117,6 +117,31 @@ class Rectifier:
             np.asarray(cv2.remap(right, *self._maps_right, cv2.INTER_LINEAR), dtype=np.uint8),
         )
 
+    def rectify_region(self, left: U8, right: U8, box: tuple[int, int, int, int]) -> tuple[U8, U8]:
+        """The rectified images over ``box`` (x0, y0, x1, y1) of the rectified grid only."""
+        if self.downscale != 1:
+            left = np.asarray(cv2.resize(left, self.size, interpolation=cv2.INTER_AREA))
+            right = np.asarray(cv2.resize(right, self.size, interpolation=cv2.INTER_AREA))
+        x0, y0, x1, y1 = box
+        region = (slice(y0, y1), slice(x0, x1))
+        return (
+            np.asarray(
+                cv2.remap(
+                    left, self._maps_left[0][region], self._maps_left[1][region], cv2.INTER_LINEAR
+                ),
+                dtype=np.uint8,
+            ),
+            np.asarray(
+                cv2.remap(
+                    right,
+                    self._maps_right[0][region],
+                    self._maps_right[1][region],
+                    cv2.INTER_LINEAR,
+                ),
+                dtype=np.uint8,
+            ),
+        )
+
     def pixel_rays_world(self) -> F32:
         """World direction of every rectified pixel's ray, scaled so that depth z multiplies it:
         P_world = C + z·ray. Shape (3, H, W)."""
