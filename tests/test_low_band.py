@@ -56,7 +56,10 @@ def test_a_low_deck_is_measured_again_and_the_rest_is_left_alone() -> None:
     coarse[:10] = np.nan
     bounds = [np.full(coarse.shape, disparity_px(h) / 2, np.float32) for h in (0.05, 0.4)]
     band = LowBand(CALIB, 2, MatcherConfig())
-    refined = band.refine(left, right, coarse, *bounds)
+    left_small = np.asarray(
+        cv2.resize(left, (width // 2, height // 2), interpolation=cv2.INTER_AREA), np.uint8
+    )
+    refined = band.refine(left, right, left_small, coarse, *bounds)
 
     assert band.regions == 1
     deck_error = (refined - small_truth)[103:137, 153:207]

@@ -1,8 +1,10 @@
 """Frame → tile for one pair, with per-stage times. Everything per calibration is done once here.
 
 Stages (their names are the tile's ``stage_ms`` keys): ``rectify``, ``disparity`` (the matcher and
-its optional stages), ``floor`` (the fixed-camera floor model: fattening removed, floor observations
-where stereo has none, see :mod:`services.depth.floor_model`), ``projection``, ``model``."""
+its optional stages, then low raised surfaces measured again at full resolution, see
+:mod:`services.depth.low_band`), ``floor`` (the fixed-camera floor model: fattening removed, floor
+observations where stereo has none, see :mod:`services.depth.floor_model`), ``projection``,
+``model``."""
 
 from __future__ import annotations
 
@@ -130,7 +132,7 @@ class DepthPipeline:
             # The bounds as the matcher reads them (its fitted offset on the floor).
             offset = 0.0 if self.floor_model is None else self.floor_model.matcher_offset_px
             low, high = (bound + offset for bound in self.low_band_px)
-            disparity = self.low_band.refine(left_gray, right_gray, disparity, low, high)
+            disparity = self.low_band.refine(left_gray, right_gray, left_rect, disparity, low, high)
         times.append(time.perf_counter())
         evidence = disparity
         if self.floor_model is not None:
