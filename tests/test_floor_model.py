@@ -367,39 +367,53 @@ def _textured_pair(
     return left_u8, right_u8
 
 
-def test_a_disparity_offset_of_the_calibration_is_taken_off_every_measurement() -> None:
-    """A published calibration off by a small yaw between the cameras shifts every disparity by
-    the same fraction of a pixel: 0.4 px here, 10 cm of height at the floor, enough to put the
-    whole floor in the obstacle band. The model measures the offset on the floor and takes it off
-    the matcher's disparities: the floor reads at 0 and a raised textured patch at its height."""
-    rng = np.random.default_rng(7)
+def _under_an_offset(
+    offset_px: float | np.ndarray,
+    patch: tuple[slice, slice],
+    patch_m: float,
+    frames: int,
+    seed: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The heights the model gives after ``frames`` of a textured floor whose disparities are all
+    off by ``offset_px`` (a published calibration's residual), with a raised textured ``patch``;
+    and the floor to score (the patch eroded away, inside the right image's view)."""
+    rng = np.random.default_rng(seed)
     geometry = _synthetic_geometry()
     width, height = SYNTHETIC_SIZE
     texture = cv2.GaussianBlur(
         rng.uniform(40, 220, (height, width)).astype(np.float32), (0, 0), 1.2
     )
-    offset_px = 0.4
-    patch = (slice(90, 150), slice(150, 230))
-    patch_m = 0.5
     truth_px = geometry.floor_disparity_px.copy()
     truth_px[patch] = SYNTHETIC_FOCAL_BASELINE / (SYNTHETIC_HEIGHT_M - patch_m)
     model = floor_model.FloorModel(geometry, (0.1, 2.0))
     chain = DisparityChain(MatcherConfig(), 16, 32)
-    for _ in range(24):
+    for _ in range(frames):
         left, right = _textured_pair(truth_px + offset_px, rng, texture)
         evidence = model.update(left, right, chain(left, right))
-    heights = geometry.height_m(evidence)
     floor = np.ones((height, width), np.bool_)
     floor[patch] = False
     floor = _eroded(floor, 6) & (np.arange(width) >= 60)[None, :]  # the right image's view
     floor[:10], floor[-10:] = False, False
+    return geometry.height_m(evidence), floor
+
+
+def _assert_floor_at_zero(heights: np.ndarray, floor: np.ndarray) -> None:
     with np.errstate(invalid="ignore"):
         floor_heights = heights[floor & np.isfinite(heights)]
         assert floor_heights.size > 0.5 * floor.sum()
         assert abs(float(np.median(floor_heights))) < 0.03
         assert float(np.mean(floor_heights >= 0.1)) < 0.05  # without: most of the floor
-        top = heights[patch][4:-4, 4:-4]
-        assert abs(float(np.nanmedian(top)) - patch_m) < 0.04
+
+
+def test_a_disparity_offset_of_the_calibration_is_taken_off_every_measurement() -> None:
+    """A published calibration off by a small yaw between the cameras shifts every disparity by
+    the same fraction of a pixel: 0.4 px here, 10 cm of height at the floor, enough to put the
+    whole floor in the obstacle band. The model measures the offset on the floor and takes it off
+    the matcher's disparities: the floor reads at 0 and a raised textured patch at its height."""
+    patch = (slice(90, 150), slice(150, 230))
+    heights, floor = _under_an_offset(0.4, patch, 0.5, frames=24, seed=7)
+    _assert_floor_at_zero(heights, floor)
+    assert abs(float(np.nanmedian(heights[patch][4:-4, 4:-4])) - 0.5) < 0.04
 
 
 def test_a_calibration_off_by_a_pixel_at_the_image_edges_is_found_without_a_start() -> None:
@@ -407,36 +421,16 @@ def test_a_calibration_off_by_a_pixel_at_the_image_edges_is_found_without_a_star
     left edge and +0.9 px at the right. The fine fits see only pixels near their estimate; from a
     start at zero they crept 0.02 px a fit while the right of the image read 15 cm high. The
     coarse fit finds the floor's offset in blocks of the image, past a pallet-like raised patch,
-    and the floor reads at 0 from the first fit on."""
-    rng = np.random.default_rng(11)
-    geometry = _synthetic_geometry()
+    and the floor reads at 0 from the first fit on (frame 2)."""
     width, height = SYNTHETIC_SIZE
-    texture = cv2.GaussianBlur(
-        rng.uniform(40, 220, (height, width)).astype(np.float32), (0, 0), 1.2
-    )
     u_unit = np.arange(width, dtype=np.float32)[None, :] / width * 2 - 1
     offset_px = np.broadcast_to(-0.05 + 0.95 * u_unit, (height, width))
     patch = (slice(60, 130), slice(110, 200))
-    patch_m = 0.14
-    truth_px = geometry.floor_disparity_px.copy()
-    truth_px[patch] = SYNTHETIC_FOCAL_BASELINE / (SYNTHETIC_HEIGHT_M - patch_m)
-    model = floor_model.FloorModel(geometry, (0.1, 2.0))
-    chain = DisparityChain(MatcherConfig(), 16, 32)
-    for _ in range(4):  # the first fit is in frame 2
-        left, right = _textured_pair(truth_px + offset_px, rng, texture)
-        evidence = model.update(left, right, chain(left, right))
-    heights = geometry.height_m(evidence)
-    floor = np.ones((height, width), np.bool_)
-    floor[patch] = False
-    floor = _eroded(floor, 6) & (np.arange(width) >= 60)[None, :]
-    floor[:10], floor[-10:] = False, False
+    heights, floor = _under_an_offset(offset_px, patch, 0.14, frames=4, seed=11)
+    _assert_floor_at_zero(heights, floor)
     with np.errstate(invalid="ignore"):
-        floor_heights = heights[floor & np.isfinite(heights)]
-        assert floor_heights.size > 0.5 * floor.sum()
-        assert abs(float(np.median(floor_heights))) < 0.03
-        assert float(np.mean(floor_heights >= 0.1)) < 0.05
-        assert float(np.mean(heights[:, -80:][floor[:, -80:]] >= 0.1)) < 0.05  # the far right too
-        assert abs(float(np.nanmedian(heights[patch][6:-6, 6:-6])) - patch_m) < 0.04
+        assert float(np.mean(heights[:, -80:][floor[:, -80:]] >= 0.1)) < 0.05  # the far right
+        assert abs(float(np.nanmedian(heights[patch][6:-6, 6:-6])) - 0.14) < 0.04
 
 
 def test_a_plain_surface_of_the_floors_grey_over_a_textured_floor_is_never_floor() -> None:
