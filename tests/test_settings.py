@@ -59,13 +59,24 @@ def test_nested_parameters_take_flat_and_nested_flags_and_env(
     monkeypatch.setenv("OVERGRID_MODEL__P_MISS", "0.2")
     settings = parse_settings(
         DepthSettings,
-        ["--pair", "p1", "--p-hit", "0.8", "--matcher.block-size", "5", "--no-subpixel"],
+        [
+            "--pair",
+            "p1",
+            "--p-hit",
+            "0.8",
+            "--matcher.block-size",
+            "5",
+            "--no-subpixel",
+            "--no-low-band",
+        ],
         "overgrid depth",
         "",
     )
     assert settings.model == SensorModelParams(p_hit=0.8, p_miss=0.2)
     assert settings.matcher == MatcherConfig(block_size=5, subpixel=False)
     assert settings.pipeline_config().model is settings.model
+    assert not settings.pipeline_config().low_band
+    assert parse_settings(DepthSettings, ["--pair", "p1"], "", "").pipeline_config().low_band
     defaults = parse_settings(FusionSettings, [], "overgrid fusion", "")
     assert defaults.grid_params() == GridParams()
     fusion = parse_settings(

@@ -43,6 +43,10 @@ class DepthParams(OvergridParams):
         FloorModelConfig.enabled,
         description="fixed-camera floor model: floor test + learned background (DESIGN.md)",
     )
+    low_band: bool = Field(
+        PipelineConfig.low_band,
+        description="measure low raised surfaces (pallets) again at full resolution",
+    )
 
     def pipeline_config(self) -> PipelineConfig:
         return PipelineConfig(
@@ -51,6 +55,7 @@ class DepthParams(OvergridParams):
             matcher=self.matcher,
             model=self.model,
             floor=FloorModelConfig(enabled=self.floor_model),
+            low_band=self.low_band,
         )
 
 
