@@ -93,11 +93,17 @@ def test_markings_are_painted_flat_where_the_scene_puts_them(
     line = MarkingSpec(center_xy_m=centre_xy_m, size_m=(1.6, 0.08), yaw_rad=0.5)
     scene = SceneSpec(floor_size_m=floor_size_m, floor="plain", markings=[line])
     calib = layout_pairs(RigSpec(pair_count=1), floor_size_m)[0]
-    renderer = SceneRenderer(scene, [calib])
-    renderer.set_time(0.0)
-    rgb = renderer.render_rgb("p0_left", 640, 480).astype(np.float64)
-    depth = renderer.render_depth("p0_left", 640, 480)
-    renderer.close()
+    depths = []
+    for markings in ([line], []):
+        renderer = SceneRenderer(scene.model_copy(update={"markings": markings}), [calib])
+        renderer.set_time(0.0)
+        if markings:
+            rgb = renderer.render_rgb("p0_left", 640, 480).astype(np.float64)
+        depths.append(renderer.render_depth("p0_left", 640, 480))
+        renderer.close()
+    depth = depths[0]
+    # Flat: the paint adds no geometry (a 1 mm box moved the depth of every pixel it covered).
+    assert float(np.abs(depths[0] - depths[1]).max()) < 1e-4
     yellowness = rgb[:, :, 0] - rgb[:, :, 2]
     across = np.array([-np.sin(line.yaw_rad), np.cos(line.yaw_rad)])
     for along_m in (-0.6, 0.0, 0.6):

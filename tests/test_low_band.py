@@ -52,6 +52,7 @@ def test_a_low_deck_is_measured_again_and_the_rest_is_left_alone() -> None:
     coarse[100:140, 150:210] -= 0.2  # the deck, read low …
     stripes = (np.arange(coarse.shape[1]) // 3) % 3 == 0
     coarse[100:140, 150:210][:, stripes[150:210]] = disparity_px(0.03) / 2  # … a third at 3 cm
+    coarse[118:122, 178:182] = disparity_px(1.0) / 2  # a post on the deck: in its box, not low
     coarse[20:30, 20:30] = disparity_px(0.2) / 2  # a speck of 100 px
     coarse[:10] = np.nan
     bounds = [np.full(coarse.shape, disparity_px(h) / 2, np.float32) for h in (0.05, 0.4)]
@@ -65,6 +66,26 @@ def test_a_low_deck_is_measured_again_and_the_rest_is_left_alone() -> None:
     deck_error = (refined - small_truth)[103:137, 153:207]
     assert abs(float(np.median(deck_error))) < 0.05  # was 0.2 px low
     assert float(np.mean(np.abs(deck_error) < 0.1)) > 0.9
+    np.testing.assert_array_equal(refined[118:122, 178:182], coarse[118:122, 178:182])
     untouched = np.ones(coarse.shape, np.bool_)
     untouched[96:144, 146:214] = False  # the deck's box, with its margin
     np.testing.assert_array_equal(refined[untouched], coarse[untouched])
+
+
+def test_a_strip_at_the_images_edge_is_matched_with_a_large_block() -> None:
+    """A raised strip one row high along the top edge: its box is matched over enough rows for
+    the matcher's block (StereoBM refuses an image no taller than its block)."""
+    rng = np.random.default_rng(6)
+    width, height = CALIB.image_size
+    floor_px = CALIB.left.focal_px * CALIB.baseline_m / float(CALIB.left.position_world[2])
+    left, right = _pair(np.full((height, width), floor_px, np.float32), rng)
+    coarse = np.full((height // 2, width // 2), floor_px / 2, np.float32)
+    coarse[0, 40:240] = floor_px / 2 + 0.6  # 200 px along the edge, 15 cm up
+    bounds = [np.full(coarse.shape, floor_px / 2 + d, np.float32) for d in (0.2, 1.5)]
+    left_small = np.asarray(
+        cv2.resize(left, (width // 2, height // 2), interpolation=cv2.INTER_AREA), np.uint8
+    )
+    band = LowBand(CALIB, 2, MatcherConfig(algorithm="bm", block_size=11))
+    refined = band.refine(left, right, left_small, coarse, *bounds)
+    assert band.regions == 1
+    assert np.isfinite(refined).all()

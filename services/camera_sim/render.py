@@ -71,7 +71,7 @@ def concrete_texture(seed: int, size: int = CONCRETE_PX) -> npt.NDArray[np.uint8
     """Troweled concrete: low-contrast grain and mottling at several scales, a few soft stains,
     and saw-cut control joints. At the cameras' 1–2 cm pixels only a few percent of contrast is
     left: the weak texture a real floor gives stereo. The tile is periodic; at
-    :data:`FLOOR_TEXELS_PER_M` its stains are 0.4–1.6 m across and its joints 8 m apart."""
+    :data:`FLOOR_TEXELS_PER_M` its stains are 0.8–3 m across and its joints 8 m apart."""
     rng = np.random.default_rng(seed + 1_000_003)
     image = np.full((size, size), 0.85)
     for cell_px, contrast in ((1, 0.02), (3, 0.02), (12, 0.025), (48, 0.03), (192, 0.04)):

@@ -8,11 +8,12 @@ band: free). At full resolution the deck is a pixel above the floor and a board 
 Where the half-resolution chain read a low raised surface (:data:`RAISED_MIN_M` to
 :data:`LOW_BAND_TOP_M` above the floor, in regions of at least :data:`MIN_REGION_PX`), the
 full-resolution images are matched again over that region's box only and over a band of
-disparities only that deep; each low half-resolution reading in the box (the floor-level ones
-too: half a deck's boards read at the floor) takes the mean of the full-resolution pixels it
-covers when they agree with it. The half-resolution reading chooses *where* (anything taller is out of the fine
-search's band), the full-resolution one says *how high*. Pure OpenCV/numpy, no I/O: the depth
-pipeline owns one per pair.
+disparities only that deep; each low half-resolution reading in the box (those under the raised
+band too: a deck's boards the matcher read a few centimetres up) takes the mean of the
+full-resolution pixels it covers when they agree with it within :data:`AGREE_PX` (a board read
+right at the floor, 0.55 px below the deck, stays). The half-resolution reading chooses *where*
+(anything taller is out of the fine search's band), the full-resolution one says *how high*.
+Pure OpenCV/numpy, no I/O: the depth pipeline owns one per pair.
 """
 
 from __future__ import annotations
@@ -67,6 +68,8 @@ class LowBand:
         lean = dataclasses.replace(matcher, full_width=False, guided_median_px=0)
         self.chain = DisparityChain(lean, min_disparity, num_disparities)
         self.search_px = min_disparity + num_disparities
+        self.min_rows = 4 * max(5, matcher.block_size)
+        """A region is matched over at least this many rows (StereoBM refuses fewer than its block)."""
         self.regions = 0
         """Regions matched again in the last frame."""
 
@@ -100,6 +103,10 @@ class LowBand:
             x0, y0 = max(0, x - REGION_PAD_PX) * s, max(0, y - REGION_PAD_PX) * s
             x1 = min(width, x + w + REGION_PAD_PX) * s
             y1 = min(height, y + h + REGION_PAD_PX) * s
+            short = self.min_rows - (y1 - y0)  # a strip at the image's edge: the matcher's block
+            if short > 0:
+                y0 = max(0, y0 - short)
+                y1 = min(height * s, y0 + self.min_rows)
             fine[y0:y1, x0:x1] = self._match(left_gray, right_gray, (x0, y0, x1, y1))
         # The rectified grids are consistent (pixel centres): processing pixel (u, v) is covered
         # by full-resolution pixels s·u … s·u + s − 1 (and rows alike). NaN anywhere: no mean.
@@ -108,8 +115,8 @@ class LowBand:
         spread = np.maximum.reduce(covering) - np.minimum.reduce(covering)
         mean_px = (np.add.reduce(covering) / np.float32(s * s * s)).astype(np.float32)
         with np.errstate(invalid="ignore"):
-            # Every low reading in a matched region: the floor-level ones too (a deck's boards
-            # the coarse reading put at the floor), which the fine one lifts if they are not.
+            # Every low reading in a matched region, not only the raised ones (a deck's boards
+            # the coarse reading put a few centimetres up): the fine one lifts them.
             replace = (
                 (coarse_px <= low_px)
                 & (spread <= BLOCK_RANGE_PX)
