@@ -4,8 +4,10 @@ import cv2
 import numpy as np
 
 from services.camera_sim.rig import RigSpec, layout_pairs
+from services.depth.floor_model import FloorGeometry
 from services.depth.low_band import LowBand
-from services.depth.stereo import MatcherConfig
+from services.depth.stereo import MatcherConfig, Rectifier
+from tests.test_floor_model import _textured_pair
 
 CALIB = layout_pairs(RigSpec(pair_count=1), (12.0, 10.0))[0]
 """An exact look-down pair: its rectification is the identity, its floor 46.2 px at full size."""
@@ -19,12 +21,22 @@ def _pair(disparity_px: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarra
     texture = cv2.GaussianBlur(
         rng.uniform(40, 220, (height, width)).astype(np.float32), (0, 0), 1.5
     )
-    u, v = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
     in_right = np.roll(disparity_px, -round(float(np.median(disparity_px))), axis=1)
-    right = cv2.remap(texture, u + in_right, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-    noisy = [image + rng.normal(0.0, 1.0, image.shape) for image in (texture, right)]
-    left_u8, right_u8 = (np.clip(image, 0, 255).astype(np.uint8) for image in noisy)
-    return left_u8, right_u8
+    return _textured_pair(in_right, rng, texture)
+
+
+def _band(matcher: MatcherConfig) -> LowBand:
+    """The pair's low band at half resolution, its bounds from the half-resolution geometry."""
+    rectifier = Rectifier.from_calibration(CALIB, 2)
+    geometry = FloorGeometry.from_rectifier(rectifier, rectifier.pixel_rays_world())
+    return LowBand(CALIB, 2, matcher, geometry)
+
+
+def _half(image: np.ndarray) -> np.ndarray:
+    height, width = image.shape
+    return np.asarray(
+        cv2.resize(image, (width // 2, height // 2), interpolation=cv2.INTER_AREA), np.uint8
+    )
 
 
 def test_a_low_deck_is_measured_again_and_the_rest_is_left_alone() -> None:
@@ -55,12 +67,8 @@ def test_a_low_deck_is_measured_again_and_the_rest_is_left_alone() -> None:
     coarse[118:122, 178:182] = disparity_px(1.0) / 2  # a post on the deck: in its box, not low
     coarse[20:30, 20:30] = disparity_px(0.2) / 2  # a speck of 100 px
     coarse[:10] = np.nan
-    bounds = [np.full(coarse.shape, disparity_px(h) / 2, np.float32) for h in (0.05, 0.4)]
-    band = LowBand(CALIB, 2, MatcherConfig())
-    left_small = np.asarray(
-        cv2.resize(left, (width // 2, height // 2), interpolation=cv2.INTER_AREA), np.uint8
-    )
-    refined = band.refine(left, right, left_small, coarse, *bounds)
+    band = _band(MatcherConfig())
+    refined = band.refine(left, right, _half(left), coarse, 0.0)
 
     assert band.regions == 1
     deck_error = (refined - small_truth)[103:137, 153:207]
@@ -81,11 +89,7 @@ def test_a_strip_at_the_images_edge_is_matched_with_a_large_block() -> None:
     left, right = _pair(np.full((height, width), floor_px, np.float32), rng)
     coarse = np.full((height // 2, width // 2), floor_px / 2, np.float32)
     coarse[0, 40:240] = floor_px / 2 + 0.6  # 200 px along the edge, 15 cm up
-    bounds = [np.full(coarse.shape, floor_px / 2 + d, np.float32) for d in (0.2, 1.5)]
-    left_small = np.asarray(
-        cv2.resize(left, (width // 2, height // 2), interpolation=cv2.INTER_AREA), np.uint8
-    )
-    band = LowBand(CALIB, 2, MatcherConfig(algorithm="bm", block_size=11))
-    refined = band.refine(left, right, left_small, coarse, *bounds)
+    band = _band(MatcherConfig(algorithm="bm", block_size=11))
+    refined = band.refine(left, right, _half(left), coarse, 0.0)
     assert band.regions == 1
     assert np.isfinite(refined).all()

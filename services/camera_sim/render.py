@@ -399,7 +399,7 @@ def scene_mjcf(
   </visual>
   <asset>
     {textures}
-    <material name="floor" texture="floor" texuniform="true" texrepeat="{floor_repeat[0]!r} {floor_repeat[1]!r}" rgba="{" ".join(map(str, FLOOR_FINISHES[scene.floor][0]))} 1" reflectance="0" {FLOOR_FINISHES[scene.floor][1]}/>
+    <material name="floor" texture="floor" texuniform="true" texrepeat="{floor_repeat[0]!r} {floor_repeat[1]!r}" rgba="{_rgba((*FLOOR_FINISHES[scene.floor][0], 1.0))}" reflectance="0" {FLOOR_FINISHES[scene.floor][1]}/>
     <material name="concrete" texture="concrete" texuniform="true" texrepeat="{concrete_repeat} {concrete_repeat}" rgba="0.72 0.72 0.7 1" reflectance="0" specular="0.15" shininess="0.3"/>
     <material name="cardboard" texture="cardboard" texuniform="true" texrepeat="{surface_repeat} {surface_repeat}" reflectance="0" specular="0"/>
     <material name="wood" texture="wood" texuniform="true" texrepeat="{surface_repeat} {surface_repeat}" reflectance="0" specular="0"/>

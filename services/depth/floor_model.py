@@ -655,9 +655,18 @@ class FloorModel:
             # The shift is measured against the current warp: it adds to what is fitted already
             # (x: disparity = floor + shift; y: the warp must move by −shift to align rows).
             self.residual_coef[axis] += rate * (coef if axis == 0 else -coef)
-        disparity_px = np.tensordot(self.residual_coef[0].astype(np.float32), self._basis, axes=1)
-        row_px = np.tensordot(self.residual_coef[1].astype(np.float32), self._basis, axes=1)
-        self._set_floor(self.geometry.floor_disparity_px + disparity_px, row_px)
+        self._apply_residual()
+
+    def _affine_px(self, coef: npt.NDArray[np.float64]) -> F32:
+        """a + b·u' + c·v' at every pixel."""
+        return np.tensordot(coef.astype(np.float32), self._basis, axes=1).astype(np.float32)
+
+    def _apply_residual(self) -> None:
+        """The floor's disparity and the right image's warp from the fitted calibration residual."""
+        self._set_floor(
+            self.geometry.floor_disparity_px + self._affine_px(self.residual_coef[0]),
+            self._affine_px(self.residual_coef[1]),
+        )
 
     def _fit_matcher_offset(self, disparity: F32, test: FloorTest) -> None:
         """Fit the matcher's offset on the floor: its disparity minus the calibration's floor
@@ -686,8 +695,7 @@ class FloorModel:
                 # The fine fit's start is wrong where the floor is: begin again from the blocks.
                 self._set_matcher_offset(coarse.coef)
                 self.residual_coef[0] = coarse.coef
-                row_px = np.tensordot(self.residual_coef[1].astype(np.float32), self._basis, axes=1)
-                self._set_floor(self.geometry.floor_disparity_px + self.matcher_offset_px, row_px)
+                self._apply_residual()
                 return
         if int(on_floor.sum()) < MIN_FIT_PIXELS:
             return
@@ -700,9 +708,7 @@ class FloorModel:
 
     def _set_matcher_offset(self, coef: npt.NDArray[np.float64]) -> None:
         self.matcher_offset_coef = coef.astype(np.float64)
-        self.matcher_offset_px = np.tensordot(
-            self.matcher_offset_coef.astype(np.float32), self._basis, axes=1
-        ).astype(np.float32)
+        self.matcher_offset_px = self._affine_px(self.matcher_offset_coef)
 
     # -- state ----------------------------------------------------------------------------------
 

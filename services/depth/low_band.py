@@ -25,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from common.camera import StereoCalibration
+from services.depth.floor_model import FloorGeometry
 from services.depth.stereo import DisparityChain, MatcherConfig, Rectifier
 
 F32 = npt.NDArray[np.float32]
@@ -55,10 +56,22 @@ edge: their mean is no surface, the coarse reading stays."""
 
 
 class LowBand:
-    """The full-resolution rectifier and narrow-band chain of one pair."""
+    """The full-resolution rectifier and narrow-band chain of one pair, and the band's bounds at
+    every processing pixel (from ``geometry``, the processing resolution's floor geometry)."""
 
-    def __init__(self, calib: StereoCalibration, downscale: int, matcher: MatcherConfig) -> None:
+    def __init__(
+        self,
+        calib: StereoCalibration,
+        downscale: int,
+        matcher: MatcherConfig,
+        geometry: FloorGeometry,
+    ) -> None:
         self.downscale = downscale
+        self.raised_px, self.low_px = (
+            geometry.disparity_px(np.full(geometry.ray_down.shape, height_m, np.float32))
+            for height_m in (RAISED_MIN_M, LOW_BAND_TOP_M)
+        )
+        """The disparities of RAISED_MIN_M and LOW_BAND_TOP_M at each pixel."""
         self.rectifier = Rectifier.from_calibration(calib, 1)
         min_disparity, num_disparities = self.rectifier.disparity_band(
             -SEARCH_MARGIN_M, LOW_BAND_TOP_M + SEARCH_MARGIN_M
@@ -79,13 +92,13 @@ class LowBand:
         right_gray: U8,
         left_rect: U8,
         coarse_px: F32,
-        raised_px: F32,
-        low_px: F32,
+        offset_px: F32 | float,
     ) -> F32:
         """``coarse_px`` (processing pixels, of the rectified ``left_rect``) with its low raised
-        readings on texture (between ``raised_px`` and ``low_px``, the disparities of RAISED_MIN_M
-        and LOW_BAND_TOP_M at each pixel, offset as the matcher reads them) measured again on the
-        full-resolution images."""
+        readings on texture (RAISED_MIN_M to LOW_BAND_TOP_M up, their disparities shifted by
+        ``offset_px``, the matcher's offset on the floor) measured again on the full-resolution
+        images."""
+        raised_px, low_px = self.raised_px + offset_px, self.low_px + offset_px
         gradient = cv2.Sobel(left_rect, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 8.0)
         textured = cv2.blur(gradient * gradient, (5, 5)) >= TEXTURE_ENERGY
         with np.errstate(invalid="ignore"):

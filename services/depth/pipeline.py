@@ -20,7 +20,7 @@ from common.lattice import check_resolution
 from common.sensor_model import SensorModelParams
 from services.depth.floor_model import FloorGeometry, FloorModel, FloorModelConfig
 from services.depth.inverse_model import Tile, build_tile
-from services.depth.low_band import LOW_BAND_TOP_M, RAISED_MIN_M, LowBand
+from services.depth.low_band import LowBand
 from services.depth.object_edges import ImageView, refine_on_edges
 from services.depth.objects import Detection, PixelGrid, detect_objects
 from services.depth.projection import WorldPoints, project_to_world
@@ -102,15 +102,10 @@ class DepthPipeline:
             else None
         )
         self.low_band = (
-            LowBand(calib, config.downscale, config.matcher)
+            LowBand(calib, config.downscale, config.matcher, geometry)
             if config.low_band and config.downscale > 1
             else None
         )
-        self.low_band_px = tuple(
-            geometry.disparity_px(np.full(geometry.ray_down.shape, height_m, np.float32))
-            for height_m in (RAISED_MIN_M, LOW_BAND_TOP_M)
-        )
-        """The disparities of the low band's bounds at each pixel (services.depth.low_band)."""
 
     def check_frame(self, left: np.ndarray, right: np.ndarray) -> None:
         width, height = self.calib.image_size
@@ -129,10 +124,9 @@ class DepthPipeline:
         times.append(time.perf_counter())
         disparity = self.disparity_chain(left_rect, right_rect)
         if self.low_band is not None:
-            # The bounds as the matcher reads them (its fitted offset on the floor).
+            # The band as the matcher reads it (its fitted offset on the floor).
             offset = 0.0 if self.floor_model is None else self.floor_model.matcher_offset_px
-            low, high = (bound + offset for bound in self.low_band_px)
-            disparity = self.low_band.refine(left_gray, right_gray, left_rect, disparity, low, high)
+            disparity = self.low_band.refine(left_gray, right_gray, left_rect, disparity, offset)
         times.append(time.perf_counter())
         evidence = disparity
         if self.floor_model is not None:

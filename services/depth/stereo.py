@@ -108,18 +108,13 @@ class Rectifier:
         )
 
     def rectify(self, left: U8, right: U8) -> tuple[U8, U8]:
-        if self.downscale != 1:
-            # INTER_AREA first: remapping a full-resolution image at half density would alias.
-            left = np.asarray(cv2.resize(left, self.size, interpolation=cv2.INTER_AREA))
-            right = np.asarray(cv2.resize(right, self.size, interpolation=cv2.INTER_AREA))
-        return (
-            np.asarray(cv2.remap(left, *self._maps_left, cv2.INTER_LINEAR), dtype=np.uint8),
-            np.asarray(cv2.remap(right, *self._maps_right, cv2.INTER_LINEAR), dtype=np.uint8),
-        )
+        width, height = self.size
+        return self.rectify_region(left, right, (0, 0, width, height))
 
     def rectify_region(self, left: U8, right: U8, box: tuple[int, int, int, int]) -> tuple[U8, U8]:
         """The rectified images over ``box`` (x0, y0, x1, y1) of the rectified grid only."""
         if self.downscale != 1:
+            # INTER_AREA first: remapping a full-resolution image at half density would alias.
             left = np.asarray(cv2.resize(left, self.size, interpolation=cv2.INTER_AREA))
             right = np.asarray(cv2.resize(right, self.size, interpolation=cv2.INTER_AREA))
         x0, y0, x1, y1 = box
