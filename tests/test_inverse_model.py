@@ -54,3 +54,34 @@ def test_a_tile_of_hidden_cells_alone_covers_them_and_a_tile_with_none_sends_no_
     assert not only_hidden.count.any()
     measured = build_tile(_points([(0, 5, 0.0)]), R, params, 3, _hidden({}))
     assert not measured.hidden.any() and "hidden" not in measured.arrays()
+
+
+def _points_2d(cells: dict[tuple[int, int], tuple[int, float]]) -> WorldPoints:
+    """``n`` points at height ``h`` in cell (``i``, ``j``) for each (i, j): (n, h)."""
+    spots = [(i, j, h) for (i, j), (n, h) in cells.items() for _ in range(n)]
+    return WorldPoints(
+        x_m=np.array([i * R + R / 2 for i, _, _ in spots], np.float32),
+        y_m=np.array([j * R + R / 2 for _, j, _ in spots], np.float32),
+        height_m=np.array([h for _, _, h in spots], np.float32),
+        height_sigma_m=np.full(len(spots), 0.02, np.float32),
+    )
+
+
+def test_a_cell_of_too_few_pixels_reads_free_only_inside_open_measured_floor() -> None:
+    """A cell of one or two floor pixels (where a passing mover left a hit) reads free when the
+    3 × 3 cells around it are measured floor; not beside something in the band, not where its
+    neighbours hold no pixels (inside a plain top), and never from a pixel in the band itself."""
+    params = SensorModelParams()
+    floor = {(i, j): (4, 0.0) for i in range(5) for j in range(5)}
+
+    def centre(cells: dict[tuple[int, int], tuple[int, float]]) -> tuple[float, int]:
+        tile = build_tile(_points_2d(cells), R, params, 3)
+        row, col = 2 - tile.window.j0, 2 - tile.window.i0
+        return float(tile.logodds[row, col]), int(tile.count[row, col])
+
+    update, count = centre(floor | {(2, 2): (2, 0.0)})
+    assert update < 0 and count == 2  # open floor: free
+    assert centre(floor | {(2, 2): (2, 0.0), (3, 2): (4, 0.8)}) == (0.0, 0)  # beside an object
+    assert centre(floor | {(2, 2): (1, 0.8)}) == (0.0, 0)  # its own pixel in the band
+    lone = {(2, 2): (2, 0.0), (1, 2): (4, 0.0), (3, 2): (4, 0.0)}  # neighbours mostly empty
+    assert centre(lone) == (0.0, 0)

@@ -1,13 +1,16 @@
 """Inverse sensor model: world points of one frame → one occupancy observation per cell (a tile).
 
 Pixels falling in one cell are aggregated into a single Bayesian update; they are never counted as
-independent evidence. Pixels above the obstacle band give no update (they hide what lies below).
+independent evidence. Pixels above the obstacle band give no update (they hide what lies below). A
+cell of fewer than ``min_cell_pixels`` gets no update of its own, unless it lies inside open floor
+measured around it (then it reads free).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -49,6 +52,42 @@ class Tile:
         if self.hidden.any():
             layers["hidden"] = self.hidden.view(np.uint8)
         return layers
+
+
+SPARSE_NEIGHBOURHOOD_CELLS = 7
+"""A cell of too few pixels of its own reads free when at least this many of the 3 × 3 cells
+around it (itself included) hold pixels …"""
+SPARSE_NEIGHBOURHOOD_PIXELS = 12
+"""… together at least this many, none of them in the obstacle band."""
+
+
+def _sparse_free(
+    pixels: npt.NDArray[np.int64],
+    obstacle: npt.NDArray[np.float64],
+    min_cell_pixels: int,
+) -> npt.NDArray[np.bool_]:
+    """Cells of 1 to ``min_cell_pixels`` − 1 pixels inside open, measured floor: the 3 × 3 cells
+    around them are nearly all measured and nothing in them reads in the band. Without this, a
+    cell a passing mover made occupied keeps that reading for seconds where the floor gives it
+    one or two pixels a frame (the forklift's trail of specks); a cell inside a plain top, whose
+    neighbours hold no pixels, or beside an object, whose neighbours read in the band, never
+    qualifies."""
+
+    def around(values: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+        summed = cv2.boxFilter(values, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        return np.asarray(summed, np.float64)
+
+    filled = around((pixels > 0).astype(np.float64))
+    total = around(pixels.astype(np.float64))
+    in_band = around(obstacle)
+    sparse = (pixels > 0) & (pixels < min_cell_pixels)
+    return np.asarray(
+        sparse
+        & (filled >= SPARSE_NEIGHBOURHOOD_CELLS)
+        & (total >= SPARSE_NEIGHBOURHOOD_PIXELS)
+        & (in_band < 0.5),
+        np.bool_,
+    )
 
 
 def build_tile(
@@ -101,6 +140,11 @@ def build_tile(
         logodds(cell_occupancy_probability(obstacle, pixels.astype(np.float64), params)),
         0.0,
     )
+    sparse_free = _sparse_free(
+        pixels.reshape(rows, cols), obstacle.reshape(rows, cols), min_cell_pixels
+    ).ravel()
+    update = np.where(sparse_free, logodds(params.p_miss), update)
+    updated |= sparse_free
     hidden_pixels = np.bincount(
         (hidden_j - window.j0) * cols + (hidden_i - window.i0), minlength=size
     )
