@@ -494,6 +494,45 @@ def test_a_plain_surface_of_the_floors_grey_over_a_textured_floor_is_never_floor
         assert float(np.mean(np.abs(geometry.height_m(evidence)[around]) < 0.05)) > 0.8
 
 
+def test_a_floor_reading_where_the_floors_texture_is_gone_is_no_floor_but_under_a_shadow_is() -> (
+    None
+):
+    """Rule 4: the lower rim of a dark body reads at the floor's height (its windows straddle the
+    floor beside it, and its shading correlates at the floor's disparity), so its points fall
+    inside the footprint. The image there departs from the background and no longer shows the
+    floor's texture: no floor evidence. A shadow departs as much but keeps the texture: still
+    floor. (Here a dark surface of another texture at the floor's disparity.)"""
+    rng = np.random.default_rng(5)
+    geometry = _synthetic_geometry()
+    width, height = SYNTHETIC_SIZE
+    floor = np.asarray(
+        cv2.GaussianBlur(rng.uniform(60, 200, (height, width)).astype(np.float32), (0, 0), 1.2),
+        np.float32,
+    )
+    model = floor_model.FloorModel(geometry, (0.1, 2.0))
+    chain = DisparityChain(MatcherConfig(), 16, 32)
+    for _ in range(16):
+        left, right = _textured_pair(geometry.floor_disparity_px, rng, floor)
+        model.update(left, right, chain(left, right))
+    assert model.state() == "ready"
+    body, shadow = (slice(60, 120), slice(120, 180)), (slice(130, 190), slice(200, 260))
+    other = cv2.GaussianBlur(rng.uniform(0, 255, (height, width)).astype(np.float32), (0, 0), 1.2)
+    seen = floor.copy()
+    seen[body] = 20.0 + 0.3 * other[body]  # dark
+    seen[shadow] *= np.float32(0.5)
+    left, right = _textured_pair(geometry.floor_disparity_px, rng, seen)
+    evidence = model.update(left, right, chain(left, right))
+    at_floor = np.abs(geometry.height_m(evidence)) < 0.05
+
+    def inner(region: tuple[slice, slice]) -> np.ndarray:
+        mask = np.zeros((height, width), np.bool_)
+        mask[region] = True
+        return _eroded(mask, 6)
+
+    assert float(at_floor[inner(body)].mean()) < 0.1  # 0.79 without the rule
+    assert float(at_floor[inner(shadow)].mean()) > 0.6  # 0.73 with or without it
+
+
 def test_a_plain_raised_top_of_the_floors_grey_is_filled_from_its_measured_outline() -> None:
     """Rule 8: a plain top 0.8 m up whose grey is the floor's (a plain forklift over concrete),
     showing one edge (a seam on its right side): the matcher measures that edge and leaves the
@@ -589,9 +628,8 @@ def test_a_person_stepping_onto_mapped_floor_leaves_no_free_cells_behind_its_dar
 
     for _ in range(17):
         fuse(empty)
-    inner = _eroded(
-        footprint_mask(with_person.renderer.scene.truth_objects(0)[0], grid.window, 0.05), 1
-    )
+    person_truth = with_person.renderer.scene.truth_objects(0)[0]
+    inner = _eroded(footprint_mask(person_truth, grid.window, 0.05), 1)
     occupancy = grid.served_occupancy()[inner]
     assert float(np.mean((occupancy >= 0) & (occupancy <= 25))) > 0.8  # mapped free
     with_person.t_s = empty.t_s
@@ -602,6 +640,10 @@ def test_a_person_stepping_onto_mapped_floor_leaves_no_free_cells_behind_its_dar
     occupancy = grid.served_occupancy()[inner]
     assert float(np.mean((occupancy >= 0) & (occupancy <= 25))) < 0.35
     assert float(np.mean(occupancy == -1)) > 0.2  # forgotten, not guessed occupied
+    # The rim too: the lowest part of the body reads at the floor's height (0.41 of the whole
+    # footprint free when the floor's texture was not asked for, 0.20 with it).
+    whole = grid.served_occupancy()[footprint_mask(person_truth, grid.window, 0.05)]
+    assert float(np.mean((whole >= 0) & (whole <= 25))) < 0.3
 
 
 def test_a_floor_gap_closes_between_surfaces_in_the_band_only() -> None:

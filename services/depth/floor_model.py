@@ -32,6 +32,10 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
    also "agrees" under the floor warp (it has no texture to disagree with).
 4. A pixel whose appearance departs from the background and has no disparity gives no evidence
    (unknown); it is occupied only where stereo or the floor test measures it in the obstacle band.
+   A reading at the floor's height there is no floor evidence either where the matcher carried it
+   in (no texture along x) or where the image no longer shows the background's texture: the lower
+   rim of a dark body reads at the floor's height and its points fall inside its footprint (a
+   person's cells 45 % free on the default scene), while a shadow keeps the floor's texture.
 5. Shadows lie on the floor: on texture stereo still measures the floor (rule 0 where the matcher
    has nothing), on a plain floor a shadow is a departure (rule 4: unknown), never an obstacle.
 6. Along the baseline, the matcher fills an untextured run of a row from the measurements that bound
@@ -558,6 +562,9 @@ BACKGROUND_TEXTURE_WINDOW_PX = 10
 TEXTURE_SAMPLE_STEP = 2
 BACKGROUND_TEXTURE_GRAY = 1.5
 """Local standard deviation (gray levels) of a background below which it has no texture to check."""
+COVERED_ZNCC = 0.3
+"""Correlation of image and background below which the background's texture is gone (a shadow
+scales it: about 1; another surface: about 0)."""
 TEXTURE_KEPT = 0.5
 """Share of the background's texture (regression slope) a pixel must still show to match it."""
 
@@ -600,6 +607,8 @@ class FloorModel:
         """max(match_sigmas·σ, match_min_gray, match_relative·mean), kept with the model."""
         self._modelled = np.zeros((height, width), np.bool_)
         self.hidden = np.zeros((height, width), np.bool_)
+        self.covered = np.zeros((height, width), np.bool_)
+        """Of the last frame: the left background's texture is gone (see :meth:`_texture_gone`)."""
         """Rule 10, of the last frame: pixels whose floor is hidden by something standing there."""
         self.confirmed = np.zeros((height, width), np.uint8)
         self.frames = 0
@@ -789,9 +798,10 @@ class FloorModel:
         bridged = ~np.isfinite(measured) & ~observed & self._in_band(support.bridge_m)
         measured[bridged] = self.geometry.disparity_px(support.bridge_m)[bridged]  # rule 7
         # Rule 4: where the image departs from the floor's background, the matcher's filling at
-        # the floor (a plain top takes the floor's disparity in from around) is no floor evidence.
+        # the floor (a plain top takes the floor's disparity in from around) is no floor evidence,
+        # nor a floor reading where the floor's texture is gone (a dark body's lower rim).
         departs = self._modelled & inside & ~both_match
-        measured[departs & interpolated & low] = np.nan
+        measured[departs & (interpolated | self.covered) & low] = np.nan
         self._fill_departed_regions(measured, ~np.isfinite(measured) & ~observed & departs)  # 8
         # Floor observations sit at height 0 (measurements are corrected to the calibration's floor).
         out = np.where(observed, self.geometry.floor_disparity_px, measured).astype(np.float32)
@@ -834,9 +844,31 @@ class FloorModel:
             alike = modelled & (np.abs(normalised - self.mean[side]) <= self.tolerance[side])
             both &= alike
             textured_alike &= self._texture_kept(side, normalised, alike)
+            if side == 0:
+                self.covered = self._texture_gone(normalised)
         count = int(np.count_nonzero(modelled))
         departed = 0.0 if count < MIN_FIT_PIXELS else 1.0 - float(np.count_nonzero(both)) / count
         return both & textured_alike, departed
+
+    def _texture_gone(self, normalised: F32) -> Mask:
+        """Where the left background has texture and the image no longer shows it: the windowed
+        correlation of image and background is under COVERED_ZNCC. A shadow scales the floor's
+        texture and keeps it; something standing over the floor hides it."""
+        step = TEXTURE_SAMPLE_STEP
+        k = (BACKGROUND_TEXTURE_WINDOW_PX // step, BACKGROUND_TEXTURE_WINDOW_PX // step)
+        mean = self.mean[0, ::step, ::step]
+        now = normalised[::step, ::step]
+        mean_bg, mean_now = cv2.blur(mean, k), cv2.blur(now, k)
+        var_bg = cv2.blur(mean * mean, k) - mean_bg * mean_bg
+        var_now = cv2.blur(now * now, k) - mean_now * mean_now
+        covariance = cv2.blur(now * mean, k) - mean_now * mean_bg
+        zncc = covariance / np.sqrt(np.maximum(var_bg * var_now, np.float32(1e-6)))
+        gone = (var_bg >= np.float32(BACKGROUND_TEXTURE_GRAY**2)) & (zncc < COVERED_ZNCC)
+        height, width = self.shape
+        covered: Mask = (
+            cv2.resize(gone.view(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST) > 0
+        )
+        return covered
 
     def _in_band(self, height_m: F32) -> Mask:
         """Heights in the obstacle band (NaN: not). Above it is no surface to fill or bridge with:
