@@ -39,8 +39,9 @@ class Tile:
     count: npt.NDArray[np.uint16]
     """Pixels aggregated into the cell's update; 0 means no update."""
     hidden: npt.NDArray[np.bool_]
-    """No update, but the floor there is hidden by something standing in the view (floor model,
-    rule 10): a free belief there is out of date."""
+    """No update, but the floor there is hidden by something standing in the view (a pixel that
+    measures it, or one the floor model finds departed: rule 10): a free belief there is out of
+    date."""
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The layers on the wire; ``hidden`` only where some cell is (a byte a cell otherwise)."""

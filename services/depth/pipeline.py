@@ -147,7 +147,7 @@ class DepthPipeline:
             self.config.resolution_m,
             self.config.model,
             self.config.min_cell_pixels,
-            None if self.floor_model is None else self.floor_xy_m[:, self.floor_model.hidden],
+            self._hidden_floor_xy(evidence, points),
         )
         times.append(time.perf_counter())
         # "disparity" is the whole chain: matcher and its optional stages (stereo.DisparityChain).
@@ -165,6 +165,18 @@ class DepthPipeline:
             evidence_disparity_px=evidence,
             left_rect=left_rect,
         )
+
+    def _hidden_floor_xy(
+        self, evidence: npt.NDArray[np.float32], points: WorldPoints
+    ) -> npt.NDArray[np.float32]:
+        """Floor points (2 × N) this frame does not see: those of the pixels that measure something
+        standing (their ray stops above the floor), and those the floor model finds hidden."""
+        measured = self.floor_xy_m[:, np.isfinite(evidence)]
+        parts = [measured[:, points.height_m >= self.config.model.obstacle_min_m]]
+        if self.floor_model is not None:
+            parts.append(self.floor_xy_m[:, self.floor_model.hidden])
+        hidden: npt.NDArray[np.float32] = np.concatenate(parts, axis=1)
+        return hidden
 
     def detect_objects(self, result: FrameResult) -> list[Detection]:
         """The frame's objects: measured on its points (objects.detect_objects), each outline then
