@@ -107,7 +107,8 @@ def run(
             pair = capture.calibration.pair
             found = detections_header(pipeline.detect_objects(result), pair, k, stamp_ns).detections
             tracker.add(pair, stamp_ns, list(found), k / rate_hz)
-        tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures})
+        if tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures}):
+            grid.forget_occupied(*tracker.wake(r))  # as the fusion service does
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time
         if k == frames - 1 or (k >= frames // 3 and (frames - 1 - k) % every == 0):
             objects = scene.truth_objects(stamp_ns / 1e9)

@@ -271,6 +271,46 @@ def test_the_predicted_layer_covers_a_mover_ahead_and_clears_behind() -> None:
     assert not grid.set_predicted([])
 
 
+def test_a_movers_wake_forgets_the_hits_no_frame_has_shown_since() -> None:
+    """The cells a moving track stood on and left, occupied and not observed for 1.5 frame
+    intervals, become unknown (floor too sparse in pixels to be measured free again keeps a hit
+    for seconds); where it stands now (even unmeasured since), a static object beside its path
+    that frames keep measuring, and cells away from its path are kept."""
+    resolution = 0.05
+    tracker = ObjectTracker()
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
+    shape = grid.window.shape
+    hit = np.full(shape, 2.0, np.float32)
+    heights = np.full(shape, 1.0, np.float32)
+    counts = np.full(shape, 20, np.uint16)
+    for k in range(8):
+        stamp = T0_NS + k * FRAME_NS
+        x = 2.0 + 1.0 * k * FRAME_NS / 1e9
+        tracker.add("p0", stamp, [_record((x, 2.0), (1.2, 0.8))], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+        if k < 6:  # the last two frames measure nothing where the mover stands
+            where, _ = polygon_cells(corners((x, 2.0), (1.2, 0.8), 0.0), resolution)
+            grid.integrate(where, hit[: where.rows, : where.cols], heights, counts, stamp)
+        beside = Window(40, 48, 60, 1)  # a static object along the path's edge, 0.05 m off it
+        grid.integrate(beside, hit[:1, :60], heights, counts, stamp)
+    grid.integrate(Window(20, 80, 10, 1), hit[:1, :10], heights, counts, T0_NS)  # elsewhere
+    (track,) = tracker.objects()
+    assert track.object_class == "moving"
+    before = grid.served_occupancy().copy()
+    assert grid.forget_occupied(*tracker.wake(resolution)) > 0
+    after = grid.served_occupancy()
+
+    def cell(x: float, y: float) -> tuple[int, int]:
+        return int(y / resolution), int(x / resolution)
+
+    occupied = 65  # map.yaml's occupied_thresh
+    left = cell(3.5, 2.0)  # where it stood 2 s before the last frame
+    now = cell(track.center_m[0] - 0.5, 2.0)  # last hit 1 s before the last frame
+    assert before[left] > occupied and after[left] == -1
+    assert before[now] > occupied and after[now] > occupied
+    assert after[48, 70] > occupied and after[80, 25] > occupied
+
+
 def test_polygon_cells_are_the_cells_whose_centres_it_holds() -> None:
     window, mask = polygon_cells(corners((1.0, 1.0), (0.5, 0.3), 0.0), 0.05)
     assert mask.sum() == 10 * 6

@@ -396,6 +396,43 @@ class FusedGrid:
             self.version += 1
         return changed
 
+    def forget_occupied(
+        self, cells: list[tuple[Window, npt.NDArray[np.bool_]]], seen_before_s: float
+    ) -> int:
+        """Occupied cells among ``cells`` last observed before ``seen_before_s`` become unknown;
+        returns how many. A mover's wake: what put them there has gone, and no frame since has
+        shown them (a floor cell with too few pixels of its own keeps a hit for seconds)."""
+        forgotten = 0
+        for window, mask in cells:
+            part = window.intersect(self.window)
+            for key in chunk_keys(part):
+                chunk = self.chunks.get(key)
+                if chunk is None:
+                    continue
+                cw = chunk_window(key)
+                sub = part.intersect(cw)
+                in_chunk = sub.slices_in(cw)
+                stale = (
+                    mask[sub.slices_in(window)]
+                    & chunk.known[in_chunk]
+                    & (chunk.logodds[in_chunk] > 0.0)
+                    & (chunk.last_seen_s[in_chunk] < seen_before_s)
+                )
+                count = int(np.count_nonzero(stale))
+                if not count:
+                    continue
+                chunk = self._writable(key)
+                chunk.logodds[in_chunk][stale] = 0.0
+                chunk.height_m[in_chunk][stale] = np.nan
+                chunk.known[in_chunk][stale] = False
+                chunk.occupancy[in_chunk][stale] = UNKNOWN
+                self.changed.add(key)
+                self._mark(key, sub)
+                forgotten += count
+        if forgotten:
+            self.version += 1
+        return forgotten
+
     def set_predicted(self, swept: list[tuple[Window, npt.NDArray[np.bool_]]]) -> bool:
         """Replace the predicted layer by these swept cells (those outside the map are dropped);
         True if it changed. The cells it no longer covers show the frames' evidence again."""

@@ -1,6 +1,7 @@
 """Objects over time: every pair's detections of one capture merged (one object at a seam is one
 object), associated with tracks (Hungarian on centre distance within a gate), each track a
-constant-velocity Kalman filter; and the cells a moving track sweeps ahead (DESIGN.md, Objects).
+constant-velocity Kalman filter; the cells a moving track sweeps ahead (DESIGN.md, Objects) and
+those it left behind.
 
 Pure numpy/scipy: no Zenoh, no threads. Fusion holds one :class:`ObjectTracker` behind its lock.
 
@@ -13,7 +14,9 @@ Rules that shape the tracks:
 - a detection overlapping a track's footprint that the track did not take is a piece of it (a
   plain top matches in fragments): joined to it, never a track of its own;
 - a partial detection (at an image border) updates the position loosely and never the size, unless
-  no pair has ever seen all of the object; then the object says ``partial``.
+  no pair has ever seen all of the object; then the object says ``partial``;
+- a moving track's wake (where it stood over the last ``wake_s``, and does not now) is handed to
+  the grid, which forgets the hits there that no frame has shown since (:meth:`wake`).
 """
 
 from __future__ import annotations
@@ -74,6 +77,13 @@ class TrackerConfig:
     """A track that stayed within this of where it began for ``static_after_s`` is static for good."""
     size_history: int = 20
     default_frame_interval_s: float = 0.5
+    wake_s: float = 3.0
+    """Where a moving track was seen in the last this-many seconds, and is not now, is its
+    wake …"""
+    wake_margin_m: float = 0.1
+    """… each footprint grown by this (the hits of its side faces and fattening around it) …"""
+    wake_missed_frames: float = 1.5
+    """… and occupied wake cells no frame has shown for this many frame intervals are forgotten."""
 
 
 @dataclass(frozen=True)
@@ -210,6 +220,8 @@ class ObjectTracker:
     """Detections waiting for the rest of their capture: group stamp → (pair, detection)."""
     pending_pairs: dict[int, set[str]] = field(default_factory=dict)
     pending_since_s: dict[int, float] = field(default_factory=dict)
+    wake_footprints: deque[tuple[int, F64, F64]] = field(default_factory=deque)
+    """Capture stamp, grown footprint and footprint of every observation of a moving track."""
 
     def add(
         self, pair: str, stamp_ns: int, detections: list[DetectionRecord], now_s: float
@@ -349,6 +361,16 @@ class ObjectTracker:
             (*obs.size_m, obs.yaw_rad, obs.top_m)
         )
         self._classify(track)
+        if track.moving:
+            margin = 2 * self.config.wake_margin_m
+            grown = (obs.size_m[0] + margin, obs.size_m[1] + margin)
+            self.wake_footprints.append(
+                (
+                    stamp_ns,
+                    corners(obs.center_m, grown, obs.yaw_rad),
+                    corners(obs.center_m, obs.size_m, obs.yaw_rad),
+                )
+            )
 
     def _moves_steadily(self, track: Track) -> bool:
         """A straight line fitted to the track's recent centres: it moves if the line covers
@@ -444,6 +466,26 @@ class ObjectTracker:
             b = corners(tuple(t.state[:2] + velocity * end_s), (length, width), yaw)
             out.append(polygon_cells(convex_hull(np.vstack([a, b])), resolution_m))
         return out
+
+    def wake(self, resolution_m: float) -> tuple[list[tuple[Window, npt.NDArray[np.bool_]]], float]:
+        """The cells of the movers' wakes over the last ``wake_s``, and the observation time
+        before which an occupied one is forgotten (``FusedGrid.forget_occupied``): a hit a mover
+        left on floor too sparse in pixels to be measured free again would stay for seconds."""
+        while self.wake_footprints and (
+            self.stamp_ns - self.wake_footprints[0][0] > self.config.wake_s * 1e9
+        ):
+            self.wake_footprints.popleft()
+        cells = [polygon_cells(grown, resolution_m) for _, grown, _ in self.wake_footprints]
+        # Where a mover stands now is no wake, even where no frame has measured it.
+        for stamp_ns, _, footprint in self.wake_footprints:
+            if stamp_ns != self.stamp_ns:
+                continue
+            now_window, now_mask = polygon_cells(footprint, resolution_m)
+            for window, mask in cells:
+                both = window.intersect(now_window)
+                if not both.empty:
+                    mask[both.slices_in(window)] &= ~now_mask[both.slices_in(now_window)]
+        return cells, self.stamp_ns / 1e9 - self.config.wake_missed_frames * self.ahead_s()
 
     def ahead_s(self) -> float:
         """One frame interval: how far past the visible time a sweep must reach."""

@@ -199,6 +199,8 @@ class FusionState:
         returns the new object list if the tracks changed."""
         now_ns = time.time_ns()
         changed = self.tracker.flush(now_ns / 1e9, self.alive)
+        if changed:
+            self.grid.forget_occupied(*self.tracker.wake(self.grid.params.resolution_m))
         if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
             swept = self.tracker.sweep(self.grid.params.resolution_m, self.grid.stamp_ns, until_ns)
