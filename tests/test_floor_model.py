@@ -681,3 +681,25 @@ def test_a_floor_gap_closes_between_surfaces_in_the_band_only() -> None:
         slot = geometry.height_m(evidence)[105:135, 160:162]
         assert bool(np.all(np.abs(slot - surface_m) < 1e-3)) == closed
         assert closed or bool(np.all(np.abs(slot) < 1e-3))
+
+
+def test_a_floor_reading_beside_what_was_never_floor_is_not_believed_where_the_image_departs() -> (
+    None
+):
+    """Rule 4's window: where over a twentieth of it was never modelled (an object stands beside
+    the pixel), the texture check counts as failed; the image matching its background keeps the
+    rest of the floor's texture check passing."""
+    rng = np.random.default_rng(8)
+    geometry = _synthetic_geometry()
+    width, height = SYNTHETIC_SIZE
+    model = floor_model.FloorModel(geometry, (0.1, 2.0))
+    floor = np.asarray(
+        cv2.GaussianBlur(rng.uniform(60, 200, (height, width)).astype(np.float32), (0, 0), 1.2),
+        np.float32,
+    )
+    model.mean[0] = floor
+    modelled = np.ones((height, width), np.bool_)
+    modelled[100:140, 100:140] = False  # an object standing since start-up
+    gone = model._texture_gone(floor, modelled)
+    assert gone[120, 96:100].all() and gone[96:100, 120].all()  # within 4 px of it
+    assert not gone[120, 60:80].any() and not gone[20:60, 120].any()  # away from it

@@ -275,7 +275,8 @@ def test_a_movers_wake_forgets_the_hits_no_frame_has_shown_since() -> None:
     """The cells a moving track stood on and left, occupied and not observed for 1.5 frame
     intervals, become unknown (floor too sparse in pixels to be measured free again keeps a hit
     for seconds); where it stands now (even unmeasured since), a static object beside its path
-    that frames keep measuring, and cells away from its path are kept."""
+    that frames keep measuring, one whose plain top was measured once (where its track stands),
+    and cells away from its path are kept. A broken detection 10⁶ km long costs nothing."""
     resolution = 0.05
     tracker = ObjectTracker()
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
@@ -286,16 +287,21 @@ def test_a_movers_wake_forgets_the_hits_no_frame_has_shown_since() -> None:
     for k in range(8):
         stamp = T0_NS + k * FRAME_NS
         x = 2.0 + 1.0 * k * FRAME_NS / 1e9
-        tracker.add("p0", stamp, [_record((x, 2.0), (1.2, 0.8))], now_s=0.0)
+        crate = _record((4.0, 2.7), (0.8, 0.5))  # beside the path, its plain top measured once
+        tracker.add("p0", stamp, [_record((x, 2.0), (1.2, 0.8)), crate], now_s=0.0)
         tracker.flush(now_s=0.0, live_pairs={"p0"})
-        if k < 6:  # the last two frames measure nothing where the mover stands
+        if k == 0:
+            grid.integrate(Window(72, 49, 16, 10), hit[:10, :16], heights, counts, stamp)
+        if k < 7:  # the last two frames measure nothing where the mover stands
             where, _ = polygon_cells(corners((x, 2.0), (1.2, 0.8), 0.0), resolution)
             grid.integrate(where, hit[: where.rows, : where.cols], heights, counts, stamp)
         beside = Window(40, 48, 60, 1)  # a static object along the path's edge, 0.05 m off it
         grid.integrate(beside, hit[:1, :60], heights, counts, stamp)
     grid.integrate(Window(20, 80, 10, 1), hit[:1, :10], heights, counts, T0_NS)  # elsewhere
-    (track,) = tracker.objects()
-    assert track.object_class == "moving"
+    broken = _record((3.0, 60.0), (1e9, 0.8))  # apart from the rest
+    tracker.add("p0", T0_NS + 8 * FRAME_NS, [_record((6.0, 2.0), (1.2, 0.8)), broken], now_s=0.0)
+    tracker.flush(now_s=0.0, live_pairs={"p0"})
+    track = next(t for t in tracker.objects() if t.object_class == "moving")
     before = grid.served_occupancy().copy()
     assert grid.forget_occupied(*tracker.wake(resolution)) > 0
     after = grid.served_occupancy()
@@ -304,11 +310,12 @@ def test_a_movers_wake_forgets_the_hits_no_frame_has_shown_since() -> None:
         return int(y / resolution), int(x / resolution)
 
     occupied = 65  # map.yaml's occupied_thresh
-    left = cell(3.5, 2.0)  # where it stood 2 s before the last frame
+    left = cell(3.5, 2.0)  # where it stood 2.5 s before the last frame
     now = cell(track.center_m[0] - 0.5, 2.0)  # last hit 1 s before the last frame
     assert before[left] > occupied and after[left] == -1
     assert before[now] > occupied and after[now] > occupied
     assert after[48, 70] > occupied and after[80, 25] > occupied
+    assert before[49, 80] > occupied and after[49, 80] > occupied  # the crate's edge in the wake
 
 
 def test_polygon_cells_are_the_cells_whose_centres_it_holds() -> None:

@@ -85,9 +85,13 @@ def test_a_cell_an_edge_only_clips_is_evidence_of_free_and_its_rim_of_nothing() 
     assert np.all(p[5:11] == pytest.approx(0.5))
 
 
-def test_free_evidence_cannot_reach_above_the_neutral_share() -> None:
-    with pytest.raises(ValueError, match="free_share_max"):
-        SensorModelParams(free_share_max=0.6)
+def test_free_evidence_never_reaches_above_the_neutral_share() -> None:
+    """A lower ``edge_fraction`` (a setting that was valid before ``free_share_max``) still
+    starts up; the free side then ends where the occupied side begins."""
+    params = SensorModelParams(edge_fraction=0.2, evidence_ramp=0.1)
+    p = cell_occupancy_probability(np.arange(21, dtype=np.float64), np.full(21, 20.0), params)
+    assert np.all(p[:2] == pytest.approx(params.p_miss)) and np.all(p[2:4] < 0.5)
+    assert p[4] == pytest.approx(0.5) and np.all(p[5:] > 0.5)
 
 
 def test_aggregation_does_not_grow_with_pixel_count() -> None:

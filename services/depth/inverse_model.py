@@ -59,16 +59,17 @@ SPARSE_NEIGHBOURHOOD_CELLS = 7
 """A cell of too few pixels of its own reads free when at least this many of the 3 × 3 cells
 around it (itself included) hold pixels …"""
 SPARSE_NEIGHBOURHOOD_PIXELS = 12
-"""… together at least this many, none of them in the obstacle band."""
+"""… together at least this many, fewer than half a pixel of them expected in the obstacle band."""
 
 
 def _sparse_free(
     pixels: npt.NDArray[np.int64],
     obstacle: npt.NDArray[np.float64],
     min_cell_pixels: int,
+    free_share_max: float,
 ) -> npt.NDArray[np.bool_]:
     """Cells of 1 to ``min_cell_pixels`` − 1 pixels inside open, measured floor: the 3 × 3 cells
-    around them are nearly all measured and nothing in them reads in the band. Without this, a
+    around them are nearly all measured and (almost) nothing in them reads in the band. Without this, a
     cell a passing mover made occupied keeps that reading for seconds where the floor gives it
     one or two pixels a frame (the forklift's trail of specks); a cell inside a plain top, whose
     neighbours hold no pixels, or beside an object, whose neighbours read in the band, never
@@ -81,7 +82,8 @@ def _sparse_free(
     filled = around((pixels > 0).astype(np.float64))
     total = around(pixels.astype(np.float64))
     in_band = around(obstacle)
-    sparse = (pixels > 0) & (pixels < min_cell_pixels)
+    # Its own share under free_share_max too: no reading of its own may be neutral or better.
+    sparse = (pixels > 0) & (pixels < min_cell_pixels) & (obstacle < free_share_max * pixels)
     return np.asarray(
         sparse
         & (filled >= SPARSE_NEIGHBOURHOOD_CELLS)
@@ -142,7 +144,10 @@ def build_tile(
         0.0,
     )
     sparse_free = _sparse_free(
-        pixels.reshape(rows, cols), obstacle.reshape(rows, cols), min_cell_pixels
+        pixels.reshape(rows, cols),
+        obstacle.reshape(rows, cols),
+        min_cell_pixels,
+        min(params.free_share_max, params.edge_fraction),
     ).ravel()
     update = np.where(sparse_free, logodds(params.p_miss), update)
     updated |= sparse_free

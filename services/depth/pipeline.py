@@ -78,6 +78,8 @@ class DepthPipeline:
         ).astype(np.float32)
         """Where each pixel's ray meets the floor (2 × H × W): the floor cell a hidden pixel
         speaks for (the cameras never move, so once)."""
+        self.meets_floor = (np.isfinite(floor_depth_m) & (floor_depth_m > 0)).ravel()
+        """Per pixel (flat): its ray meets the floor ahead; only those can hide it."""
         self.image_view = ImageView(
             self.rectifier.focal_px,
             self.rectifier.cx_px,
@@ -178,6 +180,7 @@ class DepthPipeline:
         ]
         if self.floor_model is not None:
             standing = np.concatenate([standing, np.flatnonzero(self.floor_model.hidden)])
+        standing = standing[self.meets_floor[standing]]
         hidden: npt.NDArray[np.float32] = self.floor_xy_m.reshape(2, -1)[:, standing]
         return hidden
 

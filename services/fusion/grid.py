@@ -179,6 +179,13 @@ class Chunk:
         chunk.decay_check_s = self.decay_check_s
         return chunk
 
+    def forget(self, cells: npt.NDArray[np.bool_]) -> None:
+        """These cells back to never observed (unknown)."""
+        self.logodds[cells] = 0.0
+        self.height_m[cells] = np.nan
+        self.known[cells] = False
+        self.occupancy[cells] = UNKNOWN
+
     def served(self) -> npt.NDArray[np.int8]:
         """What clients read: the evidence, with the predicted layer's cells occupied."""
         return rules.occupied_where_predicted(self.occupancy, self.predicted)
@@ -380,13 +387,10 @@ class FusedGrid:
             if count:
                 chunk = self._writable(key)
                 chunk.logodds[stale] *= factor
-                forgotten = stale & (np.abs(chunk.logodds) < p.unknown_below)
-                chunk.logodds[forgotten] = 0.0
-                chunk.height_m[forgotten] = np.nan
-                chunk.known[forgotten] = False
                 chunk.occupancy[stale] = occupancy_from_logodds(
                     chunk.logodds[stale], chunk.known[stale]
                 )
+                chunk.forget(stale & (np.abs(chunk.logodds) < p.unknown_below))
                 self.changed.add(key)
                 self._mark(key, chunk_window(key).intersect(self.window))
                 changed += count
@@ -422,10 +426,9 @@ class FusedGrid:
                 if not count:
                     continue
                 chunk = self._writable(key)
-                chunk.logodds[in_chunk][stale] = 0.0
-                chunk.height_m[in_chunk][stale] = np.nan
-                chunk.known[in_chunk][stale] = False
-                chunk.occupancy[in_chunk][stale] = UNKNOWN
+                whole = np.zeros((CHUNK_CELLS, CHUNK_CELLS), np.bool_)
+                whole[in_chunk] = stale
+                chunk.forget(whole)
                 self.changed.add(key)
                 self._mark(key, sub)
                 forgotten += count

@@ -84,6 +84,8 @@ class TrackerConfig:
     """… each footprint grown by this (the hits of its side faces and fattening around it) …"""
     wake_missed_frames: float = 1.5
     """… and occupied wake cells no frame has shown for this many frame intervals are forgotten."""
+    wake_max_size_m: float = 10.0
+    """A footprint longer than this is a broken detection, no mover: it makes no wake."""
 
 
 @dataclass(frozen=True)
@@ -361,7 +363,7 @@ class ObjectTracker:
             (*obs.size_m, obs.yaw_rad, obs.top_m)
         )
         self._classify(track)
-        if track.moving:
+        if track.moving and max(obs.size_m) <= self.config.wake_max_size_m:
             margin = 2 * self.config.wake_margin_m
             grown = (obs.size_m[0] + margin, obs.size_m[1] + margin)
             self.wake_footprints.append(
@@ -476,10 +478,18 @@ class ObjectTracker:
         ):
             self.wake_footprints.popleft()
         cells = [polygon_cells(grown, resolution_m) for _, grown, _ in self.wake_footprints]
-        # Where a mover stands now is no wake, even where no frame has measured it.
-        for stamp_ns, _, footprint in self.wake_footprints:
-            if stamp_ns != self.stamp_ns:
-                continue
+        # Where something stands now is no wake, even where no frame has measured it: a mover as
+        # this capture saw it, and every track where it is now (a mover this capture missed, an
+        # object standing beside the path whose plain top frames rarely measure).
+        standing = [
+            footprint for stamp, _, footprint in self.wake_footprints if stamp == self.stamp_ns
+        ]
+        for track in self.tracks:
+            (length, width), yaw = self._footprint(track)
+            if max(length, width) <= self.config.wake_max_size_m:
+                state, _ = self._predict(track, self.stamp_ns)
+                standing.append(corners((float(state[0]), float(state[1])), (length, width), yaw))
+        for footprint in standing:
             now_window, now_mask = polygon_cells(footprint, resolution_m)
             for window, mask in cells:
                 both = window.intersect(now_window)
