@@ -58,12 +58,17 @@ class SensorModelParams:
         le=1.0,
         description="a cell with at least this share of its pixels in the band is no free evidence",
     )
-    """From this share (or ``edge_fraction``, if lower) up to ``edge_fraction`` an observation is
-    neutral: a cell whose centre an
-    object covers but whose pixels are mostly the floor beside it (an object's rim: side faces
-    hide part of its top, the floor in front is seen whole) read weakly free frame after frame and
-    added up to free; offline, static false-free 1.0 → 0.6 % for 0.007 of IoU (0.4–0.6 % on other
-    seeds and floors)."""
+    """From this share (or ``edge_fraction``, if lower: :attr:`free_share_limit`) up to
+    ``edge_fraction`` an observation is neutral: a cell whose centre an object covers but whose
+    pixels are mostly the floor beside it (an object's rim: side faces hide part of its top, the
+    floor in front is seen whole) read weakly free frame after frame and added up to free;
+    offline, static false-free 1.0 → 0.6 % for 0.007 of IoU (0.4–0.6 % on other seeds and
+    floors)."""
+
+    @property
+    def free_share_limit(self) -> float:
+        """The share of band pixels from which a cell gives no free evidence."""
+        return min(self.free_share_max, self.edge_fraction)
 
     def __post_init__(self) -> None:
         if self.obstacle_min_m >= self.obstacle_max_m:
@@ -158,7 +163,7 @@ def cell_occupancy_probability(
     low = params.edge_fraction - params.evidence_ramp
     toward_hit = np.clip((share - low) / (2.0 * params.evidence_ramp), 0.0, 1.0)
     toward_miss = np.where(
-        share >= min(params.free_share_max, params.edge_fraction),
+        share >= params.free_share_limit,
         0.5,
         params.p_miss + (0.5 - params.p_miss) * 2.0 * toward_hit,
     )

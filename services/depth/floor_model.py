@@ -574,9 +574,10 @@ TEXTURE_SAMPLE_STEP = 2
 BACKGROUND_TEXTURE_GRAY = 1.5
 """Local standard deviation (gray levels) of a background below which it has no texture to check."""
 COVERED_ZNCC = 0.3
-MODELLED_WINDOW_SHARE = 0.95
 """Correlation of image and background below which the background's texture is gone (a shadow
 scales it: about 1; another surface: about 0)."""
+MODELLED_WINDOW_SHARE = 0.95
+"""A window less modelled than this holds something that was never floor: its texture check fails."""
 TEXTURE_KEPT = 0.5
 """Share of the background's texture (regression slope) a pixel must still show to match it."""
 
@@ -620,8 +621,6 @@ class FloorModel:
         self._modelled = np.zeros((height, width), np.bool_)
         self.hidden = np.zeros((height, width), np.bool_)
         """Rule 10, of the last frame: pixels whose floor is hidden by something standing there."""
-        self.covered = np.zeros((height, width), np.bool_)
-        """Of the last frame: the left background's texture is gone (see :meth:`_texture_gone`)."""
         self.confirmed = np.zeros((height, width), np.uint8)
         self.frames = 0
         self.relearned = 0
@@ -787,7 +786,7 @@ class FloorModel:
             disparity - self.matcher_offset_px,
         ).astype(np.float32)
 
-        both_match, departed = self._match(left, warped, inside)
+        both_match, departed, covered = self._match(left, warped, inside)
         matches = both_match & ~test.contradict
         # The matcher's interpolation (a disparity without texture along x) is a weak measurement:
         # an obstacle there, where both cameras see the floor's background, is the matcher's
@@ -813,7 +812,7 @@ class FloorModel:
         # the floor (a plain top takes the floor's disparity in from around) is no floor evidence,
         # nor a floor reading where the floor's texture is gone (a dark body's lower rim).
         departs = self._modelled & inside & ~both_match
-        measured[departs & (interpolated | self.covered) & low] = np.nan
+        measured[departs & (interpolated | covered) & low] = np.nan
         self._fill_departed_regions(measured, ~np.isfinite(measured) & ~observed & departs)  # 8
         # Floor observations sit at height 0 (measurements are corrected to the calibration's floor).
         out = np.where(observed, self.geometry.floor_disparity_px, measured).astype(np.float32)
@@ -844,23 +843,25 @@ class FloorModel:
             gains.append(float(np.median(ratio)))
         return gains[0], gains[1]
 
-    def _match(self, left: F32, warped: F32, inside: Mask) -> tuple[Mask, float]:
+    def _match(self, left: F32, warped: F32, inside: Mask) -> tuple[Mask, float, Mask]:
         """Whether both cameras match their backgrounds at each pixel after gain normalisation;
-        and the share of modelled pixels that departs (for the re-learn decision)."""
+        the share of modelled pixels that departs (for the re-learn decision); and where the
+        left background's texture is gone (:meth:`_texture_gone`)."""
         modelled = self._modelled & inside
         self._gain = self._gains(left, warped, modelled)
+        normalised = [
+            image * np.float32(1.0 / max(gain, 1e-3))
+            for image, gain in zip((left, warped), self._gain, strict=True)
+        ]
         both = modelled.copy()
         textured_alike = np.ones(self.shape, np.bool_)
-        for side, image in ((0, left), (1, warped)):
-            normalised = image * np.float32(1.0 / max(self._gain[side], 1e-3))
-            alike = modelled & (np.abs(normalised - self.mean[side]) <= self.tolerance[side])
+        for side in (0, 1):
+            alike = modelled & (np.abs(normalised[side] - self.mean[side]) <= self.tolerance[side])
             both &= alike
-            textured_alike &= self._texture_kept(side, normalised, alike)
-            if side == 0:
-                self.covered = self._texture_gone(normalised, modelled)
+            textured_alike &= self._texture_kept(side, normalised[side], alike)
         count = int(np.count_nonzero(modelled))
         departed = 0.0 if count < MIN_FIT_PIXELS else 1.0 - float(np.count_nonzero(both)) / count
-        return both & textured_alike, departed
+        return both & textured_alike, departed, self._texture_gone(normalised[0], modelled)
 
     def _texture_gone(self, normalised: F32, modelled: Mask) -> Mask:
         """Where the left background has texture and the image no longer shows it: the windowed

@@ -66,14 +66,14 @@ def _sparse_free(
     pixels: npt.NDArray[np.int64],
     obstacle: npt.NDArray[np.float64],
     min_cell_pixels: int,
-    free_share_max: float,
+    free_share_limit: float,
 ) -> npt.NDArray[np.bool_]:
     """Cells of 1 to ``min_cell_pixels`` − 1 pixels inside open, measured floor: the 3 × 3 cells
-    around them are nearly all measured and (almost) nothing in them reads in the band. Without this, a
-    cell a passing mover made occupied keeps that reading for seconds where the floor gives it
-    one or two pixels a frame (the forklift's trail of specks); a cell inside a plain top, whose
-    neighbours hold no pixels, or beside an object, whose neighbours read in the band, never
-    qualifies."""
+    around them are nearly all measured and (almost) nothing in them reads in the band. Without
+    this, a cell a passing mover made occupied keeps that reading for seconds where the floor
+    gives it one or two pixels a frame (the forklift's trail of specks); a cell inside a plain
+    top, whose neighbours hold no pixels, or beside an object, whose neighbours read in the band,
+    never qualifies."""
 
     def around(values: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
         summed = cv2.boxFilter(values, -1, (3, 3), normalize=False, borderType=cv2.BORDER_CONSTANT)
@@ -82,8 +82,8 @@ def _sparse_free(
     filled = around((pixels > 0).astype(np.float64))
     total = around(pixels.astype(np.float64))
     in_band = around(obstacle)
-    # Its own share under free_share_max too: no reading of its own may be neutral or better.
-    sparse = (pixels > 0) & (pixels < min_cell_pixels) & (obstacle < free_share_max * pixels)
+    # Its own share under the free limit too: no reading of its own may be neutral or better.
+    sparse = (pixels > 0) & (pixels < min_cell_pixels) & (obstacle < free_share_limit * pixels)
     return np.asarray(
         sparse
         & (filled >= SPARSE_NEIGHBOURHOOD_CELLS)
@@ -147,7 +147,7 @@ def build_tile(
         pixels.reshape(rows, cols),
         obstacle.reshape(rows, cols),
         min_cell_pixels,
-        min(params.free_share_max, params.edge_fraction),
+        params.free_share_limit,
     ).ravel()
     update = np.where(sparse_free, logodds(params.p_miss), update)
     updated |= sparse_free

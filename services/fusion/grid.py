@@ -407,48 +407,43 @@ class FusedGrid:
         returns how many. A mover's wake: what put them there has gone, and no frame since has
         shown them (a floor cell with too few pixels of its own keeps a hit for seconds)."""
         forgotten = 0
-        for window, mask in cells:
-            part = window.intersect(self.window)
-            for key in chunk_keys(part):
-                chunk = self.chunks.get(key)
-                if chunk is None:
-                    continue
-                cw = chunk_window(key)
-                sub = part.intersect(cw)
-                in_chunk = sub.slices_in(cw)
-                stale = (
-                    mask[sub.slices_in(window)]
-                    & chunk.known[in_chunk]
-                    & (chunk.logodds[in_chunk] > 0.0)
-                    & (chunk.last_seen_s[in_chunk] < seen_before_s)
-                )
-                count = int(np.count_nonzero(stale))
-                if not count:
-                    continue
-                chunk = self._writable(key)
-                whole = np.zeros((CHUNK_CELLS, CHUNK_CELLS), np.bool_)
-                whole[in_chunk] = stale
-                chunk.forget(whole)
-                self.changed.add(key)
-                self._mark(key, sub)
-                forgotten += count
+        for key, mask in self._chunk_masks(cells).items():
+            chunk = self.chunks.get(key)
+            if chunk is None:
+                continue
+            stale = mask & chunk.known & (chunk.logodds > 0.0) & (chunk.last_seen_s < seen_before_s)
+            count = int(np.count_nonzero(stale))
+            if not count:
+                continue
+            self._writable(key).forget(stale)
+            self.changed.add(key)
+            self._mark(key, chunk_window(key).intersect(self.window))
+            forgotten += count
         if forgotten:
             self.version += 1
         return forgotten
 
-    def set_predicted(self, swept: list[tuple[Window, npt.NDArray[np.bool_]]]) -> bool:
-        """Replace the predicted layer by these swept cells (those outside the map are dropped);
-        True if it changed. The cells it no longer covers show the frames' evidence again."""
-        if not swept and not self._predicted:
-            return False  # the usual case without movers: nothing to visit
+    def _chunk_masks(
+        self, cells: list[tuple[Window, npt.NDArray[np.bool_]]]
+    ) -> dict[ChunkKey, npt.NDArray[np.bool_]]:
+        """``cells`` (masks on windows) as one mask per chunk they touch; cells outside the map
+        are dropped."""
         masks: dict[ChunkKey, npt.NDArray[np.bool_]] = {}
-        for window, mask in swept:
+        for window, mask in cells:
             part = window.intersect(self.window)
             for key in chunk_keys(part):
                 cw = chunk_window(key)
                 sub = part.intersect(cw)
                 target = masks.setdefault(key, np.zeros((CHUNK_CELLS, CHUNK_CELLS), np.bool_))
                 target[sub.slices_in(cw)] |= mask[sub.slices_in(window)]
+        return masks
+
+    def set_predicted(self, swept: list[tuple[Window, npt.NDArray[np.bool_]]]) -> bool:
+        """Replace the predicted layer by these swept cells (those outside the map are dropped);
+        True if it changed. The cells it no longer covers show the frames' evidence again."""
+        if not swept and not self._predicted:
+            return False  # the usual case without movers: nothing to visit
+        masks = self._chunk_masks(swept)
         changed = False
         for key in self._predicted | set(masks):
             new = masks.get(key)

@@ -15,8 +15,9 @@ Rules that shape the tracks:
   plain top matches in fragments): joined to it, never a track of its own;
 - a partial detection (at an image border) updates the position loosely and never the size, unless
   no pair has ever seen all of the object; then the object says ``partial``;
-- a moving track's wake (where it stood over the last ``wake_s``, and does not now) is handed to
-  the grid, which forgets the hits there that no frame has shown since (:meth:`wake`).
+- a moving track's wake (where it stood over the last ``wake_s``, less where any track stands
+  now) is handed to the grid, which forgets the hits there that no frame has shown since
+  (:meth:`wake`).
 """
 
 from __future__ import annotations
