@@ -94,6 +94,10 @@ def test_nested_parameters_take_flat_and_nested_flags_and_env(
     ("args", "names"),
     [
         (["--p-hit", "0.3"], ["--p-hit", "--model.p-hit", "OVERGRID_MODEL__P_HIT"]),
+        (
+            ["--free-share-max", "1.5"],
+            ["--free-share-max", "--model.free-share-max", "OVERGRID_MODEL__FREE_SHARE_MAX"],
+        ),
         (["--block-size", "4"], ["--matcher", "OVERGRID_MATCHER", "odd"]),
         (["--obstacle-min-m", "3"], ["--model", "obstacle_min_m"]),
         (["--downscale", "3"], ["--downscale", "OVERGRID_DOWNSCALE"]),
