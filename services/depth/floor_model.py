@@ -74,6 +74,10 @@ Learning (never from pixels where something stands), every ``learn_every`` frame
 - *Line of sight*: a pixel is never learned where its ray to the floor passes through the column
   under an obstacle point measured in this frame (a box's side face between its base and its top
   edge: learned as floor, it would put free cells inside the box).
+- *Plain tops*: on a textured floor, nor where a plain run leads outward from a measured obstacle
+  point and ends, within TOP_REACH_M, at texture: the top beyond an edge, which has nothing to
+  measure and may meet a floor of its grey with hardly an edge (a light crate on concrete). On a
+  plain floor such a run may as well be floor, and only the line of sight applies.
 - A pixel is modelled once confirmed in ``confirm_frames`` learning frames; later it is updated
   (running mean and variance) only while it is confirmed and still matches.
 - When most modelled pixels depart at once after gain normalisation (a lighting change that is not
@@ -108,11 +112,11 @@ FLOOR_WINDOW_SHARE = 0.75
 RESIDUAL_FIT_PX = 0.5
 """The residual is fitted to pixels the floor test measures within this of the floor."""
 RESIDUAL_SCALE_PX = 0.1
+"""Scale of the robust weights in the calibration-residual fit."""
 RESIDUAL_RIDGE = 0.1
 """Slopes need the pixels spread over the image (variance of u', v' over this) to count fully."""
 MAX_RESIDUAL_PX = 1.0
 """A good calibration's residual is a fraction of this; a fit beyond it is not believed."""
-"""Scale of the robust weights in the calibration-residual fit."""
 MIN_FIT_PIXELS = 200
 """Fewer pixels than this fit no residual, and a share of fewer modelled pixels decides nothing."""
 SEED_PROBE_PX = 3.0
@@ -126,9 +130,15 @@ GAIN_SAMPLE_STEP = 6
 LINE_ACROSS_PX = 3.0
 """Beyond an inward seed, the floor this much further on is compared with the pixel."""
 LINE_OF_SIGHT_MARGIN_PX = 1.5
+"""An obstacle's foot within this of a pixel does not block it (the floor at an object's base)."""
 LINE_OF_SIGHT_BIN_PX = 2.0
 """Polar bins of the line-of-sight test, in radius and in arc at the image's rim."""
-"""An obstacle's foot within this of a pixel does not block it (the floor at an object's base)."""
+TOP_REACH_M = 1.5
+"""A plain run beyond an obstacle's edge that ends within this is the top it bounds (the widest
+top of the simulated site is 1.2 m); one that does not is floor."""
+TEXTURED_FLOOR_SHARE = 0.5
+"""A floor this much of which the floor test finds textured is textured: there a plain run is no
+floor (measured: concrete and speckle 0.87–1.0 of the modelled pixels, a plain floor 0.04–0.06)."""
 
 
 @dataclass(frozen=True)
@@ -541,6 +551,30 @@ class LineOfSight:
         )
         self._spread = np.ones((2 * math.ceil(step) + 1,) * 2, np.uint8)
 
+    def top_runs(self, start: Mask, passable: Mask, reach_px: float, grace_px: float) -> Mask:
+        """Pixels on a closed run of ``passable`` ones outward (away from the nadir) of a ``start``
+        pixel: one that ends within ``reach_px`` at pixels that are not passable or at the image's
+        edge (an open run is floor, or a top too large to tell from it). The first ``grace_px``
+        need not be passable (the start's own window holds texture)."""
+        step = LINE_OF_SIGHT_BIN_PX
+        polar_start, polar_passable = (
+            np.asarray(
+                cv2.remap(
+                    mask,
+                    *self._to_polar,
+                    cv2.INTER_NEAREST,
+                    borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=0,
+                ),
+                np.uint8,
+            )
+            for mask in (cv2.dilate(start.view(np.uint8), self._spread), passable.view(np.uint8))
+        )
+        runs = np.zeros_like(polar_start)
+        _top_runs(polar_start, polar_passable, round(reach_px / step), round(grace_px / step), runs)
+        on_top: Mask = cv2.remap(runs, *self._from_polar, cv2.INTER_NEAREST) > 0
+        return on_top
+
     def blocked(self, foot_radius_px: F32) -> Mask:
         """``foot_radius_px``: per pixel, the radius of its obstacle point's foot (inf: none)."""
         # A minimum over the polar bins' spacing first, so no column falls between two rays.
@@ -556,6 +590,30 @@ class LineOfSight:
         under = (inward < self._inner_radius).view(np.uint8)
         blocked: Mask = cv2.remap(under, *self._from_polar, cv2.INTER_NEAREST) > 0
         return blocked
+
+
+@compiled
+def _top_runs(start: U8, passable: U8, reach_bins: int, grace_bins: int, runs: U8) -> None:
+    """Per polar column (an angle about the nadir; rows run from the rim inward), from the nadir
+    outward: a start opens a run, which goes on over passable bins (any bin for the first
+    ``grace_bins``, and a lone other one: sensor noise passes for texture now and then on a plain
+    surface) and ends at two others in a row; a run still open after ``reach_bins`` is taken
+    back."""
+    radii, angles = start.shape
+    for angle in range(angles):
+        left, grace, first = 0, 0, 0
+        for row in range(radii - 1, -1, -1):
+            goes_on = passable[row, angle] or (row > 0 and passable[row - 1, angle])
+            if start[row, angle]:
+                left, grace, first = reach_bins, grace_bins, row - 1
+            elif left > 0 and (goes_on or grace > 0):
+                runs[row, angle] = 1
+                left -= 1
+                grace = max(grace - 1, 0)
+                if left == 0:
+                    runs[row : first + 1, angle] = 0
+            else:
+                left = 0
 
 
 @dataclass(frozen=True)
@@ -1018,8 +1076,13 @@ class FloorModel:
         grown: Mask = enough[labels]
         return grown
 
-    def _blocked(self, test: FloorTest, measured: F32) -> Mask:
-        """Line of sight: pixels under the columns of this frame's measured obstacle points."""
+    def _blocked(self, test: FloorTest, measured: F32, inside: Mask) -> Mask:
+        """Pixels no learning frame may take for floor: under the columns of this frame's measured
+        obstacle points (line of sight), and on a textured floor the plain runs outward of them
+        that end within reach (a plain top: its edge was measured, the top beyond has nothing to
+        measure, and where it meets a floor of its grey with hardly an edge the model grew over
+        it; offline, ``--seed 2``: a light crate on concrete, 50 of its cells free). On a plain
+        floor such a run may as well be floor: there only the line of sight applies."""
         height = self.geometry.height_m(measured)
         with np.errstate(invalid="ignore"):
             obstacle = test.textured & (height >= self.obstacle_min_m)
@@ -1027,7 +1090,19 @@ class FloorModel:
         feet = np.where(
             obstacle, radius * (1.0 - height / np.float32(self.geometry.camera_height_m)), np.inf
         ).astype(np.float32)
-        return self.line_of_sight.blocked(feet)
+        blocked = self.line_of_sight.blocked(feet)
+        # The floor's texture: over what is modelled, or all that is seen before that.
+        floor = self.modelled if np.count_nonzero(self.modelled) >= MIN_FIT_PIXELS else inside
+        if np.count_nonzero(test.textured & floor) >= TEXTURED_FLOOR_SHARE * np.count_nonzero(
+            floor
+        ):
+            blocked |= self.line_of_sight.top_runs(
+                obstacle,
+                ~test.textured,
+                TOP_REACH_M * self.geometry.floor_px_per_m,
+                self.config.window_px,
+            )
+        return blocked
 
     def _learn(
         self,
@@ -1043,7 +1118,7 @@ class FloorModel:
         cfg = self.config
         seeds = self._seeds(test, at_floor, inside)
         confirmed = (seeds | self._grown(left, seeds, test.contradict)) & inside
-        confirmed &= ~self._blocked(test, measured)
+        confirmed &= ~self._blocked(test, measured, inside)
         modelled = self.modelled & inside
         if relearn:
             # Most of the floor changed at once, and not by a global gain: start again from here.
