@@ -75,6 +75,32 @@ def test_size_of_a_rotated_box_from_its_points_is_below_the_cell_size(yaw: float
     assert not d.partial
 
 
+@pytest.mark.parametrize("yaw", [0.0, 0.4])
+def test_a_low_objects_size_ignores_the_fringe_of_floor_read_at_its_height(yaw: float) -> None:
+    """A pallet (14 cm) is half a pixel of disparity above the floor: beside a strong edge a
+    quarter of the floor pixels in a 12 cm strip read its height. Its sides lie where its
+    points' density halves, not at the fringe's outer points (12 cm too wide)."""
+    rng = np.random.default_rng(4)
+    size, center = (1.2, 0.8), (5.0, 4.0)
+    points, pixels = _scene_points(center, size, yaw, 0.144, rng)
+    c, s = math.cos(yaw), math.sin(yaw)
+    dx, dy = points.x_m - center[0], points.y_m - center[1]
+    along, across = c * dx + s * dy, -s * dx + c * dy
+    fringe = (
+        (np.abs(along) <= size[0] / 2) & (across < -size[1] / 2) & (across > -size[1] / 2 - 0.12)
+    )
+    lifted = fringe & (rng.random(fringe.shape) < 0.25)
+    points.height_m[lifted] = 0.125
+    pixel_angle = PITCH_M / (CAMERA_HEIGHT_M - 0.144)
+    found = detect_objects(
+        points, pixels, CAMERA_HEIGHT_M, pixel_angle, LEFT_MARGIN_PX, SensorModelParams()
+    )
+    assert len(found) == 1
+    d = found[0]
+    assert abs(d.length_m - size[0]) < 0.02 and abs(d.width_m - size[1]) < 0.02
+    assert math.hypot(d.center_xy_m[0] - center[0], d.center_xy_m[1] - center[1]) < 0.015
+
+
 def test_an_object_cut_by_the_image_border_is_partial() -> None:
     rng = np.random.default_rng(2)
     points, pixels = _scene_points((5.0, 4.0), (0.8, 0.5), 0.0, 1.0, rng, extent_m=1.2)
