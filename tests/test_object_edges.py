@@ -141,11 +141,10 @@ def test_an_outline_outside_the_image_is_left_as_it_is() -> None:
 
 def test_a_low_top_keeps_its_points_outline() -> None:
     """A pallet's deck, the openings below it and its zone's paint give steps a few centimetres
-    apart: a top under ``min_top_m`` keeps the outline its points' density gave, while the same
-    outline on a tall box moves onto the box's edges."""
+    apart: a low detection keeps the outline its points' density gave, while the same outline of
+    a box as low, measured on its top's points, moves onto its edges."""
     image = _render((5.0, 4.0), (1.2, 0.8), 0.0, 0.144, round_top=False, top_grey=95.0)
-    low = Detection((5.02, 4.0), 1.24, 0.82, 0.0, 0.144, 600, False)
+    low = Detection((5.02, 4.0), 1.24, 0.82, 0.0, 0.144, 600, False, low=True)
     assert refine_on_edges([low], image, VIEW)[0] == low
-    tall = replace(low, top_m=0.5)
-    image = _render((5.0, 4.0), (1.2, 0.8), 0.0, 0.5, round_top=False, top_grey=95.0)
-    assert abs(refine_on_edges([tall], image, VIEW)[0].length_m - 1.2) < 0.01
+    refined = refine_on_edges([replace(low, low=False)], image, VIEW)[0]
+    assert abs(refined.length_m - 1.2) < 0.01 and abs(refined.width_m - 0.8) < 0.01

@@ -47,11 +47,6 @@ class EdgeConfig:
     half of them: a top as grey as the floor shows only the rim before its dark side face)."""
     round_max_aspect: float = 1.25
     """Only a footprint this close to square may be a round top."""
-    min_top_m: float = 0.3
-    """A lower top keeps its points' outline: a pallet's deck boards, the openings below them and
-    the paint around its zone give steps a few centimetres apart, and its sides lie where its
-    points' density halves (default scene, pallet_0's width: 0.847 m refined, 0.812 without;
-    0.8 true)."""
 
 
 @dataclass(frozen=True)
@@ -290,7 +285,10 @@ def refine_on_edges(
     image = left_rect.astype(np.float32)
     out = []
     for detection in detections:
-        if detection.top_m < config.min_top_m:
+        if detection.low:
+            # A pallet's deck boards, the openings below them and the paint around its zone give
+            # steps a few centimetres apart; its points' density found its sides (default scene,
+            # pallet_0's width: 0.847 m refined, 0.812 without; 0.8 true).
             out.append(detection)
             continue
         across = _Across.at(detection.top_m, view, config)

@@ -72,6 +72,9 @@ class Detection:
     top_m: float
     points: int
     partial: bool
+    low: bool = False
+    """All top (a pallet): its sides are where its points' density halves (:func:`half_density_box`),
+    which the image's edges do not improve (:func:`services.depth.object_edges.refine_on_edges`)."""
 
 
 @dataclass(frozen=True)
@@ -237,6 +240,7 @@ def detect_objects(
                 top_m=top_m,
                 points=int(members.size),
                 partial=partial,
+                low=low,
             )
         )
     return detections
