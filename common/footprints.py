@@ -50,10 +50,17 @@ def fit_rectangle(xy_m: F64, trim: float = 0.0) -> Rectangle:
     mid_a, mid_b = (hi_a[k] + lo_a[k]) / 2, (hi_b[k] + lo_b[k]) / 2
     c, s = math.cos(angle), math.sin(angle)
     cx, cy = mean[0] + c * mid_a - s * mid_b, mean[1] + s * mid_a + c * mid_b
+    length, width, yaw = long_side_first(float(size_a), float(size_b), angle)
+    return float(cx), float(cy), length, width, yaw
+
+
+def long_side_first(size_a: float, size_b: float, yaw_rad: float) -> tuple[float, float, float]:
+    """(length, width, yaw of the long side in [0, π)) of a rectangle given by its side along
+    ``yaw_rad`` and the side across it."""
     if size_b > size_a:
-        size_a, size_b, angle = size_b, size_a, angle + math.pi / 2
-    yaw = angle % math.pi
-    return float(cx), float(cy), float(size_a), float(size_b), 0.0 if yaw >= math.pi - 1e-9 else yaw
+        size_a, size_b, yaw_rad = size_b, size_a, yaw_rad + math.pi / 2
+    yaw = yaw_rad % math.pi
+    return size_a, size_b, 0.0 if yaw >= math.pi - 1e-9 else yaw
 
 
 def corners(center_m: tuple[float, float], size_m: tuple[float, float], yaw_rad: float) -> F64:

@@ -222,6 +222,35 @@ def test_a_plain_run_beyond_an_obstacles_edge_is_a_top_only_where_it_ends_within
     assert not top[:, 62:198].any()  # inward of either edge
     reach = sight.top_runs(start, passable, reach_px=80.0, grace_px=4.0)
     assert reach[112:128, 5:55].mean() > 0.95  # within reach, the image's edge closes it
+    # One polar column (rows from the rim inward): a top exactly as long as the reach is a top.
+    column = np.zeros((10, 1), np.uint8)
+    start_bins, passable_bins, runs = column.copy(), column.copy(), column.copy()
+    start_bins[9], passable_bins[5:9] = 1, 1
+    floor_model._top_runs(start_bins, passable_bins, 4, 0, runs)
+    assert runs[:, 0].tolist() == [0, 0, 0, 0, 0, 1, 1, 1, 1, 0]
+
+
+@pytest.mark.parametrize("floor_textured", [True, False])
+def test_plain_tops_are_kept_from_the_model_on_a_textured_floor_only(floor_textured: bool) -> None:
+    """The same measured edge with a plain patch beyond it: on a textured floor the patch is a
+    top and no learning frame may take it; on a plain floor it may as well be floor."""
+    geometry = _synthetic_geometry()
+    model = floor_model.FloorModel(geometry, (0.1, 2.0))
+    width, height = SYNTHETIC_SIZE
+    textured = np.full((height, width), floor_textured)
+    textured[100:140, 200:203] = True  # the edge, 0.5 m up
+    textured[100:140, 205:240] = False  # the plain patch beyond it …
+    textured[:, 240:244] = True  # … and the marking that ends it
+    measured = np.full((height, width), np.nan, np.float32)
+    measured[100:140, 200:203] = geometry.disparity_px(np.full((height, width), 0.5, np.float32))[
+        100:140, 200:203
+    ]
+    no = np.zeros((height, width), np.bool_)
+    test = floor_model.FloorTest(
+        textured, textured, no, textured, np.full((height, width), np.nan, np.float32), no, no
+    )
+    blocked = model._blocked(test, measured, np.ones((height, width), np.bool_))
+    assert bool(blocked[110:130, 210:235].all()) == floor_textured
 
 
 def test_shadows_on_a_textured_floor_do_not_flag() -> None:

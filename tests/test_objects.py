@@ -11,7 +11,7 @@ from common.lattice import Window
 from common.messages import DetectionRecord, TrackedObject, TruthObject
 from common.occupancy_map import OCCUPIED
 from common.sensor_model import SensorModelParams
-from services.depth.objects import PixelGrid, detect_objects
+from services.depth.objects import PixelGrid, detect_objects, half_density_edges_m
 from services.depth.projection import WorldPoints
 from services.evaluation.objects import match_static, score_movers
 from services.fusion.grid import FusedGrid, GridParams
@@ -72,7 +72,7 @@ def test_size_of_a_rotated_box_from_its_points_is_below_the_cell_size(yaw: float
         2
     )  # a pixel over its length
     assert abs(d.top_m - 1.1) < 0.03
-    assert not d.partial
+    assert not d.partial and not d.low
 
 
 @pytest.mark.parametrize("yaw", [0.0, 0.4])
@@ -97,8 +97,20 @@ def test_a_low_objects_size_ignores_the_fringe_of_floor_read_at_its_height(yaw: 
     )
     assert len(found) == 1
     d = found[0]
+    assert d.low
     assert abs(d.length_m - size[0]) < 0.02 and abs(d.width_m - size[1]) < 0.02
     assert math.hypot(d.center_xy_m[0] - center[0], d.center_xy_m[1] - center[1]) < 0.015
+
+
+@pytest.mark.parametrize("values", [[0.3] * 5, [1.0], [0.0, 0.001], list(np.arange(81) * 0.01)])
+def test_half_density_edges_of_any_few_points_are_defined(values: list[float]) -> None:
+    """Points on a pixel grid, a bin per pixel: the edges half a pixel past the outer centres
+    (81 centres 1 cm apart span 0.81 m of pixels); a handful, or one: their extremes, no error."""
+    low_m, high_m = half_density_edges_m(np.asarray(values, np.float64), 0.01)
+    if len(values) == 81:
+        assert abs(low_m + 0.005) < 1e-6 and abs(high_m - 0.805) < 1e-6
+    else:
+        assert min(values) - 0.02 <= low_m <= high_m <= max(values) + 0.02
 
 
 def test_an_object_cut_by_the_image_border_is_partial() -> None:

@@ -75,9 +75,10 @@ Learning (never from pixels where something stands), every ``learn_every`` frame
   under an obstacle point measured in this frame (a box's side face between its base and its top
   edge: learned as floor, it would put free cells inside the box).
 - *Plain tops*: on a textured floor, nor where a plain run leads outward from a measured obstacle
-  point and ends, within TOP_REACH_M, at texture: the top beyond an edge, which has nothing to
-  measure and may meet a floor of its grey with hardly an edge (a light crate on concrete). On a
-  plain floor such a run may as well be floor, and only the line of sight applies.
+  point and ends, within TOP_REACH_M, at texture or the image's edge (a lone textured pixel, sensor
+  noise, does not end it): the top beyond an edge, which has nothing to measure and may meet a
+  floor of its grey with hardly an edge (a light crate on concrete). On a plain floor such a run
+  may as well be floor, and only the line of sight applies.
 - A pixel is modelled once confirmed in ``confirm_frames`` learning frames; later it is updated
   (running mean and variance) only while it is confirmed and still matches.
 - When most modelled pixels depart at once after gain normalisation (a lighting change that is not
@@ -134,8 +135,9 @@ LINE_OF_SIGHT_MARGIN_PX = 1.5
 LINE_OF_SIGHT_BIN_PX = 2.0
 """Polar bins of the line-of-sight test, in radius and in arc at the image's rim."""
 TOP_REACH_M = 1.5
-"""A plain run beyond an obstacle's edge that ends within this is the top it bounds (the widest
-top of the simulated site is 1.2 m); one that does not is floor."""
+"""A plain run beyond an obstacle's edge that ends within this many metres of floor at the
+camera's foot (a top at height h looks C/(C − h) times larger: 1.2 m at 1.2 m up, the widest top
+of the simulated site) is the top it bounds; one that does not is floor."""
 TEXTURED_FLOOR_SHARE = 0.5
 """A floor this much of which the floor test finds textured is textured: there a plain run is no
 floor (measured: concrete and speckle 0.87–1.0 of the modelled pixels, a plain floor 0.04–0.06)."""
@@ -610,7 +612,7 @@ def _top_runs(start: U8, passable: U8, reach_bins: int, grace_bins: int, runs: U
                 runs[row, angle] = 1
                 left -= 1
                 grace = max(grace - 1, 0)
-                if left == 0:
+                if left == 0 and row > 0 and passable[row - 1, angle]:  # it would go on
                     runs[row : first + 1, angle] = 0
             else:
                 left = 0
@@ -702,6 +704,8 @@ class FloorModel:
         self._gap_kernel = np.ones((2 * math.ceil(gap_px / 2) + 1,) * 2, np.uint8)
         # Compile the row scan (or load it from numba's cache) now, not in the first frame.
         row_support(np.zeros((1, 1), np.float32), np.zeros((1, 1), np.bool_), 1, ROW_TOLERANCE_M)
+        no_runs = np.zeros((1, 1), np.uint8)
+        _top_runs(no_runs, no_runs, 1, 1, no_runs)
 
     # -- geometry -------------------------------------------------------------------------------
 
@@ -1092,10 +1096,12 @@ class FloorModel:
         ).astype(np.float32)
         blocked = self.line_of_sight.blocked(feet)
         # The floor's texture: over what is modelled, or all that is seen before that.
-        floor = self.modelled if np.count_nonzero(self.modelled) >= MIN_FIT_PIXELS else inside
-        if np.count_nonzero(test.textured & floor) >= TEXTURED_FLOOR_SHARE * np.count_nonzero(
-            floor
-        ):
+        floor = self.modelled & inside
+        if np.count_nonzero(floor) < MIN_FIT_PIXELS:
+            floor = inside
+        count = np.count_nonzero(floor)
+        textured = np.count_nonzero(test.textured & floor)
+        if count >= MIN_FIT_PIXELS and textured >= TEXTURED_FLOOR_SHARE * count:
             blocked |= self.line_of_sight.top_runs(
                 obstacle,
                 ~test.textured,

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from common.footprints import long_side_first
 from services.depth.objects import Detection
 
 F64 = npt.NDArray[np.float64]
@@ -214,10 +215,7 @@ def _refine_box(
     if not strengths:
         return None
     du, dw = (bounds[0] + bounds[1]) / 2, (bounds[2] + bounds[3]) / 2
-    length, width = bounds[1] - bounds[0], bounds[3] - bounds[2]
-    yaw = d.yaw_rad
-    if width > length:
-        length, width, yaw = width, length, (yaw + math.pi / 2) % math.pi
+    length, width, yaw = long_side_first(bounds[1] - bounds[0], bounds[3] - bounds[2], d.yaw_rad)
     center_x, center_y = _world(d, du, dw)
     return (
         replace(
@@ -281,7 +279,7 @@ def refine_on_edges(
     config: EdgeConfig = EdgeConfig(),
 ) -> list[Detection]:
     """The frame's detections with their sides (or rims) moved onto the image's steps where it
-    shows them."""
+    shows them; a low detection (a pallet) keeps the sides its points' density gave."""
     image = left_rect.astype(np.float32)
     out = []
     for detection in detections:

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from common.footprints import fit_rectangle
+from common.footprints import fit_rectangle, long_side_first
 from common.messages import DetectionRecord, DetectionsHeader
 from common.sensor_model import SensorModelParams
 from services.depth.projection import WorldPoints
@@ -105,22 +105,26 @@ def edge_deficit_m(edge_m: float, yaw_rad: float, pixel_m: float) -> float:
 
 def half_density_edges_m(along_m: F64, bin_m: float) -> tuple[float, float]:
     """Where the points' density along one axis falls to half of its middle's, at either end:
-    the edges of evenly sampled points (interpolated between bins, so the edges need no pixel
-    deficit), past a fringe sparser than that. A low object (a pallet, 14 cm) is half a pixel of
-    disparity above the floor, and floor pixels beside a strong edge read that high now and then:
-    a fringe 5–15 cm wide at a quarter of the deck's density (the default scene's pallet_0 from
-    p2: 1.27 × 0.95 m by its extreme points, 1.25 × 0.82 by this; 1.2 × 0.8 true)."""
-    edges = np.arange(float(along_m.min()) - bin_m, float(along_m.max()) + 2 * bin_m, bin_m)
+    the edges of evenly sampled points (interpolated between bins that start half a bin before
+    the first point, so a pixel grid's edge, half a pixel past its last centre, needs no deficit),
+    past a fringe sparser than that. A low object (a pallet, 14 cm) is half a pixel of disparity
+    above the floor, and floor pixels beside a strong edge read that high now and then: a fringe
+    5–15 cm wide at a quarter of the deck's density (the default scene's pallet_0 from p2: 1.27 ×
+    0.95 m by its extreme points, 1.25 × 0.82 by this; 1.2 × 0.8 true)."""
+    first_m, last_m = float(along_m.min()), float(along_m.max())
+    start_m = first_m - 1.5 * bin_m  # an empty bin before the first point, and after the last
+    edges = start_m + bin_m * np.arange(math.ceil((last_m - start_m) / bin_m) + 3)
     counts = np.histogram(along_m, edges)[0].astype(np.float64)
     centres = (edges[:-1] + edges[1:]) / 2
-    low, high = float(along_m.min()), float(along_m.max())
-    middle = (centres > low + (high - low) / 4) & (centres < high - (high - low) / 4)
+    quarter_m = (last_m - first_m) / 4
+    middle = (centres > first_m + quarter_m) & (centres < last_m - quarter_m)
     level = 0.5 * float(np.median(counts[middle])) if middle.any() else 0.0
     if level <= 0.0:  # too few points for a density: their extremes
-        return low, high
-    above = np.flatnonzero(counts >= level)  # never the padding bin at either end
+        return first_m, last_m
+    above = np.flatnonzero(counts >= level)
 
     def crossing(inner: int, outer: int) -> float:
+        outer = min(max(outer, 0), counts.size - 1)
         share = (counts[inner] - level) / max(counts[inner] - counts[outer], 1e-9)
         return float(centres[inner] + (centres[outer] - centres[inner]) * min(max(share, 0.0), 1.0))
 
@@ -219,8 +223,7 @@ def detect_objects(
         pixel_m = max(camera_height_m - top_m, 0.0) * pixel_angle_rad
         if low:  # its sides where its points' density halves
             cx, cy, length, width = half_density_box(xy, (cx, cy), yaw, pixel_m)
-            if width > length:
-                length, width, yaw = width, length, (yaw + math.pi / 2) % math.pi
+            length, width, yaw = long_side_first(length, width, yaw)
         else:
             length, width = (
                 length + edge_deficit_m(width, yaw, pixel_m),

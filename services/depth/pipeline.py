@@ -185,8 +185,8 @@ class DepthPipeline:
         return hidden
 
     def detect_objects(self, result: FrameResult) -> list[Detection]:
-        """The frame's objects: measured on its points (objects.detect_objects), each outline then
-        refined on the left image's edges (object_edges.refine_on_edges)."""
+        """The frame's objects: measured on its points (objects.detect_objects), each outline but
+        a low object's then refined on the left image's edges (object_edges.refine_on_edges)."""
         rectifier = self.rectifier
         found = detect_objects(
             result.points,
