@@ -182,6 +182,21 @@ def test_a_complete_view_wins_over_a_partial_one() -> None:
     assert len(merged) == 1 and not merged[0].partial and merged[0].size_m == (1.0, 0.6)
 
 
+def test_a_track_that_began_on_pieces_takes_its_size_from_its_best_measured_views() -> None:
+    """Seven early views of a pallet's deck in pieces (a few hundred points, half its size), then
+    five whole (1500 points): the size is the whole views', not a median over both."""
+    tracker = ObjectTracker()
+    views = [((0.5, 0.2), 150)] * 7 + [((1.22, 0.79), 1500)] * 5
+    for k, (size, points) in enumerate(views):
+        record = DetectionRecord(
+            center_m=(4.0, 3.0), size_m=size, yaw_rad=0.0, top_m=0.18, points=points, partial=False
+        )
+        tracker.add("p0", T0_NS + k * FRAME_NS, [record], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+    (found,) = tracker.objects()
+    assert found.size_m == (1.22, 0.79)
+
+
 def _run_mover(
     tracker: ObjectTracker,
     start: tuple[float, float],
