@@ -96,6 +96,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -107,6 +108,7 @@ from services.depth.stereo import Rectifier
 F32 = npt.NDArray[np.float32]
 U8 = npt.NDArray[np.uint8]
 Mask = npt.NDArray[np.bool_]
+ScalarT = TypeVar("ScalarT", np.uint8, np.float32)
 
 FLOOR_WINDOW_SHARE = 0.75
 """A stereo seed needs this share of its window measured at the floor's disparity."""
@@ -559,39 +561,40 @@ class LineOfSight:
         edge (an open run is floor, or a top too large to tell from it). The first ``grace_px``
         need not be passable (the start's own window holds texture)."""
         step = LINE_OF_SIGHT_BIN_PX
-        polar_start, polar_passable = (
-            np.asarray(
-                cv2.remap(
-                    mask,
-                    *self._to_polar,
-                    cv2.INTER_NEAREST,
-                    borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=0,
-                ),
-                np.uint8,
-            )
-            for mask in (cv2.dilate(start.view(np.uint8), self._spread), passable.view(np.uint8))
+        polar_start = self._polar(
+            np.asarray(cv2.dilate(start.view(np.uint8), self._spread), np.uint8), 0
         )
+        polar_passable = self._polar(passable.view(np.uint8), 0)
         runs = np.zeros_like(polar_start)
         _top_runs(polar_start, polar_passable, round(reach_px / step), round(grace_px / step), runs)
-        on_top: Mask = cv2.remap(runs, *self._from_polar, cv2.INTER_NEAREST) > 0
-        return on_top
+        return self._image(runs)
 
     def blocked(self, foot_radius_px: F32) -> Mask:
         """``foot_radius_px``: per pixel, the radius of its obstacle point's foot (inf: none)."""
         # A minimum over the polar bins' spacing first, so no column falls between two rays.
-        feet = cv2.erode(foot_radius_px, self._spread)
-        polar = cv2.remap(
-            feet,
-            *self._to_polar,
-            cv2.INTER_NEAREST,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=np.inf,
-        )
+        polar = self._polar(np.asarray(cv2.erode(foot_radius_px, self._spread), np.float32), np.inf)
         inward = np.minimum.accumulate(polar, axis=0)
-        under = (inward < self._inner_radius).view(np.uint8)
-        blocked: Mask = cv2.remap(under, *self._from_polar, cv2.INTER_NEAREST) > 0
-        return blocked
+        return self._image((inward < self._inner_radius).view(np.uint8))
+
+    def _polar(self, image: npt.NDArray[ScalarT], outside: float) -> npt.NDArray[ScalarT]:
+        """``image`` on the polar bins (rows from the rim inward, a column per angle); bins past
+        the image's edge take ``outside``."""
+        polar: npt.NDArray[ScalarT] = np.asarray(
+            cv2.remap(
+                image,
+                *self._to_polar,
+                cv2.INTER_NEAREST,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=outside,
+            ),
+            image.dtype,
+        )
+        return polar
+
+    def _image(self, polar: U8) -> Mask:
+        """A mask on the polar bins back on the image's pixels."""
+        mask: Mask = cv2.remap(polar, *self._from_polar, cv2.INTER_NEAREST) > 0
+        return mask
 
 
 @compiled

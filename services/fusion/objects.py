@@ -279,7 +279,7 @@ class ObjectTracker:
         return f @ track.state, f @ track.covariance @ f.T + _process_noise(dt, accel)
 
     def _gate_m(self, track: Track, covariance: F64) -> float:
-        length, _, _, _, _ = track.size(self.config.best_view_share)
+        (length, _), _ = self._footprint(track)
         spread = self.config.gate_sigmas * math.sqrt(float(covariance[0, 0] + covariance[1, 1]))
         if track.static:
             spread = 0.0
@@ -479,7 +479,7 @@ class ObjectTracker:
                 continue
             if self.stamp_ns - t.stamp_ns > self.config.sweep_missed_frames * self.ahead_s() * 1e9:
                 continue  # missed by the last frames: where it went is a guess, not a prediction
-            length, width, yaw, _, _ = t.size(self.config.best_view_share)
+            (length, width), yaw = self._footprint(t)
             start_s = (max(t.stamp_ns, from_ns) - t.stamp_ns) / 1e9
             end_s = min(max((until_ns - t.stamp_ns) / 1e9, start_s), self.config.sweep_max_s)
             start_s = min(start_s, end_s)
