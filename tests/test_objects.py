@@ -325,11 +325,11 @@ def test_the_predicted_layer_covers_a_mover_ahead_and_clears_behind() -> None:
 
 
 def test_a_movers_wake_forgets_the_hits_no_frame_has_shown_since() -> None:
-    """The cells a moving track stood on and left, occupied and not observed for 1.5 frame
-    intervals, become unknown (floor too sparse in pixels to be measured free again keeps a hit
-    for seconds); where it stands now (even unmeasured since), a static object beside its path
-    that frames keep measuring, one whose plain top was measured once (where its track stands),
-    and cells away from its path are kept. A broken detection 10⁶ km long costs nothing."""
+    """The cells a moving track stood on and left, occupied and not shown by the newest capture,
+    become unknown (floor too sparse in pixels to be measured free again keeps a hit for seconds);
+    where it stands now (even unmeasured since), a static object beside its path that frames keep
+    measuring, one whose plain top was measured once (where its track stands), and cells away from
+    its path are kept. A broken detection 10⁶ km long costs nothing."""
     resolution = 0.05
     tracker = ObjectTracker()
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
@@ -353,6 +353,7 @@ def test_a_movers_wake_forgets_the_hits_no_frame_has_shown_since() -> None:
     grid.integrate(Window(20, 80, 10, 1), hit[:1, :10], heights, counts, T0_NS)  # elsewhere
     broken = _record((3.0, 60.0), (1e9, 0.8))  # apart from the rest
     tracker.add("p0", T0_NS + 8 * FRAME_NS, [_record((6.0, 2.0), (1.2, 0.8)), broken], now_s=0.0)
+    grid.integrate(beside, hit[:1, :60], heights, counts, T0_NS + 8 * FRAME_NS)
     tracker.flush(now_s=0.0, live_pairs={"p0"})
     track = next(t for t in tracker.objects() if t.object_class == "moving")
     before = grid.served_occupancy().copy()
@@ -369,6 +370,37 @@ def test_a_movers_wake_forgets_the_hits_no_frame_has_shown_since() -> None:
     assert before[now] > occupied and after[now] > occupied
     assert after[48, 70] > occupied and after[80, 25] > occupied
     assert before[49, 80] > occupied and after[49, 80] > occupied  # the crate's edge in the wake
+
+
+def test_a_wake_cell_the_newest_capture_did_not_show_is_forgotten() -> None:
+    """A mover at 2 m/s, 1 m a frame: the floor it stood on a frame ago and the newest capture did
+    not show (its own shadow for the camera) is forgotten now, not a frame later; a wake cell the
+    newest capture showed occupied is kept."""
+    resolution = 0.05
+    tracker = ObjectTracker()
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
+    hit = np.full(grid.window.shape, 2.0, np.float32)
+    heights = np.full(grid.window.shape, 1.0, np.float32)
+    counts = np.full(grid.window.shape, 20, np.uint16)
+    last = 6
+    for k in range(last + 1):
+        stamp = T0_NS + k * FRAME_NS
+        x = 2.0 + 1.0 * k
+        tracker.add("p0", stamp, [_record((x, 2.0), (1.2, 0.8))], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+        where, _ = polygon_cells(corners((x, 2.0), (1.2, 0.8), 0.0), resolution)
+        grid.integrate(where, hit[: where.rows, : where.cols], heights, counts, stamp)
+    shown = Window(130, 40, 2, 2)  # (6.5, 2.0) m: in the wake, and occupied in the newest capture
+    grid.integrate(shown, hit[:2, :2], heights, counts, T0_NS + last * FRAME_NS)
+    assert next(t for t in tracker.objects()).object_class == "moving"
+    before = grid.served_occupancy().copy()
+    grid.forget_occupied(*tracker.wake(resolution))
+    after = grid.served_occupancy()
+    trailing = (40, 136)  # (6.8, 2.0) m: under it a frame ago, not now
+    kept = (shown.j0, shown.i0)
+    occupied = 65  # map.yaml's occupied_thresh
+    assert before[trailing] > occupied and after[trailing] == -1
+    assert after[kept] > occupied
 
 
 def test_polygon_cells_are_the_cells_whose_centres_it_holds() -> None:

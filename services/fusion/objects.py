@@ -88,8 +88,12 @@ class TrackerConfig:
     wake …"""
     wake_margin_m: float = 0.1
     """… each footprint grown by this (the hits of its side faces and fattening around it) …"""
-    wake_missed_frames: float = 1.5
-    """… and occupied wake cells no frame has shown for this many frame intervals are forgotten."""
+    wake_missed_frames: float = 0.5
+    """… and occupied wake cells no frame has shown for this many frame intervals are forgotten:
+    half a frame, so those the newest capture did not show (the floor a mover uncovered in its own
+    shadow for the camera, or too sparse in pixels to be measured free again). With 1.5 frames a
+    forklift at 2 m/s trailed a band of false obstacles a frame deep; offline, IoU +0.003 to
+    +0.013 on nine scenes at the same false-free to the digit (README, "Accuracy")."""
     wake_max_size_m: float = 10.0
     """A footprint longer than this is a broken detection, no mover: it makes no wake."""
 
