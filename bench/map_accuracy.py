@@ -12,7 +12,8 @@ the last map with its errors coloured (false-occupied red, false-free blue, miss
 The last line is a JSON object with the figures.
 
     .venv/bin/python bench/map_accuracy.py [--seed 0] [--pairs 4] [--floor concrete]
-        [--duration-s 20] [--rate-hz 2] [--ideal-cameras] [--plain-objects] [--picture out.png]
+        [--duration-s 20] [--rate-hz 2] [--ideal-cameras] [--plain-objects] [--no-outline]
+        [--picture out.png]
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from services.evaluation.metrics import OBSTACLE_BAND_M
 from services.fusion.grid import FusedGrid
 from services.fusion.objects import ObjectTracker
 from services.fusion.params import GridParams
+from services.fusion.settings import FusionParams
 
 START_S = 1_700_000_000.0
 """Scene time of the first capture (movers' poses are a function of it)."""
@@ -69,7 +71,11 @@ SCORED = (
 
 
 def run(
-    sim: CameraSimParams, depth: DepthParams, duration_s: float, rate_hz: float
+    sim: CameraSimParams,
+    depth: DepthParams,
+    duration_s: float,
+    rate_hz: float,
+    outline_static: bool = FusionParams().outline_static,
 ) -> tuple[dict[str, object], Arrays]:
     """The figures (means over the scored snapshots), and (map occupancy, truth, seen) of the last
     snapshot on the truth's window."""
@@ -109,6 +115,8 @@ def run(
             tracker.add(pair, stamp_ns, list(found), k / rate_hz)
         if tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures}):
             grid.forget_occupied(*tracker.wake(r))  # as the fusion service does
+        if outline_static:
+            grid.set_predicted(grid.agreeing(tracker.outlines(r)))  # as the fusion service does
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time
         if k == frames - 1 or (k >= frames // 3 and (frames - 1 - k) % every == 0):
             objects = scene.truth_objects(stamp_ns / 1e9)
@@ -196,6 +204,9 @@ def main() -> None:
     parser.add_argument("--plain-objects", action="store_true")
     parser.add_argument("--ideal-cameras", action="store_true")
     parser.add_argument("--no-floor-model", action="store_true")
+    parser.add_argument(
+        "--no-outline", action="store_true", help="no static objects' footprints in the map"
+    )
     parser.add_argument("--duration-s", type=float, default=20.0)
     parser.add_argument("--rate-hz", type=float, default=2.0)
     parser.add_argument("--picture", type=Path, default=None)
@@ -216,7 +227,9 @@ def main() -> None:
     )
     depth = DepthParams.model_validate({"floor_model": not args.no_floor_model} | args.depth)
     cv2.setNumThreads(1)
-    result, (occupancy, truth, seen) = run(sim, depth, args.duration_s, args.rate_hz)
+    result, (occupancy, truth, seen) = run(
+        sim, depth, args.duration_s, args.rate_hz, not args.no_outline
+    )
     if args.picture is not None:
         cv2.imwrite(str(args.picture), picture(occupancy, truth, seen))
     print(f"means over {result['snapshots']} snapshots, one a second after the first third:")

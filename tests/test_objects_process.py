@@ -2,16 +2,19 @@
 ``map/objects``: queryable (msgpack and JSON) and a put per change."""
 
 import json
+import math
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from common import keys
-from common.client import MapUnavailable, objects, query_first
+from common.client import MapUnavailable, latest, objects, query_first
 from common.codec import WIRE_ENCODING, decode, encode
+from common.lattice import Window
 from common.messages import (
     DETECTIONS_KIND,
     OBJECTS_KIND,
@@ -20,7 +23,9 @@ from common.messages import (
     ObjectsHeader,
     TrackedObject,
 )
+from common.occupancy_map import OccupancyMap
 from tests.conftest import REPO, Bus, wait_for
+from tests.tiles import tile_arrays, tile_payload
 
 pytestmark = pytest.mark.process
 
@@ -74,3 +79,55 @@ def test_fusion_serves_tracked_objects(bus: Bus, tmp_path: Path) -> None:
     assert table.returncode == 0, table.stderr
     row = next(line for line in table.stdout.splitlines() if line.split()[:1] == [str(obj.id)])
     assert "static" in row and "0.800" in row and "p0" in row
+
+
+def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path) -> None:
+    """Frames that read a box's rim free (its tile: occupied 3 cm inside its outline, free
+    elsewhere) do not make its rim free in the map once its track is static: the cells whose
+    centres its measured footprint holds are served occupied, in the predicted layer. An object
+    the frames call free (a floor marking tracked for a while) is not outlined; the floor stays
+    free."""
+    bus.start("fusion", "--state-dir", str(tmp_path / "state"), "--publish-interval-s", "0.05")
+    tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
+    detections = bus.session.declare_publisher(keys.objects("p0"), encoding=WIRE_ENCODING)
+    wait_for(lambda: bool(query_first(bus.session, keys.MAP_OBJECTS, 30)), 30, "map/objects")
+    floor = Window(0, 0, 100, 80)  # 5 × 4 m
+    x, y = floor.cell_centers(0.05)
+    c, s = math.cos(0.3), math.sin(0.3)
+    along, across = c * (x - 3.0) + s * (y - 2.0), -s * (x - 3.0) + c * (y - 2.0)
+    inside = (np.abs(along) <= 0.4) & (np.abs(across) <= 0.25)
+    core = (np.abs(along) <= 0.37) & (np.abs(across) <= 0.22)
+    arrays = tile_arrays(floor, -1.0)
+    arrays["logodds"][core] = 1.0
+    marking = DetectionRecord(
+        center_m=(1.0, 0.5), size_m=(1.0, 0.2), yaw_rad=0.0, top_m=0.15, points=300, partial=False
+    )
+    started = time.time()
+    seq = 0
+    while time.time() - started < 4.5:  # a track is static after 3 s in place
+        stamp_ns = time.time_ns()
+        tiles.put(tile_payload("p0", floor, 0.0, seq=seq, stamp_ns=stamp_ns, arrays=arrays))
+        header = DetectionsHeader.model_validate(
+            decode(_detections(seq, stamp_ns), DETECTIONS_KIND, DetectionsHeader).header
+        )
+        both = header.model_copy(update={"detections": [*header.detections, marking]})
+        detections.put(encode(DETECTIONS_KIND, both))
+        seq += 1
+        time.sleep(0.3)
+
+    def served() -> OccupancyMap:
+        return latest(bus.session, layers=("predicted",), timeout_s=5)
+
+    def outlined() -> bool:
+        layer = served().predicted
+        return layer is not None and bool(layer.any())
+
+    wait_for(outlined, 10, "the footprint in the predicted layer")
+    grid = served()
+    assert grid.predicted is not None
+    where = floor.slices_in(grid.window)
+    occupancy, predicted = grid.occupancy[where], grid.predicted[where]
+    assert (inside & ~core).sum() > 20  # the rim the frames call free
+    assert predicted[inside].all() and (occupancy[inside] == 100).all()
+    free = (occupancy[~inside] >= 0) & (occupancy[~inside] <= 25)  # map.yaml's free_thresh
+    assert not predicted[~inside].any() and free.all()

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import zenoh
 
 from common import keys
@@ -114,6 +115,8 @@ class FusionState:
         self.contributors: set[str] = set()
         self.tracker = ObjectTracker()
         self.objects_header = ObjectsHeader(version=0, stamp_ns=0, objects=[])
+        self.outlined: list[tuple[Window, npt.NDArray[np.bool_]]] = []
+        """The static objects' footprints the map agrees with, as of the newest capture."""
         self.warn = RateLimitedLog(log)
         frozen, self.unsaved = grid.freeze()
         self.view = View(frozen)
@@ -194,17 +197,22 @@ class FusionState:
         )
 
     def refresh_objects(self) -> ObjectsHeader | None:
-        """Merge and track the captures that are complete, and sweep the moving tracks' paths
-        into the predicted layer up to one frame interval past now (the map's visible time);
-        returns the new object list if the tracks changed."""
+        """Merge and track the captures that are complete; the predicted layer holds the static
+        objects' footprints and the moving tracks' paths up to one frame interval past now (the
+        map's visible time); returns the new object list if the tracks changed."""
         now_ns = time.time_ns()
+        resolution_m = self.grid.params.resolution_m
         changed = self.tracker.flush(now_ns / 1e9, self.alive)
         if changed:
-            self.grid.forget_occupied(*self.tracker.wake(self.grid.params.resolution_m))
+            self.grid.forget_occupied(*self.tracker.wake(resolution_m))
+            if self.settings.outline_static:  # once a capture: tracks and evidence both moved
+                self.outlined = self.grid.agreeing(self.tracker.outlines(resolution_m))
         if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
-            swept = self.tracker.sweep(self.grid.params.resolution_m, self.grid.stamp_ns, until_ns)
-            self.grid.set_predicted(swept)
+            swept = self.tracker.sweep(resolution_m, self.grid.stamp_ns, until_ns)
+            self.grid.set_predicted(self.outlined + swept)
+        elif changed:
+            self.grid.set_predicted(self.outlined)
         if not changed:
             return None
         self.objects_header = ObjectsHeader(

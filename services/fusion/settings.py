@@ -39,6 +39,11 @@ class FusionParams(OvergridParams):
     save_interval_s: float = Field(
         0.5, gt=0.0, description="period of state saves: a crash loses at most this much"
     )
+    outline_static: bool = Field(
+        True,
+        description="serve the cells inside static objects' measured footprints (objects seen "
+        "whole) as occupied: the rim cells the frames' pixels decide either way",
+    )
     predict_movers: bool = Field(
         False,
         description="serve the cells moving objects' paths cover up to the next frame as occupied "
