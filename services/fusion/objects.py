@@ -93,7 +93,7 @@ class TrackerConfig:
     half a frame, so those the newest capture did not show (the floor a mover uncovered in its own
     shadow for the camera, or too sparse in pixels to be measured free again). With 1.5 frames a
     forklift at 2 m/s trailed a band of false obstacles a frame deep; offline, IoU +0.003 to
-    +0.013 on nine scenes at the same false-free to the digit (README, "Accuracy")."""
+    +0.013 on nine scenes at the same false-free to the digit (README, "How good is the map")."""
     max_size_m: float = 10.0
     """A footprint longer than this is a broken detection: it makes no wake and no outline."""
 
