@@ -18,6 +18,9 @@ PGM_FREE = 254
 PGM_UNKNOWN = 205
 OCCUPIED_THRESH = 0.65
 FREE_THRESH = 0.25
+OCCUPIED_MIN = round(OCCUPIED_THRESH * 100)
+FREE_MAX = round(FREE_THRESH * 100)
+"""The thresholds on nav_msgs occupancy (0..100): occupied from OCCUPIED_MIN, free up to FREE_MAX."""
 
 MAP_FILE_SUFFIXES = (".yaml", ".yml", ".pgm", ".png", ".npz")
 """What :func:`write_map` writes, by the file's suffix."""
@@ -34,8 +37,8 @@ PICTURE_COLORS = {
 def trinary(occupancy: npt.NDArray[np.int8]) -> npt.NDArray[np.uint8]:
     """map_server trinary values, rows as stored (origin row first)."""
     image = np.full(occupancy.shape, PGM_UNKNOWN, np.uint8)
-    image[(occupancy >= 0) & (occupancy <= FREE_THRESH * 100)] = PGM_FREE
-    image[occupancy >= OCCUPIED_THRESH * 100] = PGM_OCCUPIED
+    image[(occupancy >= 0) & (occupancy <= FREE_MAX)] = PGM_FREE
+    image[occupancy >= OCCUPIED_MIN] = PGM_OCCUPIED
     return image
 
 
@@ -98,10 +101,10 @@ def picture(
     occ = occupancy_map.occupancy
     rgb = np.empty((*occ.shape, 3), np.uint8)
     rgb[:] = PICTURE_COLORS["unknown"]
-    rgb[(occ >= 0) & (occ <= FREE_THRESH * 100)] = PICTURE_COLORS["free"]
-    between = (occ > FREE_THRESH * 100) & (occ < OCCUPIED_THRESH * 100)
+    rgb[(occ >= 0) & (occ <= FREE_MAX)] = PICTURE_COLORS["free"]
+    between = (occ > FREE_MAX) & (occ < OCCUPIED_MIN)
     rgb[between] = (150, 150, 150)
-    rgb[occ >= OCCUPIED_THRESH * 100] = PICTURE_COLORS["occupied"]
+    rgb[occ >= OCCUPIED_MIN] = PICTURE_COLORS["occupied"]
     scale = max(1, -(-min_width_px // max(occ.shape[1], 1)))
     big = np.repeat(np.repeat(rgb[::-1], scale, axis=0), scale, axis=1)
     if truth is not None:

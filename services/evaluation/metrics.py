@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 from common.camera import StereoCalibration
 from common.lattice import Window, reframe
-from common.mapfiles import FREE_THRESH, OCCUPIED_THRESH
+from common.mapfiles import FREE_MAX, OCCUPIED_MIN
 from common.messages import TruthObject
 from common.occupancy_map import UNKNOWN, OccupancyMap
 from common.sensor_model import SensorModelParams
@@ -26,8 +26,6 @@ Mask = npt.NDArray[np.bool_]
 _MODEL = SensorModelParams()
 OBSTACLE_BAND_M = (_MODEL.obstacle_min_m, _MODEL.obstacle_max_m)
 """Truth is judged on the band the depth service's sensor model calls an obstacle."""
-OCCUPIED_MIN = round(OCCUPIED_THRESH * 100)
-FREE_MAX = round(FREE_THRESH * 100)
 
 
 def occupancy_on(occupancy_map: OccupancyMap, window: Window) -> npt.NDArray[np.int8]:

@@ -28,6 +28,7 @@ from common.client import objects as query_objects
 from common.codec import CodecError, decode
 from common.lattice import Window
 from common.lifecycle import stop_on_signals
+from common.mapfiles import OCCUPIED_MIN
 from common.messages import (
     OBJECTS_KIND,
     TILE_KIND,
@@ -123,7 +124,7 @@ class Recorder:
 
     def _on_map(self, occupancy_map: OccupancyMap, arrival_s: float) -> None:
         occupancy = metrics.occupancy_on(occupancy_map, self.window)
-        occupied = occupancy >= metrics.OCCUPIED_MIN
+        occupied = occupancy >= OCCUPIED_MIN
         with self._lock:
             self.samples.append((metrics.MapSample(arrival_s, occupied), occupancy_map.stamp_ns))
             while self.samples and self.samples[0][0].visible_s < arrival_s - MAX_RECORD_S:
@@ -268,7 +269,7 @@ class Evaluator:
         return object_scores.blocking_static(truth.header.objects, self.floor_size_m)
 
     def objects(self, occupancy_map: OccupancyMap, truth: Truth) -> list[metrics.ObjectSize]:
-        occupied = metrics.occupancy_on(occupancy_map, self.window) >= metrics.OCCUPIED_MIN
+        occupied = metrics.occupancy_on(occupancy_map, self.window) >= OCCUPIED_MIN
         return [
             metrics.measure_object(occupied, self.window, self.resolution_m, obj)
             for obj in self.static_objects(truth)

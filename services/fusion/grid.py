@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from common.lattice import Window
-from common.mapfiles import OCCUPIED_THRESH
+from common.mapfiles import OCCUPIED_MIN
 from common.occupancy_map import UNKNOWN, occupancy_from_logodds
 from services.fusion import rules
 from services.fusion.params import GridParams as GridParams  # declared there, with its settings
@@ -477,7 +477,7 @@ class FusedGrid:
         for window, mask in cells:
             occupancy = self.window_of("occupancy", window)
             known = mask & (occupancy != UNKNOWN)
-            occupied = known & (occupancy >= round(OCCUPIED_THRESH * 100))
+            occupied = known & (occupancy >= OCCUPIED_MIN)
             total = int(np.count_nonzero(known))
             if total and np.count_nonzero(occupied) >= OUTLINE_OCCUPIED_SHARE * total:
                 out.append((window, mask))
