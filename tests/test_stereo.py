@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 
 from bench.stereo_real import known, non_occluded, read_disparity, score_disparity, search_band
+from services.camera_sim.rig import RigSpec, layout_pairs
 from services.depth.stereo import (
     FULL_WIDTH_INSIDE_PX,
     OPTIONAL_STAGES,
     MatcherConfig,
+    Rectifier,
     compute_disparity,
     equiangular_fraction,
     guided_weighted_median,
@@ -219,3 +221,27 @@ def test_the_guided_median_puts_a_fattened_edge_back_on_the_image_edge() -> None
             np.full((8, 8), np.nan, np.float32), gray[:8, :8].astype(np.uint8), 7
         )
     ).all()
+
+
+def test_a_row_offset_moves_the_right_images_rows_and_nothing_else() -> None:
+    """``Rectifier.with_row_offset`` samples the right image's row v + offset of the calibration's
+    rectification (a vertical ramp reads brighter by the ramp's slope × the offset), leaves the
+    left image alone, and at a zero offset is the calibration's rectification."""
+    calibration = layout_pairs(RigSpec(), (12.0, 10.0))[0]
+    rectifier = Rectifier.from_calibration(calibration, 2)
+    width, height = calibration.image_size
+    ramp = np.repeat((np.arange(height) * 0.4).astype(np.uint8)[:, None], width, axis=1)
+    texture = np.random.default_rng(5).integers(0, 256, (height, width), dtype=np.uint8)
+    size = rectifier.size[::-1]
+    calibrated = rectifier.rectify(texture, ramp)
+    unmoved = rectifier.with_row_offset(np.zeros(size, np.float32)).rectify(texture, ramp)
+    assert np.array_equal(unmoved[0], calibrated[0])
+    assert np.abs(unmoved[1].astype(int) - calibrated[1]).max() <= 1  # fixed-point maps' rounding
+    moved = rectifier.with_row_offset(np.full(size, 2.5, np.float32)).rectify(texture, ramp)
+    assert np.array_equal(moved[0], calibrated[0])
+    inner = (slice(20, -20), slice(20, -20))
+    # 2.5 processing rows are 5 rows of the full-resolution ramp, 0.4 gray levels each.
+    gained = moved[1][inner].astype(np.float64) - calibrated[1][inner]
+    assert abs(float(np.median(gained)) - 2.0) <= 0.5
+    with pytest.raises(ValueError, match="row offset"):
+        rectifier.with_row_offset(np.zeros((10, 10), np.float32))

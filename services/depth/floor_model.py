@@ -88,6 +88,9 @@ Learning (never from pixels where something stands), every ``learn_every`` frame
   is (a poor one by a pixel at the image's edges): an affine offset in the pixel is fitted to the
   pixels measured near the floor, started (and started again whenever a quarter of the image
   finds the floor elsewhere) by a coarse fit through the floor's offset in blocks of the image.
+  The rows are off too (the calibration's relative pitch and roll): an affine row offset is
+  fitted alike, and the depth pipeline rectifies the next frames with it
+  (:attr:`FloorModel.row_offset_px`), so the matcher as well as this model sees aligned rows.
 
 Pure numpy/OpenCV, no I/O: the depth pipeline owns one per pair.
 """
@@ -712,13 +715,10 @@ class FloorModel:
 
     # -- geometry -------------------------------------------------------------------------------
 
-    def _set_floor(self, floor_px: F32, row_offset_px: F32 | float = 0.0) -> None:
+    def _set_floor(self, floor_px: F32) -> None:
         self.floor_now = floor_px.astype(np.float32)
         """The floor's disparity with the fitted calibration residual."""
-        self._warp_maps = (
-            (self._u - self.floor_now).astype(np.float32),
-            (self._v + row_offset_px).astype(np.float32),
-        )
+        self._warp_maps = ((self._u - self.floor_now).astype(np.float32), self._v)
 
     def _fit_residual(self, left: F32, warped: F32, test: FloorTest) -> None:
         """Fit the calibration's residual on the floor: an affine disparity offset and an affine
@@ -737,8 +737,9 @@ class FloorModel:
         rate = self.config.offset_rate
         for axis, shift in ((0, shift_x[near]), (1, shift_y[near])):
             coef = robust_affine_fit(basis, shift)
-            # The shift is measured against the current warp: it adds to what is fitted already
-            # (x: disparity = floor + shift; y: the warp must move by −shift to align rows).
+            # The shift is measured against the current warp and rows (the pipeline aligns them by
+            # ``row_offset_px``): it adds to what is fitted already (x: disparity = floor + shift;
+            # y: the right image's rows must move by −shift to align).
             self.residual_coef[axis] += rate * (coef if axis == 0 else -coef)
         self._apply_residual()
 
@@ -748,10 +749,14 @@ class FloorModel:
 
     def _apply_residual(self) -> None:
         """The floor's disparity and the right image's warp from the fitted calibration residual."""
-        self._set_floor(
-            self.geometry.floor_disparity_px + self._affine_px(self.residual_coef[0]),
-            self._affine_px(self.residual_coef[1]),
-        )
+        self._set_floor(self.geometry.floor_disparity_px + self._affine_px(self.residual_coef[0]))
+
+    @property
+    def row_offset_px(self) -> F32:
+        """The fitted row offset at every pixel: the right image's row v shows what the
+        calibration puts at row v + offset. The depth pipeline rectifies with it
+        (:meth:`Rectifier.with_row_offset`), so the images this model sees are aligned by it."""
+        return self._affine_px(self.residual_coef[1])
 
     def _fit_matcher_offset(self, disparity: F32, test: FloorTest) -> None:
         """Fit the matcher's offset on the floor: its disparity minus the calibration's floor

@@ -72,7 +72,8 @@ class LowBand:
             for height_m in (RAISED_MIN_M, LOW_BAND_TOP_M)
         )
         """The disparities of RAISED_MIN_M and LOW_BAND_TOP_M at each pixel."""
-        self.rectifier = Rectifier.from_calibration(calib, 1)
+        self.calibrated_rectifier = Rectifier.from_calibration(calib, 1)
+        self.rectifier = self.calibrated_rectifier
         min_disparity, num_disparities = self.rectifier.disparity_band(
             -SEARCH_MARGIN_M, LOW_BAND_TOP_M + SEARCH_MARGIN_M
         )
@@ -85,6 +86,16 @@ class LowBand:
         """A region is matched over at least this many rows (StereoBM refuses fewer than its block)."""
         self.regions = 0
         """Regions matched again in the last frame."""
+
+    def align_rows(self, row_offset_px: F32) -> None:
+        """Rectify with the floor model's row offset (``row_offset_px`` at the processing
+        resolution, as :meth:`DepthPipeline._align_rows` applies it there): the same offset in
+        full-resolution pixels."""
+        width, height = self.calibrated_rectifier.size
+        full_px = cv2.resize(row_offset_px, (width, height), interpolation=cv2.INTER_LINEAR)
+        self.rectifier = self.calibrated_rectifier.with_row_offset(
+            (full_px * np.float32(self.downscale)).astype(np.float32)
+        )
 
     def refine(
         self,

@@ -1,4 +1,6 @@
-"""Frame → tile for one pair, with per-stage times. Everything per calibration is done once here.
+"""Frame → tile for one pair, with per-stage times. Everything per calibration is done once here,
+but for the right image's rectification, moved by the row offset the floor model fits (a few times
+after start-up, and when the fit moves by half the maps' resolution).
 
 Stages (their names are the tile's ``stage_ms`` keys): ``rectify``, ``disparity`` (the matcher and
 its optional stages, then low raised surfaces measured again at full resolution, see
@@ -65,12 +67,21 @@ def to_gray(image: np.ndarray) -> npt.NDArray[np.uint8]:
     return image
 
 
+ROW_ALIGN_STEP_PX = 1.0 / 64.0
+"""The rectifiers are aligned again once the fitted row offset has moved this far somewhere: half
+the resolution of OpenCV's fixed-point maps (1/32 px)."""
+
+
 class DepthPipeline:
     def __init__(self, calib: StereoCalibration, config: PipelineConfig) -> None:
         check_resolution(config.resolution_m)
         self.calib = calib
         self.config = config
-        self.rectifier = Rectifier.from_calibration(calib, config.downscale)
+        self.calibrated_rectifier = Rectifier.from_calibration(calib, config.downscale)
+        """The calibration's rectification; :attr:`rectifier` adds the fitted row offset."""
+        self.rectifier = self.calibrated_rectifier
+        self._row_offset_coef = np.zeros(3)
+        """The floor model's row-offset fit the rectifiers were last aligned to."""
         self.rays_world = self.rectifier.pixel_rays_world()
         floor_depth_m = -self.rectifier.C_world[2] / self.rays_world[2]
         self.floor_xy_m = (
@@ -109,6 +120,19 @@ class DepthPipeline:
             else None
         )
 
+    def _align_rows(self, floor_model: FloorModel) -> None:
+        """Rectify the next frames with the row offset the floor model has fitted (the matcher
+        and the low band alike), whenever the fit has moved."""
+        coef = floor_model.residual_coef[1]
+        # |Δa| + |Δb| + |Δc| bounds the offset's change anywhere (u', v' in [-1, 1]).
+        if float(np.abs(coef - self._row_offset_coef).sum()) < ROW_ALIGN_STEP_PX:
+            return
+        self._row_offset_coef = coef.copy()
+        offset_px = floor_model.row_offset_px
+        self.rectifier = self.calibrated_rectifier.with_row_offset(offset_px)
+        if self.low_band is not None:
+            self.low_band.align_rows(offset_px)
+
     def check_frame(self, left: np.ndarray, right: np.ndarray) -> None:
         width, height = self.calib.image_size
         for side, image in (("left", left), ("right", right)):
@@ -133,6 +157,7 @@ class DepthPipeline:
         evidence = disparity
         if self.floor_model is not None:
             evidence = self.floor_model.update(left_rect, right_rect, disparity)
+            self._align_rows(self.floor_model)
         times.append(time.perf_counter())
         points = project_to_world(
             evidence,
