@@ -31,6 +31,8 @@ def test_sigkilled_depth_is_dead_within_2_s_decays_and_rejoins(bus: Bus, tmp_pat
     )
     bus.start("camera-sim", "--pair-count", "2", "--pairs", "p0", "--rate-hz", "2")
     depth = bus.start("depth", "--pair", "p0")
+    # Three processes start on two cores: fusion's first answer took over 5 s in a full run.
+    wait_for(lambda: fusion_answers(bus), 60, "fusion to answer")
     wait_for(lambda: _alive(bus, "p0"), 60, "p0 alive")
     wait_for(lambda: (latest(bus.session).occupancy >= 0).sum() > 5000, 60, "p0's cells known")
 
