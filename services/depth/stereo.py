@@ -131,7 +131,10 @@ class Rectifier:
             raise ValueError(f"row offset is {row_offset_px.shape}, the images {(height, width)}")
         map_x, map_y, x_per_row, y_per_row = self._calibrated_right
         offset = row_offset_px.astype(np.float32)
-        maps = cv2.convertMaps(map_x + offset * x_per_row, map_y + offset * y_per_row, cv2.CV_16SC2)
+        moved_x, moved_y = np.multiply(offset, x_per_row), np.multiply(offset, y_per_row)
+        moved_x += map_x
+        moved_y += map_y
+        maps = cv2.convertMaps(moved_x, moved_y, cv2.CV_16SC2)
         return dataclasses.replace(self, _maps_right=maps)
 
     def rectify(self, left: U8, right: U8) -> tuple[U8, U8]:
