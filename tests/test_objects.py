@@ -403,14 +403,14 @@ def test_a_wake_cell_the_newest_capture_did_not_show_is_forgotten() -> None:
     assert after[kept] > occupied
 
 
-def test_only_static_objects_seen_whole_are_outlined() -> None:
+def test_only_static_objects_are_outlined() -> None:
     """A box seen whole and in place for the static time gives the cells whose centres its
-    footprint holds; before that, a box only ever seen partly (its size a lower bound), a mover
-    and a broken detection 10⁶ km long give none."""
+    footprint holds, and so does one only ever seen partly (its footprint a lower bound, inside
+    the object); before that, and a mover and a broken detection 10⁶ km long, give none."""
     resolution = 0.05
     tracker = ObjectTracker()
     box = _record((3.0, 2.0), (0.8, 0.5), yaw=0.3)
-    part = _record((6.0, 5.0), (0.4, 0.5), partial=True)
+    part = _record((6.0, 5.0), (0.5, 0.4), partial=True)
     broken = _record((3.0, 60.0), (1e9, 0.8))
     for k in range(9):  # 4 s at 2 Hz
         mover = _record((8.0 + 1.0 * k * FRAME_NS / 1e9, 2.0), (1.2, 0.8))
@@ -418,12 +418,15 @@ def test_only_static_objects_seen_whole_are_outlined() -> None:
         tracker.flush(now_s=0.0, live_pairs={"p0"})
         if k == 2:
             assert tracker.outlines(resolution) == []  # confirmed, not yet static
-    (window, mask), *others = tracker.outlines(resolution)
-    assert others == []
-    expected_window, expected = polygon_cells(corners((3.0, 2.0), (0.8, 0.5), 0.3), resolution)
-    track = next(t for t in tracker.objects() if t.center_m[0] < 4)
-    assert track.center_m == pytest.approx((3.0, 2.0), abs=1e-6)
-    assert window == expected_window and np.array_equal(mask, expected)
+    outlines = sorted(tracker.outlines(resolution), key=lambda cells: cells[0].i0)
+    assert len(outlines) == 2
+    for (window, mask), (center, size, yaw) in zip(
+        outlines, [((3.0, 2.0), (0.8, 0.5), 0.3), ((6.0, 5.0), (0.5, 0.4), 0.0)], strict=True
+    ):
+        track = next(t for t in tracker.objects() if abs(t.center_m[0] - center[0]) < 0.5)
+        assert track.center_m == pytest.approx(center, abs=1e-6)
+        expected_window, expected = polygon_cells(corners(center, size, yaw), resolution)
+        assert window == expected_window and np.array_equal(mask, expected)
 
 
 def test_polygon_cells_are_the_cells_whose_centres_it_holds() -> None:

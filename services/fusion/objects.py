@@ -521,16 +521,19 @@ class ObjectTracker:
         return cells, self.stamp_ns / 1e9 - self.config.wake_missed_frames * self.ahead_s()
 
     def outlines(self, resolution_m: float) -> list[tuple[Window, npt.NDArray[np.bool_]]]:
-        """Per static track seen whole (not partial), the cells whose centres its footprint holds:
-        measured to a centimetre or two on its points and image edges, where the frames' evidence
-        decides a rim cell (its centre 0–3 cm inside) by a share of pixels that a pixel of
-        fattening or a side face's noise tips either way; fusion serves them occupied."""
+        """Per static track, the cells whose centres its footprint holds: measured to a centimetre
+        or two on its points and image edges, where the frames' evidence decides a rim cell (its
+        centre 0–3 cm inside) by a share of pixels that a pixel of fattening or a side face's
+        noise tips either way; fusion serves them occupied. A partial view's footprint is a lower
+        bound, so its cells lie inside the object too (outlined, objects cut by an image's border
+        or a seam kept their rims: offline static false-free 0.32 → 0.14 % on the default scene,
+        0.66 → 0.09 % on ``--seed 2``)."""
         out = []
         for track in self.tracks:
             if not track.static or track.detections < self.config.confirm_detections:
                 continue
-            length, width, yaw, _, partial = track.size(self.config.best_view_share)
-            if partial or max(length, width) > self.config.max_size_m:
+            length, width, yaw, _, _ = track.size(self.config.best_view_share)
+            if max(length, width) > self.config.max_size_m:
                 continue
             footprint = corners(track.center_m, (length, width), yaw)
             out.append(polygon_cells(footprint, resolution_m))
