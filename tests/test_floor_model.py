@@ -578,6 +578,9 @@ def test_rows_a_calibration_leaves_apart_are_aligned_before_the_matcher() -> Non
     row_offset_px = pipeline.floor_model.row_offset_px
     expected_px = pipeline.rectifier.focal_px * pitch_rad
     assert np.abs(row_offset_px + expected_px).max() < 0.05
+    # What the rectifiers were aligned by: the fit, to their 1/32 px.
+    aligned = pipeline.floor_model.aligned_row_coef
+    assert np.abs(aligned - pipeline.floor_model.residual_coef[1]).sum() < 1 / 32
     occupied = (tile.count > 0) & (tile.logodds > 0)
     assert occupied.sum() < 0.005 * (tile.count > 0).sum()
 

@@ -27,7 +27,7 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
    not contradict, it becomes a floor observation.
 2. A pixel without a disparity is a floor observation only where both cameras' pixels (the left
    pixel and its floor-homography partner in the right) match their backgrounds and the floor test
-   does not contradict.
+   does not contradict (or, never modelled, by rule 11).
 3. The floor test alone never makes a floor observation where stereo has nothing: a uniform box top
    also "agrees" under the floor warp (it has no texture to disagree with).
 4. A pixel whose appearance departs from the background and has no disparity gives no evidence
@@ -63,8 +63,8 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
     never occupied). Not in a frame that re-learns, where the whole image departs.
 11. Paint along the baseline (a lane line along x) has no texture along x for either stereo or
     the floor test, and its edges stop the model's growth, so it is never modelled: a pixel of it
-    with no evidence, texture along the baseline only, and floor matching its background within
-    PAINT_WIDTH_M above and below it, is floor.
+    with no evidence and texture along the baseline only, in a gap of at most PAINT_GAP_M between
+    floor rows that match their background above and below it, is floor.
 
 Learning (never from pixels where something stands), every ``learn_every`` frames:
 
@@ -94,7 +94,8 @@ Learning (never from pixels where something stands), every ``learn_every`` frame
   finds the floor elsewhere) by a coarse fit through the floor's offset in blocks of the image.
   The rows are off too (the calibration's relative pitch and roll): an affine row offset is
   fitted alike, and the depth pipeline rectifies the next frames with it
-  (:attr:`FloorModel.row_offset_px`), so the matcher as well as this model sees aligned rows.
+  (:attr:`FloorModel.row_offset_px`, to 1/32 px), so the matcher as well as this model sees
+  aligned rows.
 
 Pure numpy/OpenCV, no I/O: the depth pipeline owns one per pair.
 """
@@ -212,9 +213,10 @@ GAP_KERNEL_MAX_PX = 31
 """The closing's kernel at most (a calibration of absurd focal length is refused later, by the
 disparity band it implies; it must not ask for a kernel of terabytes first)."""
 REGION_TOP_QUANTILE = 0.75
-PAINT_WIDTH_M = 0.10
-"""Rule 11: paint along the baseline up to this wide (lane lines are 5–10 cm) between floor the
-background confirms on both sides is floor."""
+PAINT_GAP_M = 0.16
+"""Rule 11: a gap up to this tall between floor rows the background confirms, across paint along
+the baseline, is the paint's (lane lines are 5–10 cm wide; the model's growth stops a pixel or
+two before each of their edges)."""
 
 
 @dataclass(frozen=True)
@@ -631,6 +633,22 @@ def _top_runs(start: U8, passable: U8, reach_bins: int, grace_bins: int, runs: U
                 left = 0
 
 
+@compiled
+def _paint_gaps(floor: Mask, candidates: Mask, gap_px: F32, paint: Mask) -> None:
+    """Per column: the ``candidates`` in a gap between two ``floor`` pixels whose rows lie at most
+    ``gap_px`` (at the gap's first row) apart."""
+    rows, cols = floor.shape
+    for col in range(cols):
+        last = -1
+        for row in range(rows):
+            if not floor[row, col]:
+                continue
+            if last >= 0 and row - last - 1 <= gap_px[last + 1, col]:
+                for inner in range(last + 1, row):
+                    paint[inner, col] = candidates[inner, col]
+            last = row
+
+
 @dataclass(frozen=True)
 class WindowMoments:
     """Windowed second moments of a background and an image (:meth:`FloorModel._window_moments`)."""
@@ -682,6 +700,9 @@ class FloorModel:
         self._basis = np.stack([np.ones_like(u), u / width * 2 - 1, v / height * 2 - 1])
         self.residual_coef = np.zeros((2, 3), np.float64)
         """Affine calibration residual on the floor: disparity (row 0) and row offset (row 1)."""
+        self.aligned_row_coef = np.zeros(3, np.float64)
+        """The row offset (affine, as ``residual_coef[1]``) the images this model is given were
+        rectified with: set by whoever rectifies them (the depth pipeline), zero otherwise."""
         self.matcher_offset_coef = np.zeros(3, np.float64)
         self.matcher_offset_px = np.zeros((height, width), np.float32)
         """What the matcher measures on the floor beyond the calibration's floor disparity
@@ -713,12 +734,12 @@ class FloorModel:
         self._beyond_probe = probe(-SEED_PROBE_PX - LINE_ACROSS_PX)
         self._gain = (1.0, 1.0)
         self._set_floor(self.geometry.floor_disparity_px)
-        reach_px = max(
-            1, min(math.ceil(PAINT_WIDTH_M * geometry.floor_px_per_m), GAP_KERNEL_MAX_PX)
-        )
-        column = np.ones((reach_px + 1, 1), np.uint8)
-        self._paint_reach = (column, (0, reach_px), (0, 0))
-        """Rule 11's one-sided column dilation: its kernel and anchors (the rows above, below)."""
+        focal_px = geometry.floor_px_per_m * geometry.camera_height_m
+        self._paint_gap_px = (
+            PAINT_GAP_M * geometry.floor_disparity_px * (focal_px / geometry.focal_baseline_px_m)
+        ).astype(np.float32)
+        """Rule 11's longest gap between floor rows at each pixel: PAINT_GAP_M at the floor's
+        depth there (f/z; foreshortening off the nadir makes it up to a fifth wider in metres)."""
         gap_px = min(GAP_CLOSED_M * geometry.floor_px_per_m, GAP_KERNEL_MAX_PX)
         self._gap_kernel = np.ones((2 * math.ceil(gap_px / 2) + 1,) * 2, np.uint8)
         # Compile the row scan (or load it from numba's cache) now, not in the first frame.
@@ -748,12 +769,13 @@ class FloorModel:
             return
         basis = self._basis[:, ::step, ::step][:, near].T
         rate = self.config.offset_rate
-        for axis, shift in ((0, shift_x[near]), (1, shift_y[near])):
-            coef = robust_affine_fit(basis, shift)
-            # The shift is measured against the current warp and rows (the pipeline aligns them by
-            # ``row_offset_px``): it adds to what is fitted already (x: disparity = floor + shift;
-            # y: the right image's rows must move by −shift to align).
-            self.residual_coef[axis] += rate * (coef if axis == 0 else -coef)
+        # x: measured against the current warp, the shift adds to the fitted offset (disparity =
+        # floor + shift). y: measured against the rows the images came aligned by
+        # (``aligned_row_coef``), which lag the fit: the offset is those minus the shift, and
+        # the fit moves toward it (moving by the shift alone overshot while they lagged).
+        self.residual_coef[0] += rate * robust_affine_fit(basis, shift_x[near])
+        row_coef = self.aligned_row_coef - robust_affine_fit(basis, shift_y[near])
+        self.residual_coef[1] += rate * (row_coef - self.residual_coef[1])
         self._apply_residual()
 
     def _affine_px(self, coef: npt.NDArray[np.float64]) -> F32:
@@ -761,14 +783,14 @@ class FloorModel:
         return np.tensordot(coef.astype(np.float32), self._basis, axes=1).astype(np.float32)
 
     def _apply_residual(self) -> None:
-        """The floor's disparity and the right image's warp from the fitted calibration residual."""
+        """The floor's disparity from the fitted calibration residual, and the warp at it."""
         self._set_floor(self.geometry.floor_disparity_px + self._affine_px(self.residual_coef[0]))
 
     @property
     def row_offset_px(self) -> F32:
         """The fitted row offset at every pixel: the right image's row v shows what the
-        calibration puts at row v + offset. The depth pipeline rectifies with it
-        (:meth:`Rectifier.with_row_offset`), so the images this model sees are aligned by it."""
+        calibration puts at row v + offset. Whoever rectifies the images aligns them by it
+        (:meth:`DepthPipeline._align_rows`) and says so in :attr:`aligned_row_coef`."""
         return self._affine_px(self.residual_coef[1])
 
     def _fit_matcher_offset(self, disparity: F32, test: FloorTest) -> None:
@@ -989,18 +1011,15 @@ class FloorModel:
 
     def _paint(self, matches: Mask, test: FloorTest, empty: Mask) -> Mask:
         """Rule 11: pixels of ``empty`` (no evidence) never modelled whose texture runs along the
-        baseline, with floor matching its background within PAINT_WIDTH_M above and below them:
+        baseline, in a column's gap of at most PAINT_GAP_M between floor matching its background:
         a painted line along x, the one floor feature stereo cannot measure at all (its edges
         have no texture along x, the growth stops at them). On the default scene 414 of its 1917
         unknown floor cells lay on such lines (18 % of their cells, 3.7 % elsewhere). A box's edge
         along x has its top, never modelled, on one side; a mover over a line departs from the
         background on both."""
-        kernel, above, below = self._paint_reach
-        floor = matches.view(np.uint8)
-        between = (cv2.dilate(floor, kernel, anchor=above) > 0) & (
-            cv2.dilate(floor, kernel, anchor=below) > 0
-        )
-        paint: Mask = empty & ~self._modelled & test.along_baseline & between
+        paint: Mask = np.zeros(self.shape, np.bool_)
+        candidates = empty & ~self._modelled & test.along_baseline
+        _paint_gaps(matches, candidates, self._paint_gap_px, paint)
         return paint
 
     def _fill_departed_regions(self, measured: F32, holes: Mask) -> None:

@@ -82,8 +82,6 @@ class DepthPipeline:
         self.calibrated_rectifier = Rectifier.from_calibration(calib, config.downscale)
         """The calibration's rectification; :attr:`rectifier` adds the fitted row offset."""
         self.rectifier = self.calibrated_rectifier
-        self._row_offset_coef = np.zeros(3)
-        """The floor model's row-offset fit the rectifiers were last aligned to."""
         self.rays_world = self.rectifier.pixel_rays_world()
         floor_depth_m = -self.rectifier.C_world[2] / self.rays_world[2]
         self.floor_xy_m = (
@@ -127,9 +125,9 @@ class DepthPipeline:
         and the low band alike), whenever the fit has moved."""
         coef = floor_model.residual_coef[1]
         # |Δa| + |Δb| + |Δc| bounds the offset's change anywhere (u', v' in [-1, 1]).
-        if float(np.abs(coef - self._row_offset_coef).sum()) < ROW_ALIGN_STEP_PX:
+        if float(np.abs(coef - floor_model.aligned_row_coef).sum()) < ROW_ALIGN_STEP_PX:
             return
-        self._row_offset_coef = coef.copy()
+        floor_model.aligned_row_coef = coef.copy()
         offset_px = floor_model.row_offset_px
         self.rectifier = self.calibrated_rectifier.with_row_offset(offset_px)
         if self.low_band is not None:
