@@ -71,7 +71,8 @@ ROW_ALIGN_STEP_PX = 1.0 / 32.0
 """The rectifiers are aligned again once the fitted row offset has moved this far somewhere: the
 resolution of OpenCV's fixed-point maps. Each time costs 0.6 ms at the processing resolution and
 2–3 ms at full (the low band's); over 30 s of the default scene (four pairs, 60 fits in all) they
-were rebuilt 25 times, 41 at 1/64 px (``bench/floor_model.py``, the ``floor`` stage)."""
+were rebuilt 21 times (at 1/64 px and with an earlier form of the fit, 41: ``bench/floor_model.py``,
+the ``floor`` stage)."""
 
 
 class DepthPipeline:
