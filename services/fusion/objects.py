@@ -9,6 +9,13 @@ Rules that shape the tracks:
 - a static object never turns into a moving track: once a track has stood still for
   ``static_after_s`` it is locked static (velocity held at zero); if the object is moved, its
   detections leave the static gate, the track ends and a new one begins;
+- association runs in turns, each a Hungarian assignment on what the turns before left: tracks
+  standing in one place take the detections where they stand (a tight gate); then the other
+  tracks seen before theirs around their predictions; then moving tracks that turned between
+  frames (:meth:`ObjectTracker._turned`), whose motion restarts; then the rest (new tracks, and
+  an object starting off from where it stood). At a frame a second a forklift runs 2 m between
+  frames and reverses within one: one assignment over all let a young box's track take the
+  forklift passing it and a reversing person's track take the box beside it;
 - a track is ``moving`` while its recent centres lie along a line covering ``moving_travel_m``
   (three times their scatter about it) at ``moving_speed_mps`` or more;
 - a detection overlapping a track's footprint that the track did not take is a piece of it (a
@@ -24,6 +31,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -69,13 +77,27 @@ class TrackerConfig:
     more, lie along a line covering ``moving_travel_m``: see ``_moves_steadily``."""
     sweep_max_speed_mps: float = 4.0
     """Faster than this is a wrong association, not a mover on a warehouse floor: not swept."""
+    turns_in_row: int = 2
+    """A track turns at most this many frames in a row (a forklift's U-turn at an aisle's end,
+    seen once a second), then runs straight for two frames first: else one wrong turn onto a
+    piece of something leads to the next across the floor."""
+    turn_speed_gain: float = 1.5
+    """A track that turned between frames reached at most this times as far as its speed
+    carries it: a turn changes a mover's direction more than its speed."""
+    size_ratio: float = 1.4
+    """A track turns only onto a view no larger than this times its size along an axis (a person
+    is not a forklift), nor smaller along both (a forklift is not a person; a piece of it may
+    be): :meth:`ObjectTracker._fits`."""
     sweep_max_s: float = 1.5
     """A sweep reaches at most this far past the track's last capture."""
     sweep_missed_frames: float = 1.5
     """A moving track missed for more than this many frame intervals is not swept."""
     static_after_s: float = 3.0
     static_travel_m: float = 0.2
-    """A track that stayed within this of where it began for ``static_after_s`` is static for good."""
+    """A track that stayed within this of one place for ``static_after_s`` is static for good."""
+    stamp_jitter_s: float = 0.05
+    """Capture stamps of a steady frame rate differ by this much: three frames a second apart
+    may span 2.9999 s."""
     size_history: int = 20
     best_view_share: float = 0.5
     """A track's size is the median over its views with at least this share of the points of its
@@ -172,6 +194,14 @@ def _join(pieces: list[Observation]) -> Observation:
     return Observation((cx, cy), (length, width), yaw, top, True, pairs, points)
 
 
+View = tuple[float, float, float, float, int]
+"""One view of an object: length, width, yaw, top, points."""
+
+
+def _view(obs: Observation) -> View:
+    return (*obs.size_m, obs.yaw_rad, obs.top_m, obs.points)
+
+
 @dataclass
 class Track:
     id: int
@@ -180,14 +210,22 @@ class Track:
     covariance: F64
     stamp_ns: int
     first_seen_ns: int
-    sizes: deque[tuple[float, float, float, float, int]]
-    """Complete views: length, width, yaw, top, points."""
-    partial_sizes: deque[tuple[float, float, float, float, int]]
+    sizes: deque[View]
+    """Complete views."""
+    partial_sizes: deque[View]
     """Partial views, used while no complete one exists."""
     pairs: tuple[str, ...]
-    origin_m: tuple[float, float]
+    anchor_m: tuple[float, float]
+    """Where the track has stood since ``still_since_ns`` (within ``static_travel_m``)."""
+    still_since_ns: int
     centres: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=6))
-    """Recent observed centres: capture time (s) and x, y."""
+    """Recent observed centres: capture time (s) and x, y; a turn restarts them."""
+    still_detections: int = 1
+    """Detections since ``still_since_ns``."""
+    cruise_mps: float = 0.0
+    """Its speed before it last turned (a chord across a corner is shorter than the path)."""
+    turns: int = 0
+    """Frames in a row at which it turned."""
     detections: int = 1
     static: bool = False
     moving: bool = False
@@ -195,6 +233,11 @@ class Track:
     @property
     def center_m(self) -> tuple[float, float]:
         return float(self.state[0]), float(self.state[1])
+
+    @property
+    def standing(self) -> bool:
+        """Static, or seen twice or more in one place and not moving."""
+        return self.static or (not self.moving and self.still_detections >= 2)
 
     def size(self, best_view_share: float) -> tuple[float, float, float, float, bool]:
         """Length, width, yaw, top and whether the size is a partial view's lower bound: over the
@@ -282,37 +325,68 @@ class ObjectTracker:
         accel = 0.0 if track.static else self.config.accel_sigma_mps2
         return f @ track.state, f @ track.covariance @ f.T + _process_noise(dt, accel)
 
-    def _gate_m(self, track: Track, covariance: F64) -> float:
-        (length, _), _ = self._footprint(track)
+    def _gate_m(self, covariance: F64) -> float:
+        """Where a track's detection may fall around its prediction."""
         spread = self.config.gate_sigmas * math.sqrt(float(covariance[0, 0] + covariance[1, 1]))
-        if track.static:
-            spread = 0.0
-        base = max(self.config.gate_min_m, 0.5 * length) if track.static else self.config.gate_min_m
-        return min(base + spread, self.config.gate_max_m)
+        return min(self.config.gate_min_m + spread, self.config.gate_max_m)
 
     def update(self, stamp_ns: int, observations: list[Observation]) -> None:
-        """One capture's observations: predict, associate, update, start and end tracks."""
+        """One capture's observations: predict, associate (in turns, see the module's rules),
+        update, start and end tracks."""
         if self.stamp_ns:
             gap_s = (stamp_ns - self.stamp_ns) / 1e9
             self.frame_interval_s = (
                 gap_s if not self.frame_interval_s else 0.8 * self.frame_interval_s + 0.2 * gap_s
             )
         predicted = [self._predict(t, stamp_ns) for t in self.tracks]
-        cost = np.full((len(self.tracks), len(observations)), NOT_ALLOWED)
-        for row, (track, (state, covariance)) in enumerate(
-            zip(self.tracks, predicted, strict=True)
-        ):
-            gate = self._gate_m(track, covariance)
-            for col, obs in enumerate(observations):
-                distance = math.hypot(obs.center_m[0] - state[0], obs.center_m[1] - state[1])
-                if distance <= gate:
-                    cost[row, col] = distance
-        rows, cols = linear_sum_assignment(cost) if cost.size else ([], [])
-        matches = {
-            int(row): [int(col)]
-            for row, col in zip(rows, cols, strict=True)
-            if cost[row, col] < NOT_ALLOWED
+        matches: dict[int, list[int]] = {}
+
+        def predicted_distance(row: int, obs: Observation) -> float:
+            state = predicted[row][0]
+            return math.hypot(obs.center_m[0] - state[0], obs.center_m[1] - state[1])
+
+        def assign(rows: list[int], distance: Callable[[int, Observation], float | None]) -> None:
+            cols = [
+                c for c in range(len(observations)) if c not in {m[0] for m in matches.values()}
+            ]
+            rows = [r for r in rows if r not in matches]
+            cost = np.full((len(rows), len(cols)), NOT_ALLOWED)
+            for i, row in enumerate(rows):
+                for j, col in enumerate(cols):
+                    d = distance(row, observations[col])
+                    if d is not None:
+                        cost[i, j] = d
+            for i, j in zip(*(linear_sum_assignment(cost) if cost.size else ([], [])), strict=True):
+                if cost[i, j] < NOT_ALLOWED:
+                    matches[rows[int(i)]] = [cols[int(j)]]
+
+        def within(gate_of: Callable[[int], float]) -> Callable[[int, Observation], float | None]:
+            def distance(row: int, obs: Observation) -> float | None:
+                d = predicted_distance(row, obs)
+                return d if d <= gate_of(row) else None
+
+            return distance
+
+        rows = range(len(self.tracks))
+        standing = [r for r in rows if self.tracks[r].standing]
+        assign(standing, within(lambda r: self._standing_gate_m(self.tracks[r])))
+        established = [r for r in rows if r not in standing and self.tracks[r].detections > 1]
+        assign(established, within(lambda r: self._gate_m(predicted[r][1])))
+        moving = [r for r in rows if self._steady(self.tracks[r], stamp_ns)]
+        assign(moving, lambda r, obs: self._turned(self.tracks[r], obs, stamp_ns))
+        # A moving track that met an object its size far off its prediction turned: its motion
+        # restarts (a piece's centre is no measure of that).
+        turned = {
+            r
+            for r in moving
+            if r in matches
+            and self._fits(self.tracks[r], observations[matches[r][0]])
+            and predicted_distance(r, observations[matches[r][0]])
+            > max(self.config.gate_min_m, 0.5 * self._predicted_travel_m(self.tracks[r], stamp_ns))
         }
+        rest = [r for r in rows if not self.tracks[r].static]
+        assign(rest, within(lambda r: self._gate_m(predicted[r][1])))
+
         footprints = [
             corners((float(state[0]), float(state[1])), *self._footprint(track))
             for track, (state, _) in zip(self.tracks, predicted, strict=True)
@@ -333,13 +407,76 @@ class ObjectTracker:
             elif on[0] in matches:
                 matches[on[0]].append(col)
         for row, cols_of in matches.items():
-            state, covariance = predicted[row]
+            track = self.tracks[row]
             obs = _join([observations[col] for col in cols_of])
-            self._correct(self.tracks[row], state, covariance, stamp_ns, obs)
+            state, covariance = predicted[row]
+            if row in turned:
+                self._restart_motion(track, stamp_ns, obs)
+                state, covariance = self._predict(track, stamp_ns)
+            self._correct(track, state, covariance, stamp_ns, obs)
         lost_ns = self.config.lost_after_s * 1e9
         self.tracks = [t for t in self.tracks if stamp_ns - t.stamp_ns <= lost_ns]
         self.stamp_ns = stamp_ns
         self.version += 1
+
+    def _standing_gate_m(self, track: Track) -> float:
+        """Where a standing object's detections fall: its centre moves by what a partial view or
+        pieces of it shift, within half its length."""
+        (length, _), _ = self._footprint(track)
+        return max(self.config.gate_min_m, 0.5 * length)
+
+    def _turned(self, track: Track, obs: Observation, stamp_ns: int) -> float | None:
+        """A moving track its prediction lost (it turned or reversed between frames): the distance
+        from where it was last seen to an observation it can have reached at its speed (times
+        ``turn_speed_gain``) and that fits its size; else None."""
+        _, x, y = track.centres[-1]
+        distance = math.hypot(obs.center_m[0] - x, obs.center_m[1] - y)
+        speed = max(math.hypot(*track.state[2:4]), track.cruise_mps)
+        reach_m = self.config.turn_speed_gain * speed * (stamp_ns / 1e9 - track.centres[-1][0])
+        if distance > self.config.gate_min_m + reach_m or not self._fits(track, obs):
+            return None
+        return distance
+
+    def _steady(self, track: Track, stamp_ns: int) -> bool:
+        """Moving, its velocity measured (two centres or more since it last turned), seen by the
+        last frames (``sweep_missed_frames``) and not turned ``turns_in_row`` frames in a row:
+        only such a track can have turned."""
+        missed_s = stamp_ns / 1e9 - track.centres[-1][0]
+        return (
+            track.moving
+            and len(track.centres) >= 2
+            and track.turns < self.config.turns_in_row
+            and missed_s <= (self.config.sweep_missed_frames + 1) * self.ahead_s()
+        )
+
+    def _predicted_travel_m(self, track: Track, stamp_ns: int) -> float:
+        """How far the track's velocity carries it from its last centre to ``stamp_ns``."""
+        return math.hypot(*track.state[2:4]) * (stamp_ns / 1e9 - track.centres[-1][0])
+
+    def _fits(self, track: Track, obs: Observation) -> bool:
+        """Whether ``obs`` is ``track``'s object by its size (``size_ratio``): neither larger along
+        an axis nor smaller along both."""
+        length, width, _, _, _ = track.size(self.config.best_view_share)
+        pairs = list(zip(sorted((length, width)), sorted(obs.size_m), strict=True))
+        ratio = self.config.size_ratio
+        larger = any(seen > size * ratio for size, seen in pairs)
+        smaller = all(seen < size / ratio for size, seen in pairs)
+        return not larger and not smaller
+
+    def _restart_motion(self, track: Track, stamp_ns: int, obs: Observation) -> None:
+        """A turned track's motion begins again from its last centre, with the velocity that
+        reaches ``obs`` at ``stamp_ns``, as uncertain as a new track's; its line of centres
+        starts anew."""
+        seen_s, x, y = track.centres[-1]
+        track.cruise_mps = max(track.cruise_mps, math.hypot(*track.state[2:4]))
+        velocity = (np.asarray(obs.center_m) - (x, y)) / max(stamp_ns / 1e9 - seen_s, 1e-3)
+        track.state = np.array([x, y, velocity[0], velocity[1]])
+        track.stamp_ns = round(seen_s * 1e9)
+        sigma = self.config.partial_sigma_m if obs.partial else self.config.measurement_sigma_m
+        speed_var = self.config.initial_speed_sigma_mps**2
+        track.covariance = np.diag([sigma**2, sigma**2, speed_var, speed_var])
+        track.centres = deque([track.centres[-1]], maxlen=track.centres.maxlen)
+        track.turns += 1
 
     def _footprint(self, track: Track) -> tuple[tuple[float, float], float]:
         length, width, yaw, _, _ = track.size(self.config.best_view_share)
@@ -357,11 +494,10 @@ class ObjectTracker:
             sizes=deque(maxlen=self.config.size_history),
             partial_sizes=deque(maxlen=self.config.size_history),
             pairs=obs.pairs,
-            origin_m=obs.center_m,
+            anchor_m=obs.center_m,
+            still_since_ns=stamp_ns,
         )
-        (track.partial_sizes if obs.partial else track.sizes).append(
-            (*obs.size_m, obs.yaw_rad, obs.top_m, obs.points)
-        )
+        (track.partial_sizes if obs.partial else track.sizes).append(_view(obs))
         track.centres.append((stamp_ns / 1e9, *obs.center_m))
         self.tracks.append(track)
         self.next_id += 1
@@ -382,9 +518,7 @@ class ObjectTracker:
         track.centres.append((stamp_ns / 1e9, *obs.center_m))
         track.pairs = obs.pairs
         track.detections += 1
-        (track.partial_sizes if obs.partial else track.sizes).append(
-            (*obs.size_m, obs.yaw_rad, obs.top_m, obs.points)
-        )
+        (track.partial_sizes if obs.partial else track.sizes).append(_view(obs))
         self._classify(track)
         if track.moving and max(obs.size_m) <= self.config.max_size_m:
             margin = 2 * self.config.wake_margin_m
@@ -424,17 +558,24 @@ class ObjectTracker:
     def _classify(self, track: Track) -> None:
         if track.static:
             return
-        age_s = (track.stamp_ns - track.first_seen_ns) / 1e9
-        travel = math.hypot(track.state[0] - track.origin_m[0], track.state[1] - track.origin_m[1])
-        # Judged anew at every frame: a wrong "moving" (pieces of a static object lining up once)
-        # does not stick, and a mover turning a corner, which the model cannot predict, is not
-        # swept until it runs straight again.
-        track.moving = self._moves_steadily(track)
-        if (
-            not track.moving
-            and age_s >= self.config.static_after_s
-            and travel <= self.config.static_travel_m
-        ):
+        if math.dist(track.center_m, track.anchor_m) > self.config.static_travel_m:
+            track.anchor_m, track.still_since_ns, track.still_detections = (
+                track.center_m,
+                track.stamp_ns,
+                1,
+            )
+        else:
+            track.still_detections += 1
+        # Judged anew at every frame once there is a line of centres to judge: a wrong "moving"
+        # (pieces of a static object lining up once) does not stick; a track that turned keeps
+        # its class until its new line is long enough.
+        if len(track.centres) >= 3:  # two frames straight since it last turned
+            track.turns = 0
+        if len(track.centres) >= self.config.moving_detections:
+            track.moving = self._moves_steadily(track)
+            track.cruise_mps = 0.0  # a line again: its filtered speed is measured
+        still_s = (track.stamp_ns - track.still_since_ns) / 1e9
+        if not track.moving and still_s >= self.config.static_after_s - self.config.stamp_jitter_s:
             track.static = True
             track.state[2:] = 0.0
             track.covariance[2:, :] = track.covariance[:, 2:] = 0.0
