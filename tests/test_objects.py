@@ -552,11 +552,11 @@ def test_movers_keep_their_ids_through_turns_at_one_frame_a_second(seed: int) ->
     assert scores.id_switches == {"mover_forklift": 0, "mover_person": 0}
     assert min(scores.tracked_share.values()) >= 0.8
     assert float(np.median(scores.velocity_error_mps)) < 0.3
-    static_ids = {
-        o.id for objects, _ in history[10:] for o in objects if o.object_class == "static"
-    }
-    static_truth = [o for o in history[-1][1] if not o.moving]
-    assert len(static_ids) == len(static_truth)
+    # Every static object is one track from its lock on, and no track is two objects.
+    ever = {o.id: o for objects, _ in history[10:] for o in objects if o.object_class == "static"}
+    matches = match_static(list(ever.values()), [o for o in history[-1][1] if not o.moving])
+    assert all(m.tracks == 1 and not m.merged for m in matches)
+    assert len(ever) == len(matches)
 
 
 def test_a_standing_objects_track_takes_its_object_before_a_passer_by() -> None:
@@ -584,3 +584,23 @@ def test_a_track_begun_off_its_object_is_static_once_it_stood_there() -> None:
         tracker.flush(now_s=0.0, live_pairs={"p0"})
     (track,) = tracker.objects()
     assert track.object_class == "static" and tracker.tracks[0].static
+
+
+def test_a_track_turns_at_most_two_frames_in_a_row() -> None:
+    """A forklift-sized track runs straight, then its object seems to turn at each of three
+    frames in a row (pieces of other things on its way): it follows two turns (a U-turn at an
+    aisle's end), not the third, which starts a track of its own."""
+    tracker = ObjectTracker()
+    path = [(1.0 + 2.0 * k, 2.0) for k in range(5)]
+    path += [(9.5, 3.5), (8.0, 2.0), (9.5, 0.5)]  # three turns in a row
+    for k, centre in enumerate(path):
+        tracker.add("p0", T0_NS + k * 10**9, [_record(centre, (1.2, 0.8))], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+        if k == 4:
+            (mover,) = tracker.tracks
+            assert mover.moving
+        if k == 6:
+            assert [t.id for t in tracker.tracks] == [mover.id]
+            assert math.dist(mover.center_m, centre) < 0.1
+    assert math.dist(mover.center_m, path[-2]) < 0.1  # not the third turn
+    assert any(math.dist(t.center_m, path[-1]) < 0.1 for t in tracker.tracks if t is not mover)

@@ -1,5 +1,5 @@
 """Objects over time: every pair's detections of one capture merged (one object at a seam is one
-object), associated with tracks (Hungarian on centre distance within a gate), each track a
+object), associated with tracks (Hungarian on centre distance, in turns), each track a
 constant-velocity Kalman filter; the cells a moving track sweeps ahead (DESIGN.md, Objects) and
 those it left behind.
 
@@ -79,8 +79,9 @@ class TrackerConfig:
     """Faster than this is a wrong association, not a mover on a warehouse floor: not swept."""
     turns_in_row: int = 2
     """A track turns at most this many frames in a row (a forklift's U-turn at an aisle's end,
-    seen once a second), then runs straight for two frames first: else one wrong turn onto a
-    piece of something leads to the next across the floor."""
+    seen once a second), then runs straight for a frame first: else one wrong turn onto a piece
+    of something leads to the next across the floor (two frames straight lost the person's track
+    at its reversals more often on a recorded ``--seed 2`` run)."""
     turn_speed_gain: float = 1.5
     """A track that turned between frames reached at most this times as far as its speed
     carries it: a turn changes a mover's direction more than its speed."""
@@ -196,6 +197,8 @@ def _join(pieces: list[Observation]) -> Observation:
 
 View = tuple[float, float, float, float, int]
 """One view of an object: length, width, yaw, top, points."""
+TrackSize = tuple[float, float, float, float, bool]
+"""A track's length, width, yaw, top and whether that is a partial view's lower bound."""
 
 
 def _view(obs: Observation) -> View:
@@ -239,7 +242,7 @@ class Track:
         """Static, or seen twice or more in one place and not moving."""
         return self.static or (not self.moving and self.still_detections >= 2)
 
-    def size(self, best_view_share: float) -> tuple[float, float, float, float, bool]:
+    def size(self, best_view_share: float) -> TrackSize:
         """Length, width, yaw, top and whether the size is a partial view's lower bound: over the
         complete views with ``best_view_share`` of the best one's points or more (partial views
         joined from pieces add up their points, not their measure), else over the partial ones."""
@@ -339,11 +342,12 @@ class ObjectTracker:
                 gap_s if not self.frame_interval_s else 0.8 * self.frame_interval_s + 0.2 * gap_s
             )
         predicted = [self._predict(t, stamp_ns) for t in self.tracks]
+        sizes = [t.size(self.config.best_view_share) for t in self.tracks]  # a median: once
+        gates = [self._gate_m(covariance) for _, covariance in predicted]
         matches: dict[int, list[int]] = {}
 
-        def predicted_distance(row: int, obs: Observation) -> float:
-            state = predicted[row][0]
-            return math.hypot(obs.center_m[0] - state[0], obs.center_m[1] - state[1])
+        def predicted_at(row: int) -> tuple[float, float]:
+            return float(predicted[row][0][0]), float(predicted[row][0][1])
 
         def assign(rows: list[int], distance: Callable[[int, Observation], float | None]) -> None:
             cols = [
@@ -360,36 +364,52 @@ class ObjectTracker:
                 if cost[i, j] < NOT_ALLOWED:
                     matches[rows[int(i)]] = [cols[int(j)]]
 
-        def within(gate_of: Callable[[int], float]) -> Callable[[int, Observation], float | None]:
+        def near(
+            centre_of: Callable[[int], tuple[float, float]], gate_of: Callable[[int], float]
+        ) -> Callable[[int, Observation], float | None]:
             def distance(row: int, obs: Observation) -> float | None:
-                d = predicted_distance(row, obs)
+                d = math.dist(obs.center_m, centre_of(row))
                 return d if d <= gate_of(row) else None
 
             return distance
 
         rows = range(len(self.tracks))
         standing = [r for r in rows if self.tracks[r].standing]
-        assign(standing, within(lambda r: self._standing_gate_m(self.tracks[r])))
+        # Where a standing object stands (not where a leftover velocity carries it), within what
+        # a partial view or pieces of it shift its centre: half its length.
+        assign(
+            standing,
+            near(
+                lambda r: self.tracks[r].center_m,
+                lambda r: max(self.config.gate_min_m, 0.5 * sizes[r][0]),
+            ),
+        )
         established = [r for r in rows if r not in standing and self.tracks[r].detections > 1]
-        assign(established, within(lambda r: self._gate_m(predicted[r][1])))
+        assign(established, near(predicted_at, gates.__getitem__))
         moving = [r for r in rows if self._steady(self.tracks[r], stamp_ns)]
-        assign(moving, lambda r, obs: self._turned(self.tracks[r], obs, stamp_ns))
+        assign(moving, lambda r, obs: self._turned(self.tracks[r], sizes[r], obs, stamp_ns))
         # A moving track that met an object its size far off its prediction turned: its motion
         # restarts (a piece's centre is no measure of that).
         turned = {
             r
             for r in moving
             if r in matches
-            and self._fits(self.tracks[r], observations[matches[r][0]])
-            and predicted_distance(r, observations[matches[r][0]])
+            and self._fits(sizes[r], observations[matches[r][0]])
+            and math.dist(observations[matches[r][0]].center_m, predicted_at(r))
             > max(self.config.gate_min_m, 0.5 * self._predicted_travel_m(self.tracks[r], stamp_ns))
         }
-        rest = [r for r in rows if not self.tracks[r].static]
-        assign(rest, within(lambda r: self._gate_m(predicted[r][1])))
+        new = [r for r in rows if self.tracks[r].detections == 1 or r in standing]
+        assign([r for r in new if not self.tracks[r].static], near(predicted_at, gates.__getitem__))
 
+        # Pieces join the track whose footprint they overlap: a turned track's is where it met
+        # its object, not where its old motion would have carried it.
         footprints = [
-            corners((float(state[0]), float(state[1])), *self._footprint(track))
-            for track, (state, _) in zip(self.tracks, predicted, strict=True)
+            corners(
+                observations[matches[r][0]].center_m if r in turned else predicted_at(r),
+                sizes[r][:2],
+                sizes[r][2],
+            )
+            for r in rows
         ]
         matched = {col for cols_of in matches.values() for col in cols_of}
         for col, obs in enumerate(observations):
@@ -402,16 +422,17 @@ class ObjectTracker:
                 for row, polygon in enumerate(footprints)
                 if polygons_overlap(polygon, _polygon(obs), self.config.merge_gap_m)
             ]
+            taken = [row for row in on if row in matches]
             if not on:
                 self._start(stamp_ns, obs)
-            elif on[0] in matches:
-                matches[on[0]].append(col)
+            elif taken:
+                matches[taken[0]].append(col)
         for row, cols_of in matches.items():
             track = self.tracks[row]
             obs = _join([observations[col] for col in cols_of])
             state, covariance = predicted[row]
             if row in turned:
-                self._restart_motion(track, stamp_ns, obs)
+                self._restart_motion(track, stamp_ns, observations[cols_of[0]])
                 state, covariance = self._predict(track, stamp_ns)
             self._correct(track, state, covariance, stamp_ns, obs)
         lost_ns = self.config.lost_after_s * 1e9
@@ -419,13 +440,9 @@ class ObjectTracker:
         self.stamp_ns = stamp_ns
         self.version += 1
 
-    def _standing_gate_m(self, track: Track) -> float:
-        """Where a standing object's detections fall: its centre moves by what a partial view or
-        pieces of it shift, within half its length."""
-        (length, _), _ = self._footprint(track)
-        return max(self.config.gate_min_m, 0.5 * length)
-
-    def _turned(self, track: Track, obs: Observation, stamp_ns: int) -> float | None:
+    def _turned(
+        self, track: Track, size: TrackSize, obs: Observation, stamp_ns: int
+    ) -> float | None:
         """A moving track its prediction lost (it turned or reversed between frames): the distance
         from where it was last seen to an observation it can have reached at its speed (times
         ``turn_speed_gain``) and that fits its size; else None."""
@@ -433,18 +450,16 @@ class ObjectTracker:
         distance = math.hypot(obs.center_m[0] - x, obs.center_m[1] - y)
         speed = max(math.hypot(*track.state[2:4]), track.cruise_mps)
         reach_m = self.config.turn_speed_gain * speed * (stamp_ns / 1e9 - track.centres[-1][0])
-        if distance > self.config.gate_min_m + reach_m or not self._fits(track, obs):
+        if distance > self.config.gate_min_m + reach_m or not self._fits(size, obs):
             return None
         return distance
 
     def _steady(self, track: Track, stamp_ns: int) -> bool:
-        """Moving, its velocity measured (two centres or more since it last turned), seen by the
-        last frames (``sweep_missed_frames``) and not turned ``turns_in_row`` frames in a row:
-        only such a track can have turned."""
+        """Moving, seen by the last frames (``sweep_missed_frames``) and not turned
+        ``turns_in_row`` frames in a row: only such a track can have turned."""
         missed_s = stamp_ns / 1e9 - track.centres[-1][0]
         return (
             track.moving
-            and len(track.centres) >= 2
             and track.turns < self.config.turns_in_row
             and missed_s <= (self.config.sweep_missed_frames + 1) * self.ahead_s()
         )
@@ -453,10 +468,10 @@ class ObjectTracker:
         """How far the track's velocity carries it from its last centre to ``stamp_ns``."""
         return math.hypot(*track.state[2:4]) * (stamp_ns / 1e9 - track.centres[-1][0])
 
-    def _fits(self, track: Track, obs: Observation) -> bool:
-        """Whether ``obs`` is ``track``'s object by its size (``size_ratio``): neither larger along
-        an axis nor smaller along both."""
-        length, width, _, _, _ = track.size(self.config.best_view_share)
+    def _fits(self, size: TrackSize, obs: Observation) -> bool:
+        """Whether ``obs`` is the object of a track of ``size`` (``size_ratio``): neither larger
+        along an axis nor smaller along both."""
+        length, width, _, _, _ = size
         pairs = list(zip(sorted((length, width)), sorted(obs.size_m), strict=True))
         ratio = self.config.size_ratio
         larger = any(seen > size * ratio for size, seen in pairs)
@@ -569,7 +584,7 @@ class ObjectTracker:
         # Judged anew at every frame once there is a line of centres to judge: a wrong "moving"
         # (pieces of a static object lining up once) does not stick; a track that turned keeps
         # its class until its new line is long enough.
-        if len(track.centres) >= 3:  # two frames straight since it last turned
+        if len(track.centres) >= 3:  # it ran straight for a frame since it last turned
             track.turns = 0
         if len(track.centres) >= self.config.moving_detections:
             track.moving = self._moves_steadily(track)
