@@ -455,7 +455,7 @@ class ObjectTracker:
         return distance
 
     def _steady(self, track: Track, stamp_ns: int) -> bool:
-        """Moving, seen by the last frames (``sweep_missed_frames``) and not turned
+        """Moving, missed by at most ``sweep_missed_frames`` + 1 frame intervals and not turned
         ``turns_in_row`` frames in a row: only such a track can have turned."""
         missed_s = stamp_ns / 1e9 - track.centres[-1][0]
         return (
