@@ -237,6 +237,10 @@ class Track:
     def center_m(self) -> tuple[float, float]:
         return float(self.state[0]), float(self.state[1])
 
+    def unseen_s(self, stamp_ns: int) -> float:
+        """Seconds from its last observed centre to ``stamp_ns``."""
+        return stamp_ns / 1e9 - self.centres[-1][0]
+
     @property
     def standing(self) -> bool:
         """Static, or seen twice or more in one place and not moving."""
@@ -449,7 +453,7 @@ class ObjectTracker:
         _, x, y = track.centres[-1]
         distance = math.hypot(obs.center_m[0] - x, obs.center_m[1] - y)
         speed = max(math.hypot(*track.state[2:4]), track.cruise_mps)
-        reach_m = self.config.turn_speed_gain * speed * (stamp_ns / 1e9 - track.centres[-1][0])
+        reach_m = self.config.turn_speed_gain * speed * track.unseen_s(stamp_ns)
         if distance > self.config.gate_min_m + reach_m or not self._fits(size, obs):
             return None
         return distance
@@ -457,16 +461,15 @@ class ObjectTracker:
     def _steady(self, track: Track, stamp_ns: int) -> bool:
         """Moving, missed by at most ``sweep_missed_frames`` + 1 frame intervals and not turned
         ``turns_in_row`` frames in a row: only such a track can have turned."""
-        missed_s = stamp_ns / 1e9 - track.centres[-1][0]
         return (
             track.moving
             and track.turns < self.config.turns_in_row
-            and missed_s <= (self.config.sweep_missed_frames + 1) * self.ahead_s()
+            and track.unseen_s(stamp_ns) <= (self.config.sweep_missed_frames + 1) * self.ahead_s()
         )
 
     def _predicted_travel_m(self, track: Track, stamp_ns: int) -> float:
         """How far the track's velocity carries it from its last centre to ``stamp_ns``."""
-        return math.hypot(*track.state[2:4]) * (stamp_ns / 1e9 - track.centres[-1][0])
+        return math.hypot(*track.state[2:4]) * track.unseen_s(stamp_ns)
 
     def _fits(self, size: TrackSize, obs: Observation) -> bool:
         """Whether ``obs`` is the object of a track of ``size`` (``size_ratio``): neither larger
@@ -484,12 +487,10 @@ class ObjectTracker:
         starts anew."""
         seen_s, x, y = track.centres[-1]
         track.cruise_mps = max(track.cruise_mps, math.hypot(*track.state[2:4]))
-        velocity = (np.asarray(obs.center_m) - (x, y)) / max(stamp_ns / 1e9 - seen_s, 1e-3)
+        velocity = (np.asarray(obs.center_m) - (x, y)) / max(track.unseen_s(stamp_ns), 1e-3)
         track.state = np.array([x, y, velocity[0], velocity[1]])
         track.stamp_ns = round(seen_s * 1e9)
-        sigma = self.config.partial_sigma_m if obs.partial else self.config.measurement_sigma_m
-        speed_var = self.config.initial_speed_sigma_mps**2
-        track.covariance = np.diag([sigma**2, sigma**2, speed_var, speed_var])
+        track.covariance = self._initial_covariance(obs)
         track.centres = deque([track.centres[-1]], maxlen=track.centres.maxlen)
         track.turns += 1
 
@@ -497,13 +498,20 @@ class ObjectTracker:
         length, width, yaw, _, _ = track.size(self.config.best_view_share)
         return (length, width), yaw
 
+    def _sigma_m(self, obs: Observation) -> float:
+        """The error of an observation's centre."""
+        return self.config.partial_sigma_m if obs.partial else self.config.measurement_sigma_m
+
+    def _initial_covariance(self, obs: Observation) -> F64:
+        """A motion's beginning: at ``obs`` to its centre's error, at any walking or driving speed."""
+        sigma, speed_var = self._sigma_m(obs), self.config.initial_speed_sigma_mps**2
+        return np.diag([sigma**2, sigma**2, speed_var, speed_var])
+
     def _start(self, stamp_ns: int, obs: Observation) -> None:
-        sigma = self.config.partial_sigma_m if obs.partial else self.config.measurement_sigma_m
-        speed_var = self.config.initial_speed_sigma_mps**2
         track = Track(
             id=self.next_id,
             state=np.array([obs.center_m[0], obs.center_m[1], 0.0, 0.0]),
-            covariance=np.diag([sigma**2, sigma**2, speed_var, speed_var]),
+            covariance=self._initial_covariance(obs),
             stamp_ns=stamp_ns,
             first_seen_ns=stamp_ns,
             sizes=deque(maxlen=self.config.size_history),
@@ -520,9 +528,8 @@ class ObjectTracker:
     def _correct(
         self, track: Track, state: F64, covariance: F64, stamp_ns: int, obs: Observation
     ) -> None:
-        sigma = self.config.partial_sigma_m if obs.partial else self.config.measurement_sigma_m
         innovation = np.asarray(obs.center_m) - H @ state
-        s = H @ covariance @ H.T + np.eye(2) * sigma**2
+        s = H @ covariance @ H.T + np.eye(2) * self._sigma_m(obs) ** 2
         gain = covariance @ H.T @ np.linalg.inv(s)
         track.state = state + gain @ innovation
         track.covariance = (np.eye(4) - gain @ H) @ covariance
