@@ -4,7 +4,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from common.lattice import Window
-from common.occupancy_map import OCCUPIED, occupancy_from_logodds
+from common.mapfiles import OCCUPIED_MIN
+from common.occupancy_map import OCCUPIED, UNKNOWN, occupancy_from_logodds
 from services.fusion.grid import (
     FusedGrid,
     GridParams,
@@ -233,6 +234,29 @@ def test_the_predicted_layer_is_served_occupied_and_clears() -> None:
     assert grid.layer("predicted").sum() == 9
     assert grid.set_predicted([]) and not grid.layer("predicted").any()
     assert not grid.set_predicted([])  # nothing predicted: nothing to visit
+
+
+def test_a_contested_footprint_is_served_unknown_where_the_frames_call_it_free() -> None:
+    """A static object's footprint the frames call mostly free (:meth:`FusedGrid.agreeing`):
+    its free cells are served unknown, its occupied ones stay occupied, the evidence stays as
+    measured, and the cells show it again once the footprint is gone."""
+    grid = FusedGrid(P)
+    _integrate(grid, Window(0, 0, 20, 20), -1.0)
+    _integrate(grid, Window(6, 6, 1, 1), 3.0)
+    footprint = (Window(4, 4, 4, 4), np.ones((4, 4), np.bool_))
+    solid = (Window(10, 10, 2, 2), np.ones((2, 2), np.bool_))
+    _integrate(grid, Window(10, 10, 2, 2), 3.0)
+    agree, disagree = grid.agreeing([footprint, solid])
+    assert agree == [solid] and disagree == [footprint]
+    assert grid.set_contested(disagree)
+    served, evidence = grid.served_occupancy(), grid.layer("occupancy")
+    free = int(evidence[3, 3])
+    others = np.ones((4, 4), np.bool_)
+    others[2, 2] = False  # cell (6, 6), called occupied
+    assert (served[4:8, 4:8][others] == UNKNOWN).all() and served[6, 6] == evidence[6, 6]
+    assert evidence[6, 6] >= OCCUPIED_MIN and 0 <= free < 50 and served[3, 3] == evidence[5, 5]
+    assert not grid.set_contested(disagree)  # unchanged
+    assert grid.set_contested([]) and grid.served_occupancy()[5, 5] == free
 
 
 def test_chunk_aligned_is_integer_exact_at_any_lattice_index() -> None:

@@ -85,8 +85,8 @@ def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path)
     """Frames that read a box's rim free (its tile: occupied 3 cm inside its outline, free
     elsewhere) do not make its rim free in the map once its track is static: the cells whose
     centres its measured footprint holds are served occupied, in the predicted layer. An object
-    the frames call free (a floor marking tracked for a while) is not outlined; the floor stays
-    free."""
+    the frames call free (a floor marking tracked for a while) is not outlined: its footprint is
+    served unknown, neither an obstacle nor free floor; the floor around both stays free."""
     bus.start("fusion", "--state-dir", str(tmp_path / "state"), "--publish-interval-s", "0.05")
     tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
     detections = bus.session.declare_publisher(keys.objects("p0"), encoding=WIRE_ENCODING)
@@ -129,5 +129,10 @@ def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path)
     occupancy, predicted = grid.occupancy[where], grid.predicted[where]
     assert (inside & ~core).sum() > 20  # the rim the frames call free
     assert predicted[inside].all() and (occupancy[inside] == 100).all()
-    free = (occupancy[~inside] >= 0) & (occupancy[~inside] <= 25)  # map.yaml's free_thresh
-    assert not predicted[~inside].any() and free.all()
+    marked = (np.abs(x - 1.0) <= 0.5) & (np.abs(y - 0.5) <= 0.1)
+    marked_core = (np.abs(x - 1.0) <= 0.45) & (np.abs(y - 0.5) <= 0.05)
+    assert not predicted[~inside].any()
+    assert (occupancy[marked_core] == -1).all()  # contested: unknown
+    elsewhere = ~inside & ~marked
+    free = (occupancy[elsewhere] >= 0) & (occupancy[elsewhere] <= 25)  # map.yaml's free_thresh
+    assert free.all()

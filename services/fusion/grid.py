@@ -35,6 +35,7 @@ LAYER_FILLS: tuple[tuple[str, type[np.generic], float | bool], ...] = (
     ("last_seen_s", np.float64, 0.0),
     ("occupancy", np.int8, UNKNOWN),
     ("predicted", np.bool_, False),
+    ("contested", np.bool_, False),
 )
 """Every layer, its dtype and the value of a cell never observed."""
 EVIDENCE_LAYERS = ("logodds", "height_m", "known", "last_seen_s")
@@ -44,8 +45,11 @@ LAYER_FILL = {name: fill for name, _, fill in LAYER_FILLS}
 OUTLINE_OCCUPIED_SHARE = 0.75
 """An object's footprint is served occupied only where the frames call this share of its known
 cells occupied: offline, ``--seed 2``, every real object's footprint measured 0.91–0.99, a lane
-line tracked as a static object 0.36 (its outline painted 154 false obstacles)."""
+line tracked as a static object 0.36 (its outline painted 154 false obstacles). Below it, the
+footprint is *contested*: its cells the frames do not call occupied are served unknown."""
 
+CellMasks = list[tuple[Window, npt.NDArray[np.bool_]]]
+"""Cells on the lattice: a window each, and a mask of the cells meant in it."""
 ChunkKey = tuple[int, int]
 """(ci, cj): the chunk holding cells i ∈ [ci·64, ci·64+64), j ∈ [cj·64, cj·64+64)."""
 
@@ -165,6 +169,7 @@ class Chunk:
     last_seen_s: npt.NDArray[np.float64]
     occupancy: npt.NDArray[np.int8]
     predicted: npt.NDArray[np.bool_]
+    contested: npt.NDArray[np.bool_]
     decay_check_s: float
     """Observation time of its oldest known cell (or earlier): decay looks here only once that is
     ``decay_after_s`` old, so a pass costs the chunks that may be stale, not the whole map."""
@@ -193,8 +198,11 @@ class Chunk:
         self.occupancy[cells] = UNKNOWN
 
     def served(self) -> npt.NDArray[np.int8]:
-        """What clients read: the evidence, with the predicted layer's cells occupied."""
-        return rules.occupied_where_predicted(self.occupancy, self.predicted)
+        """What clients read: the evidence, with the predicted layer's cells occupied and the
+        contested layer's not called occupied unknown."""
+        return rules.occupied_where_predicted(
+            rules.unknown_where_contested(self.occupancy, self.contested), self.predicted
+        )
 
 
 @dataclass(frozen=True)
@@ -295,7 +303,8 @@ class FusedGrid:
         """Cells changed since they were last taken (the next ``map/updates``), per chunk."""
         self.changed: set[ChunkKey] = set()
         """Chunks changed since the last :meth:`freeze`."""
-        self._predicted: set[ChunkKey] = set()
+        self._marked: dict[str, set[ChunkKey]] = {"predicted": set(), "contested": set()}
+        """Per mask layer, the chunks where it holds cells."""
         self._frozen = FrozenMap(epoch_ns, 0, 0, params.resolution_m, self.window, {})
 
     def _admit(self, tile_window: Window) -> Window:
@@ -406,9 +415,7 @@ class FusedGrid:
             self.version += 1
         return changed
 
-    def forget_occupied(
-        self, cells: list[tuple[Window, npt.NDArray[np.bool_]]], seen_before_s: float
-    ) -> int:
+    def forget_occupied(self, cells: CellMasks, seen_before_s: float) -> int:
         """Occupied cells among ``cells`` last observed before ``seen_before_s`` become unknown;
         returns how many. A mover's wake: what put them there has gone, and no frame since has
         shown them (a floor cell with too few pixels of its own keeps a hit for seconds)."""
@@ -429,9 +436,7 @@ class FusedGrid:
             self.version += 1
         return forgotten
 
-    def _chunk_masks(
-        self, cells: list[tuple[Window, npt.NDArray[np.bool_]]]
-    ) -> dict[ChunkKey, npt.NDArray[np.bool_]]:
+    def _chunk_masks(self, cells: CellMasks) -> dict[ChunkKey, npt.NDArray[np.bool_]]:
         """``cells`` (masks on windows) as one mask per chunk they touch; cells outside the map
         are dropped."""
         masks: dict[ChunkKey, npt.NDArray[np.bool_]] = {}
@@ -444,44 +449,55 @@ class FusedGrid:
                 target[sub.slices_in(cw)] |= mask[sub.slices_in(window)]
         return masks
 
-    def set_predicted(self, swept: list[tuple[Window, npt.NDArray[np.bool_]]]) -> bool:
+    def set_predicted(self, swept: CellMasks) -> bool:
         """Replace the predicted layer by these swept cells (those outside the map are dropped);
         True if it changed. The cells it no longer covers show the frames' evidence again."""
-        if not swept and not self._predicted:
-            return False  # the usual case without movers: nothing to visit
-        masks = self._chunk_masks(swept)
+        return self._set_mask_layer("predicted", swept)
+
+    def set_contested(self, footprints: CellMasks) -> bool:
+        """Replace the contested layer by these cells: static objects' footprints the frames'
+        evidence does not agree with (see :meth:`agreeing`); True if it changed."""
+        return self._set_mask_layer("contested", footprints)
+
+    def _set_mask_layer(self, name: str, cells: CellMasks) -> bool:
+        marked = self._marked[name]
+        if not cells and not marked:
+            return False  # the usual case: nothing to visit
+        masks = self._chunk_masks(cells)
         changed = False
-        for key in self._predicted | set(masks):
+        for key in marked | set(masks):
             new = masks.get(key)
             if new is None:
                 new = np.zeros((CHUNK_CELLS, CHUNK_CELLS), np.bool_)
             chunk = self.chunks.get(key)
-            unchanged = not new.any() if chunk is None else np.array_equal(new, chunk.predicted)
+            old = None if chunk is None else getattr(chunk, name)
+            unchanged = not new.any() if old is None else np.array_equal(new, old)
             if unchanged:
                 continue
-            self._writable(key).predicted = new
+            setattr(self._writable(key), name, new)
             self.changed.add(key)
             self._mark(key, chunk_window(key).intersect(self.window))
             changed = True
-        self._predicted = {key for key, mask in masks.items() if mask.any()}
+        self._marked[name] = {key for key, mask in masks.items() if mask.any()}
         if changed:
             self.version += 1
         return changed
 
-    def agreeing(
-        self, cells: list[tuple[Window, npt.NDArray[np.bool_]]]
-    ) -> list[tuple[Window, npt.NDArray[np.bool_]]]:
-        """Those of ``cells`` (an object's footprint each) whose known cells the frames' evidence
-        calls occupied for OUTLINE_OCCUPIED_SHARE or more: the map agrees there is an object."""
-        out = []
+    def agreeing(self, cells: CellMasks) -> tuple[CellMasks, CellMasks]:
+        """``cells`` (an object's footprint each) split in two: those whose known cells the
+        frames' evidence calls occupied for OUTLINE_OCCUPIED_SHARE or more (the map agrees there
+        is an object), and the others."""
+        agree, disagree = [], []
         for window, mask in cells:
             occupancy = self.window_of("occupancy", window)
             known = mask & (occupancy != UNKNOWN)
             occupied = known & (occupancy >= OCCUPIED_MIN)
             total = int(np.count_nonzero(known))
             if total and np.count_nonzero(occupied) >= OUTLINE_OCCUPIED_SHARE * total:
-                out.append((window, mask))
-        return out
+                agree.append((window, mask))
+            else:
+                disagree.append((window, mask))
+        return agree, disagree
 
     def _writable(self, key: ChunkKey) -> Chunk:
         """The chunk to write into: created when new, copied when a frozen map shares it."""

@@ -12,6 +12,7 @@ import numpy as np
 import numpy.typing as npt
 
 from common.compiled import compiled
+from common.mapfiles import OCCUPIED_MIN
 from common.occupancy_map import (
     OCCUPANCY_LUT,
     OCCUPANCY_LUT_OFFSET,
@@ -96,7 +97,19 @@ def combine_tile(
 def occupied_where_predicted(
     occupancy: npt.NDArray[np.int8], predicted: npt.NDArray[np.bool_]
 ) -> npt.NDArray[np.int8]:
-    """Overwrite with occupied where a moving object's path covers the cell (a copy): the map a
-    robot reads covers where a mover is by the time the map is read, not where a frame saw it.
+    """Overwrite with occupied where the predicted layer holds the cell (a copy): a static
+    object's footprint the frames agree with, or a moving object's path, so the map a robot
+    reads covers where a mover is by the time the map is read, not where a frame saw it.
     Applied to the served map only; the evidence layers stay as measured."""
     return np.where(predicted, np.int8(OCCUPIED), occupancy)
+
+
+def unknown_where_contested(
+    occupancy: npt.NDArray[np.int8], contested: npt.NDArray[np.bool_]
+) -> npt.NDArray[np.int8]:
+    """Unknown where the contested layer holds the cell and the frames do not call it occupied
+    (a copy; served map only): a static object stands there whose footprint the frames call
+    mostly free. A top of the floor's grey, held up by its measured edge, that the floor model
+    took for floor; or a floor marking tracked as an object: unknown either way, never free
+    floor under an object nor a false obstacle."""
+    return np.where(contested & (occupancy < OCCUPIED_MIN), np.int8(UNKNOWN), occupancy)

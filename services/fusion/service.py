@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 import zenoh
 
 from common import keys
@@ -39,6 +38,7 @@ from common.occupancy_map import OccupancyMap
 from common.settings import parse_settings, startup_error
 from common.zenoh_session import open_session
 from services.fusion.grid import (
+    CellMasks,
     FrozenMap,
     FusedGrid,
     ServedAssembler,
@@ -115,7 +115,7 @@ class FusionState:
         self.contributors: set[str] = set()
         self.tracker = ObjectTracker()
         self.objects_header = ObjectsHeader(version=0, stamp_ns=0, objects=[])
-        self.outlined: list[tuple[Window, npt.NDArray[np.bool_]]] = []
+        self.outlined: CellMasks = []
         """The static objects' footprints the map agrees with, as of the newest capture."""
         self.warn = RateLimitedLog(log)
         frozen, self.unsaved = grid.freeze()
@@ -198,15 +198,17 @@ class FusionState:
 
     def refresh_objects(self) -> ObjectsHeader | None:
         """Merge and track the captures that are complete; the predicted layer holds the static
-        objects' footprints and the moving tracks' paths up to one frame interval past now (the
-        map's visible time); returns the new object list if the tracks changed."""
+        objects' footprints the frames agree with (the contested layer the others) and the moving
+        tracks' paths up to one frame interval past now (the map's visible time); returns the new
+        object list if the tracks changed."""
         now_ns = time.time_ns()
         resolution_m = self.grid.params.resolution_m
         changed = self.tracker.flush(now_ns / 1e9, self.alive)
         if changed:
             self.grid.forget_occupied(*self.tracker.wake(resolution_m))
             if self.settings.outline_static:  # once a capture: tracks and evidence both moved
-                self.outlined = self.grid.agreeing(self.tracker.outlines(resolution_m))
+                self.outlined, contested = self.grid.agreeing(self.tracker.outlines(resolution_m))
+                self.grid.set_contested(contested)
         if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
             swept = self.tracker.sweep(resolution_m, self.grid.stamp_ns, until_ns)

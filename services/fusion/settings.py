@@ -41,8 +41,9 @@ class FusionParams(OvergridParams):
     )
     outline_static: bool = Field(
         True,
-        description="serve the cells inside static objects' measured footprints (objects seen "
-        "whole) as occupied: the rim cells the frames' pixels decide either way",
+        description="serve the cells inside static objects' measured footprints as occupied "
+        "where the frames agree (the rim cells their pixels decide either way), and as unknown "
+        "where the frames call them free (a plain top the floor model took for floor)",
     )
     predict_movers: bool = Field(
         False,
