@@ -99,7 +99,8 @@ class OccupancyMap:
     logodds: npt.NDArray[np.float32] | None = None
     height_m: npt.NDArray[np.float32] | None = None
     predicted: npt.NDArray[np.bool_] | None = None
-    """Cells occupied because a moving object's path covers them, not because a frame saw it."""
+    """Cells served occupied because a static object's measured footprint or a moving object's
+    path covers them, not because a frame saw it."""
     last_seen_s: npt.NDArray[np.float64] | None = None
     """Capture time (Unix seconds) of each cell's newest observation, 0 where never observed: what
     decay and a person judging a cell's age go by."""

@@ -1217,7 +1217,9 @@ class FloorModel:
         count = np.count_nonzero(floor)
         textured = np.count_nonzero(test.textured & floor)
         reach_px = TOP_REACH_M * self.geometry.floor_px_per_m
-        if count >= MIN_FIT_PIXELS and textured >= TEXTURED_FLOOR_SHARE * count:
+        if count < MIN_FIT_PIXELS:  # too little floor seen to tell its texture
+            return blocked, np.zeros_like(blocked)
+        if textured >= TEXTURED_FLOOR_SHARE * count:
             tops = self.line_of_sight.top_runs(
                 obstacle, ~test.textured, reach_px, self.config.window_px
             )
@@ -1231,7 +1233,9 @@ class FloorModel:
         live, ``--floor plain --plain-objects``: a 1.3 m box's top 39 % free, 12 % with this
         rule and the contested footprints of fusion). The edge is a
         strip measured in the band and thin along the ray; a textured top is measured across
-        and bounds no run, nor does its far edge."""
+        and bounds no run, nor does its far edge. The floor beyond a plain top within the reach
+        is kept from the model too while its edge is found (nothing tells the two apart): that
+        is the rule's cost in unknown floor."""
         band = np.where(obstacle, height, np.nan).astype(np.float32)
         strip = obstacle.copy()
         for maps in self._thin_probes:

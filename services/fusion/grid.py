@@ -200,9 +200,10 @@ class Chunk:
     def served(self) -> npt.NDArray[np.int8]:
         """What clients read: the evidence, with the predicted layer's cells occupied and the
         contested layer's not called occupied unknown."""
-        return rules.occupied_where_predicted(
-            rules.unknown_where_contested(self.occupancy, self.contested), self.predicted
-        )
+        occupancy = self.occupancy
+        if self.contested.any():
+            occupancy = rules.unknown_where_contested(occupancy, self.contested)
+        return rules.occupied_where_predicted(occupancy, self.predicted)
 
 
 @dataclass(frozen=True)
@@ -527,7 +528,7 @@ class FusedGrid:
         return self.window_of(name, self.window)
 
     def served_occupancy(self) -> npt.NDArray[np.int8]:
-        """What clients read: the evidence, with the predicted layer's cells occupied."""
+        """What clients read (:meth:`Chunk.served`)."""
         return self.layer("served")
 
     def take_dirty_parts(self) -> dict[ChunkKey, Window]:

@@ -687,7 +687,8 @@ class ObjectTracker:
         """Per static track, the cells whose centres its footprint holds: measured to a centimetre
         or two on its points and image edges, where the frames' evidence decides a rim cell (its
         centre 0–3 cm inside) by a share of pixels that a pixel of fattening or a side face's
-        noise tips either way; fusion serves them occupied. A partial view's footprint is a lower
+        noise tips either way; fusion serves them occupied where the frames agree, and its free
+        cells unknown where they do not (the contested layer). A partial view's footprint is a lower
         bound, so its cells lie inside the object as far as the track's views agree on where the
         piece lies (the centre is filtered over them; the agreement test guards the rest).
         Objects cut by an image's border or at a seam keep their rims so (offline static

@@ -42,8 +42,9 @@ class FusionParams(OvergridParams):
     outline_static: bool = Field(
         True,
         description="serve the cells inside static objects' measured footprints as occupied "
-        "where the frames agree (the rim cells their pixels decide either way), and as unknown "
-        "where the frames call them free (a plain top the floor model took for floor)",
+        "where the frames agree (the rim cells their pixels decide either way); where the frames "
+        "call under 3/4 of a footprint occupied, its cells not occupied are served unknown (a "
+        "plain top the floor model took for floor)",
     )
     predict_movers: bool = Field(
         False,
