@@ -319,6 +319,31 @@ def test_on_a_plain_floor_only_a_thin_edge_holds_up_a_top() -> None:
     assert not blocked[:, :30].any()  # beyond the textured top (its own columns aside)
 
 
+def test_a_learning_frame_that_finds_a_plain_tops_edge_takes_back_a_confirmation() -> None:
+    """Beyond a thin edge on a plain floor: a top confirmed once (in a frame that missed its
+    edge) loses that confirmation and is no floor; floor confirmed for minutes stays modelled."""
+    geometry = _synthetic_geometry()
+    model = floor_model.FloorModel(geometry, (0.1, 2.0))
+    width, height = SYNTHETIC_SIZE
+    textured = np.zeros((height, width), np.bool_)
+    textured[100:140, 200:203] = True
+    measured = np.full((height, width), np.nan, np.float32)
+    top = geometry.disparity_px(np.full((height, width), 1.3, np.float32))
+    measured[100:140, 200:203] = top[100:140, 200:203]
+    model.confirmed[100:140, 205:230] = model.config.confirm_frames  # the top: modelled …
+    model.confirmed[100:140, 230:260] = 200  # … and the floor beyond it, long learnt
+    no = np.zeros((height, width), np.bool_)
+    test = floor_model.FloorTest(
+        textured, textured, no, textured, np.full((height, width), np.nan, np.float32), no, no
+    )
+    image = np.full((height, width), 120.0, np.float32)
+    inside = np.ones((height, width), np.bool_)
+    model._learn(image, image, inside, test, measured, no, no, relearn=False)
+    assert not model.modelled[108:132, 206:228].any()
+    assert model.modelled[108:132, 232:258].all()
+    assert (model.confirmed[108:132, 232:258] == 199).all()
+
+
 def test_shadows_on_a_textured_floor_do_not_flag() -> None:
     scene = SceneSpec(
         floor="speckle",
