@@ -117,7 +117,9 @@ def run(
         if tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures}):
             grid.forget_occupied(*tracker.wake(r))  # as the fusion service does
         if outline_static:
-            outlined, contested = grid.agreeing(tracker.outlines(r))  # as the fusion service does
+            outlined, contested = grid.by_agreement(
+                tracker.outlines(r)
+            )  # as the fusion service does
             grid.set_predicted(outlined)
             grid.set_contested(contested)
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time

@@ -237,7 +237,7 @@ def test_the_predicted_layer_is_served_occupied_and_clears() -> None:
 
 
 def test_a_contested_footprint_is_served_unknown_where_the_frames_call_it_free() -> None:
-    """A static object's footprint the frames call mostly free (:meth:`FusedGrid.agreeing`):
+    """A static object's footprint the frames call mostly free (:meth:`FusedGrid.by_agreement`):
     its free cells are served unknown, its occupied ones stay occupied, the evidence stays as
     measured, and the cells show it again once the footprint is gone."""
     grid = FusedGrid(P)
@@ -246,7 +246,7 @@ def test_a_contested_footprint_is_served_unknown_where_the_frames_call_it_free()
     footprint = (Window(4, 4, 4, 4), np.ones((4, 4), np.bool_))
     solid = (Window(10, 10, 2, 2), np.ones((2, 2), np.bool_))
     _integrate(grid, Window(10, 10, 2, 2), 3.0)
-    agree, disagree = grid.agreeing([footprint, solid])
+    agree, disagree = grid.by_agreement([footprint, solid])
     assert agree == [solid] and disagree == [footprint]
     assert grid.set_contested(disagree)
     served, evidence = grid.served_occupancy(), grid.layer("occupancy")

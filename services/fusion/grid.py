@@ -457,7 +457,7 @@ class FusedGrid:
 
     def set_contested(self, footprints: CellMasks) -> bool:
         """Replace the contested layer by these cells: static objects' footprints the frames'
-        evidence does not agree with (see :meth:`agreeing`); True if it changed."""
+        evidence does not agree with (see :meth:`by_agreement`); True if it changed."""
         return self._set_mask_layer("contested", footprints)
 
     def _set_mask_layer(self, name: str, cells: CellMasks) -> bool:
@@ -484,7 +484,7 @@ class FusedGrid:
             self.version += 1
         return changed
 
-    def agreeing(self, cells: CellMasks) -> tuple[CellMasks, CellMasks]:
+    def by_agreement(self, cells: CellMasks) -> tuple[CellMasks, CellMasks]:
         """``cells`` (an object's footprint each) split in two: those whose known cells the
         frames' evidence calls occupied for OUTLINE_OCCUPIED_SHARE or more (the map agrees there
         is an object), and the others."""

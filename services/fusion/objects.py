@@ -354,9 +354,8 @@ class ObjectTracker:
             return float(predicted[row][0][0]), float(predicted[row][0][1])
 
         def assign(rows: list[int], distance: Callable[[int, Observation], float | None]) -> None:
-            cols = [
-                c for c in range(len(observations)) if c not in {m[0] for m in matches.values()}
-            ]
+            taken = {m[0] for m in matches.values()}
+            cols = [c for c in range(len(observations)) if c not in taken]
             rows = [r for r in rows if r not in matches]
             cost = np.full((len(rows), len(cols)), NOT_ALLOWED)
             for i, row in enumerate(rows):
@@ -477,8 +476,8 @@ class ObjectTracker:
         length, width, _, _, _ = size
         pairs = list(zip(sorted((length, width)), sorted(obs.size_m), strict=True))
         ratio = self.config.size_ratio
-        larger = any(seen > size * ratio for size, seen in pairs)
-        smaller = all(seen < size / ratio for size, seen in pairs)
+        larger = any(seen > own * ratio for own, seen in pairs)
+        smaller = all(seen < own / ratio for own, seen in pairs)
         return not larger and not smaller
 
     def _restart_motion(self, track: Track, stamp_ns: int, obs: Observation) -> None:

@@ -207,7 +207,9 @@ class FusionState:
         if changed:
             self.grid.forget_occupied(*self.tracker.wake(resolution_m))
             if self.settings.outline_static:  # once a capture: tracks and evidence both moved
-                self.outlined, contested = self.grid.agreeing(self.tracker.outlines(resolution_m))
+                self.outlined, contested = self.grid.by_agreement(
+                    self.tracker.outlines(resolution_m)
+                )
                 self.grid.set_contested(contested)
         if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
