@@ -10,6 +10,7 @@ from services.camera_sim import truth
 from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import ObjectSpec, SceneSpec, generate_scene
+from services.depth.inverse_model import build_tile
 from services.depth.pipeline import DepthPipeline, FrameResult, PipelineConfig
 from services.depth.projection import project_to_world
 from services.depth.stereo import Rectifier
@@ -182,3 +183,34 @@ def test_the_floor_behind_a_standing_pixel_is_hidden_and_no_other() -> None:
         [floor_xy[:, standing[0], standing[1]], floor_xy[:, departed[0], departed[1]]], 1
     )
     np.testing.assert_array_equal(hidden, expected)
+
+
+def test_a_side_face_no_longer_fills_the_cells_beside_a_box() -> None:
+    """A tall box 2.5 m off the pair's nadir, so the camera sees one long side face over many
+    pixels: the tile leaves the face's points out of the cells whose centre lies on the open
+    side of it (build_tile's ``camera_xy_m``, which the pipeline passes), so fewer cells just
+    outside the box read occupied than when every point counts, and the box's own cells read
+    as before."""
+    box = ObjectSpec(
+        name="box_f", shape="box", center_xy_m=(8.3, 6.3), yaw_rad=0.3, size_m=(1.0, 0.7, 1.2)
+    )
+    scene = SceneSpec(objects=[box])
+    calib, (left, right, _depth) = _render(scene)
+    pipeline = DepthPipeline(calib, PipelineConfig())
+    result = pipeline.process(left, right)
+    config = pipeline.config
+    hidden = pipeline._hidden_floor_xy(result.evidence_disparity_px, result.points)
+    every_point = build_tile(
+        result.points, config.resolution_m, config.model, config.min_cell_pixels, hidden
+    )
+    tile = result.tile
+    assert every_point.window == tile.window
+    inside = truth.footprint_mask(scene.truth_objects(0.0)[0], tile.window, tile.resolution_m)
+    beside = np.zeros_like(inside)  # the cells sharing a side with the box's cells
+    for axis in (0, 1):
+        for shift in (1, -1):
+            beside |= np.roll(inside, shift, axis=axis)
+    beside &= ~inside
+    occupied_beside = int((tile.logodds[beside] > 0).sum())
+    assert occupied_beside < int((every_point.logodds[beside] > 0).sum())
+    assert (tile.logodds[inside] > 0).sum() >= (every_point.logodds[inside] > 0).sum() - 1

@@ -85,3 +85,47 @@ def test_a_cell_of_too_few_pixels_reads_free_only_inside_open_measured_floor() -
     assert centre(floor | {(2, 2): (1, 0.8)}) == (0.0, 0)  # its own pixel in the band
     lone = {(2, 2): (2, 0.0), (1, 2): (4, 0.0), (3, 2): (4, 0.0)}  # neighbours mostly empty
     assert centre(lone) == (0.0, 0)
+
+
+def _box_edge(face_x_m: float) -> WorldPoints:
+    """What a camera over x = 0 measures of a box standing at x > ``face_x_m``, 1 m tall, along
+    y in one row of cells: the floor before its near face (a point a centimetre), its face (thirty
+    points at heights 0.1 to 0.8 m on its line: a vertical face seen aslant fills many pixels)
+    and its top beyond (a point a centimetre)."""
+    xs, heights = [], []
+    for x in np.arange(0.805, face_x_m, 0.01):
+        xs.append(x)
+        heights.append(0.0)
+    for _ in range(2):
+        xs += [face_x_m] * 15
+        heights += list(np.linspace(0.1, 0.8, 15))
+    for x in np.arange(face_x_m + 0.005, 1.20, 0.01):
+        xs.append(x)
+        heights.append(1.0)
+    return WorldPoints(
+        x_m=np.array(xs, np.float32),
+        y_m=np.full(len(xs), R / 2, np.float32),
+        height_m=np.array(heights, np.float32),
+        height_sigma_m=np.full(len(xs), 0.02, np.float32),
+    )
+
+
+def test_a_side_face_beyond_a_cells_centre_is_left_out_of_its_share() -> None:
+    """Cell 19 spans x 0.95–1.00 m (centre 0.975). A box's near face at 0.99 m leaves that centre
+    on the open side: with the camera's position known the cell reads free, where its face's
+    points alone made it occupied; a face at 0.96 m has the centre behind it, inside the box,
+    and the cell reads occupied either way; so does one within a centimetre of the centre."""
+    params = SensorModelParams()
+    camera = (0.0, R / 2)
+
+    def cell_19(face_x_m: float, camera_xy_m: tuple[float, float] | None) -> float:
+        tile = build_tile(_box_edge(face_x_m), R, params, 3, None, camera_xy_m)
+        return float(tile.logodds[0, 19 - tile.window.i0])
+
+    assert cell_19(0.99, camera) < 0.0
+    assert cell_19(0.99, None) > 0.0  # every point counted: the face fills the cell
+    assert cell_19(0.96, camera) > 0.0
+    assert cell_19(0.96, None) > 0.0
+    assert cell_19(0.98, camera) > 0.0  # half a centimetre beyond: within the margin, it counts
+    # Seen from x = 2 m, the same face points lie nearer the camera than the centre: they count.
+    assert cell_19(0.99, (2.0, R / 2)) > 0.0

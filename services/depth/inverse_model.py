@@ -93,17 +93,68 @@ def _sparse_free(
     )
 
 
+SIDE_FACE_DROP_M = 0.1
+"""A point this far below the highest surface within a cell of it lies on a side face."""
+SIDE_FACE_BEYOND_M = 0.01
+"""A face point lies beyond a cell's centre only this much farther from the camera's nadir: a
+face within a centimetre of the centre keeps the cell occupied (the error it leaves is a detour,
+not a collision). Offline, seed 4: IoU +1.1 points at the same false-free as without the rule;
+beyond the centre at all: +1.6 points, false-free +0.08."""
+
+
+def _faces_beyond_centre(
+    flat: npt.NDArray[np.int64],
+    x_m: npt.NDArray[np.float32],
+    y_m: npt.NDArray[np.float32],
+    height_m: npt.NDArray[np.float32],
+    top_m: npt.NDArray[np.float32],
+    window: Window,
+    resolution_m: float,
+    band_min_m: float,
+    camera_xy_m: tuple[float, float],
+) -> npt.NDArray[np.bool_]:
+    """The side-face points of the cells whose centre their face does not cover. A side face is
+    vertical: it has no area seen from above, and a camera sees it over many pixels (tens for a
+    face a cell wide) that all land on its line, so in the cell it crosses it outnumbers the
+    floor and top there whichever side of the cell's centre it lies. The face a camera sees faces
+    that camera, so the object stands beyond it: where most of a cell's face points lie farther
+    from the camera's nadir than the cell's centre, the centre is on the open side and the face
+    says nothing of it (the edge ring around objects). Where most lie nearer (or within
+    ``SIDE_FACE_BEYOND_M``), the centre is behind the face, inside the object, and they count.
+    A majority per cell, not a test per point: the matcher scatters a face's points a few
+    centimetres along the rays."""
+    rows, cols = window.shape
+    around = np.asarray(cv2.dilate(top_m.reshape(rows, cols), np.ones((3, 3), np.uint8))).ravel()
+    face = np.flatnonzero((height_m >= band_min_m) & (height_m < around[flat] - SIDE_FACE_DROP_M))
+    cell, x, y = flat[face], x_m[face], y_m[face]
+    centre_x = (cell % cols + window.i0 + 0.5) * resolution_m
+    centre_y = (cell // cols + window.j0 + 0.5) * resolution_m
+    outward_x, outward_y = x - camera_xy_m[0], y - camera_xy_m[1]
+    along_m = ((x - centre_x) * outward_x + (y - centre_y) * outward_y) / np.maximum(
+        np.hypot(outward_x, outward_y), 1e-6
+    )
+    faces = np.bincount(cell, minlength=rows * cols)
+    faces_beyond = np.bincount(cell[along_m > SIDE_FACE_BEYOND_M], minlength=rows * cols)
+    left_out = np.zeros(flat.size, np.bool_)
+    left_out[face] = 2 * faces_beyond[cell] > faces[cell]
+    return left_out
+
+
 def build_tile(
     points: WorldPoints,
     resolution_m: float,
     params: SensorModelParams,
     min_cell_pixels: int = 3,
     hidden_xy_m: npt.NDArray[np.float32] | None = None,
+    camera_xy_m: tuple[float, float] | None = None,
 ) -> Tile:
     """The frame's tile. ``hidden_xy_m`` (2 × N): floor points of the pixels whose floor is
     hidden; a cell holding at least ``min_cell_pixels`` of them, and at least as many as its
     measured pixels, is *hidden* and its reading dropped, unless that reading says occupied (a
-    free one there is the matcher's window dragging the floor onto what hides it)."""
+    free one there is the matcher's window dragging the floor onto what hides it).
+    ``camera_xy_m``: where the camera that measured the points stands over the floor; with it, a
+    side face lying beyond a cell's centre is left out of that cell's share
+    (:func:`_faces_beyond_centre`)."""
     keep = in_model_range(points.height_m, points.height_sigma_m, params)
     x, y = points.x_m[keep], points.y_m[keep]
     height, sigma = points.height_m[keep], points.height_sigma_m[keep]
@@ -131,11 +182,16 @@ def build_tile(
     flat = (j - window.j0) * cols + (i - window.i0)
     size = rows * cols
 
-    pixels = np.bincount(flat, minlength=size)
     weights = obstacle_likelihood(height, sigma, params)
-    obstacle = np.bincount(flat, weights=weights, minlength=size).astype(np.float64)
     top = np.full(size, -np.inf, dtype=np.float32)
     np.maximum.at(top, flat, height)
+    if camera_xy_m is not None:
+        counted = ~_faces_beyond_centre(
+            flat, x, y, height, top, window, resolution_m, params.obstacle_min_m, camera_xy_m
+        )
+        flat, weights = flat[counted], weights[counted]
+    pixels = np.bincount(flat, minlength=size)
+    obstacle = np.bincount(flat, weights=weights, minlength=size).astype(np.float64)
 
     updated = pixels >= min_cell_pixels
     update = np.where(

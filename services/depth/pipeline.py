@@ -176,6 +176,7 @@ class DepthPipeline:
             self.config.model,
             self.config.min_cell_pixels,
             self._hidden_floor_xy(evidence, points),
+            (float(self.rectifier.C_world[0]), float(self.rectifier.C_world[1])),
         )
         times.append(time.perf_counter())
         # "disparity" is the whole chain: matcher and its optional stages (stereo.DisparityChain).
