@@ -189,8 +189,8 @@ def test_a_side_face_no_longer_fills_the_cells_beside_a_box() -> None:
     """A tall box 2.5 m off the pair's nadir, so the camera sees one long side face over many
     pixels: the tile leaves the face's points out of the cells whose centre lies on the open
     side of it (build_tile's ``camera_xy_m``, which the pipeline passes), so fewer cells just
-    outside the box read occupied than when every point counts, and the box's own cells read
-    as before."""
+    outside the box read occupied than when every point counts; the box's own cells read as
+    before (one fewer occupied at most, none more free)."""
     box = ObjectSpec(
         name="box_f", shape="box", center_xy_m=(8.3, 6.3), yaw_rad=0.3, size_m=(1.0, 0.7, 1.2)
     )
@@ -214,3 +214,4 @@ def test_a_side_face_no_longer_fills_the_cells_beside_a_box() -> None:
     occupied_beside = int((tile.logodds[beside] > 0).sum())
     assert occupied_beside < int((every_point.logodds[beside] > 0).sum())
     assert (tile.logodds[inside] > 0).sum() >= (every_point.logodds[inside] > 0).sum() - 1
+    assert (tile.logodds[inside] < 0).sum() <= (every_point.logodds[inside] < 0).sum()

@@ -1,6 +1,7 @@
 """The inverse sensor model's tile: one observation per cell, and the cells named hidden."""
 
 import numpy as np
+import pytest
 
 from common.sensor_model import SensorModelParams
 from services.depth.inverse_model import build_tile
@@ -87,45 +88,62 @@ def test_a_cell_of_too_few_pixels_reads_free_only_inside_open_measured_floor() -
     assert centre(lone) == (0.0, 0)
 
 
-def _box_edge(face_x_m: float) -> WorldPoints:
-    """What a camera over x = 0 measures of a box standing at x > ``face_x_m``, 1 m tall, along
-    y in one row of cells: the floor before its near face (a point a centimetre), its face (thirty
-    points at heights 0.1 to 0.8 m on its line: a vertical face seen aslant fills many pixels)
-    and its top beyond (a point a centimetre)."""
-    xs, heights = [], []
-    for x in np.arange(0.805, face_x_m, 0.01):
-        xs.append(x)
-        heights.append(0.0)
-    for _ in range(2):
-        xs += [face_x_m] * 15
-        heights += list(np.linspace(0.1, 0.8, 15))
-    for x in np.arange(face_x_m + 0.005, 1.20, 0.01):
-        xs.append(x)
-        heights.append(1.0)
+ROW_Y_M = 3.5 * R
+"""The row of cells the box edge lies in (j = 3), off the camera's line so both axes count."""
+
+
+def _box_edge(face_x_m: float, face_points: int = 30, top_from_m: float = 0.005) -> WorldPoints:
+    """What a camera over the origin measures of a box standing at x > ``face_x_m``, 1 m tall,
+    along one row of cells: the floor before its near face (a point a centimetre), its face
+    (``face_points`` at heights 0.1 to 0.8 m on its line: a vertical face seen aslant fills many
+    pixels) and its top from ``top_from_m`` beyond it (a point a centimetre)."""
+    xs = [*np.arange(0.805, face_x_m, 0.01)]
+    heights = [0.0] * len(xs)
+    xs += [face_x_m] * face_points
+    heights += list(np.linspace(0.1, 0.8, face_points))
+    top_xs = [*np.arange(face_x_m + top_from_m, 1.20, 0.01)]
+    xs += top_xs
+    heights += [1.0] * len(top_xs)
     return WorldPoints(
         x_m=np.array(xs, np.float32),
-        y_m=np.full(len(xs), R / 2, np.float32),
+        y_m=np.full(len(xs), ROW_Y_M, np.float32),
         height_m=np.array(heights, np.float32),
         height_sigma_m=np.full(len(xs), 0.02, np.float32),
     )
 
 
 def test_a_side_face_beyond_a_cells_centre_is_left_out_of_its_share() -> None:
-    """Cell 19 spans x 0.95–1.00 m (centre 0.975). A box's near face at 0.99 m leaves that centre
-    on the open side: with the camera's position known the cell reads free, where its face's
-    points alone made it occupied; a face at 0.96 m has the centre behind it, inside the box,
-    and the cell reads occupied either way; so does one within a centimetre of the centre."""
+    """Cell (19, 3) spans x 0.95–1.00 m (centre 0.975). A box's near face at 0.99 m leaves that
+    centre on the open side: with the camera's position known the cell reads free, where its
+    face's points alone made it occupied; a face at 0.96 m has the centre behind it, inside the
+    box, and the cell reads occupied either way; so does one within a centimetre of the centre.
+    One face point is too few to say where a face is: it counts as before."""
     params = SensorModelParams()
-    camera = (0.0, R / 2)
+    camera = (0.0, 0.0)
 
-    def cell_19(face_x_m: float, camera_xy_m: tuple[float, float] | None) -> float:
-        tile = build_tile(_box_edge(face_x_m), R, params, 3, None, camera_xy_m)
-        return float(tile.logodds[0, 19 - tile.window.i0])
+    def cell(points: WorldPoints, camera_xy_m: tuple[float, float] | None) -> float:
+        tile = build_tile(points, R, params, 3, None, camera_xy_m)
+        return float(tile.logodds[3 - tile.window.j0, 19 - tile.window.i0])
 
-    assert cell_19(0.99, camera) < 0.0
-    assert cell_19(0.99, None) > 0.0  # every point counted: the face fills the cell
-    assert cell_19(0.96, camera) > 0.0
-    assert cell_19(0.96, None) > 0.0
-    assert cell_19(0.98, camera) > 0.0  # half a centimetre beyond: within the margin, it counts
+    assert cell(_box_edge(0.99), camera) < 0.0
+    assert cell(_box_edge(0.99), None) > 0.0  # every point counted: the face fills the cell
+    assert cell(_box_edge(0.96), camera) > 0.0
+    assert cell(_box_edge(0.96), None) > 0.0
+    assert cell(_box_edge(0.98), camera) > 0.0  # half a centimetre beyond: within the margin
     # Seen from x = 2 m, the same face points lie nearer the camera than the centre: they count.
-    assert cell_19(0.99, (2.0, R / 2)) > 0.0
+    assert cell(_box_edge(0.99), (2.0, 0.0)) > 0.0
+    lone = _box_edge(0.99, face_points=1)
+    assert cell(lone, camera) == cell(lone, None)
+
+
+def test_a_cell_that_loses_its_face_points_shows_the_height_of_those_it_keeps() -> None:
+    """The tile's top height in a cell whose face points were left out is that of the points it
+    keeps (here the floor: the box's top begins in the next cell), not of the face: fusion takes
+    a free reading's height as the floor's."""
+    edge = _box_edge(0.99, top_from_m=0.015)
+    tile = build_tile(edge, R, SensorModelParams(), 3, None, (0.0, 0.0))
+    row, col = 3 - tile.window.j0, 19 - tile.window.i0
+    assert tile.logodds[row, col] < 0.0
+    assert tile.height_m[row, col] == pytest.approx(0.0)
+    everything = build_tile(edge, R, SensorModelParams(), 3, None, None)
+    assert everything.height_m[row, col] == pytest.approx(0.8)  # the face's highest point
