@@ -1,12 +1,15 @@
+import math
 import time
 
 import msgpack
 import numpy as np
 import pytest
 
+from common.codec import encode
 from common.lattice import Window
+from common.messages import DETECTIONS_KIND, DetectionRecord, DetectionsHeader
 from services.fusion.grid import GridParams
-from services.fusion.intake import FUTURE_TOLERANCE_S, Rejected, TileGate
+from services.fusion.intake import FUTURE_TOLERANCE_S, Rejected, TileGate, decode_detections
 from tests.tiles import tile_arrays, tile_payload
 
 W = Window(0, 0, 8, 6)
@@ -137,3 +140,37 @@ def test_a_tile_beyond_the_site_is_rejected_at_the_edge() -> None:
     bounds = Window(0, 0, 100, 100)
     bounded = TileGate(0.05, 2.0, 1_000_000, site=bounds, bounded=True)
     assert _reason(tile_payload("p0", Window(500, 0, 5, 5), 1.0), bounded) == "outside_map"
+
+
+@pytest.mark.parametrize(
+    "outline",
+    [
+        [(1.0, 2.0), (math.nan, 2.0), (1.5, 2.5)],  # not finite
+        [(0.01 * k, 0.0) for k in range(65)],  # more vertices than an outline may have
+    ],
+)
+def test_detections_with_a_bad_outline_are_rejected(outline: list[tuple[float, float]]) -> None:
+    good = DetectionsHeader(
+        pair="p0",
+        seq=1,
+        stamp_ns=time.time_ns(),
+        detections=[
+            DetectionRecord(
+                center_m=(1.0, 2.0),
+                size_m=(0.5, 0.4),
+                yaw_rad=0.0,
+                top_m=1.0,
+                points=100,
+                partial=False,
+                outline_m=[(0.8, 1.8), (1.2, 1.8), (1.2, 2.2)],
+            )
+        ],
+    )
+    now_ns = time.time_ns()
+    assert decode_detections(encode(DETECTIONS_KIND, good), "depth/p0/objects", now_ns, _gate())
+    envelope = msgpack.unpackb(encode(DETECTIONS_KIND, good))
+    envelope["header"]["detections"][0]["outline_m"] = outline  # all else as sent
+    payload = msgpack.packb(envelope)
+    with pytest.raises(Rejected) as rejected:
+        decode_detections(payload, "depth/p0/objects", now_ns, _gate())
+    assert rejected.value.reason == "malformed"

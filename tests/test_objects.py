@@ -4,6 +4,7 @@ movers' paths swept into the map's predicted layer."""
 import math
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 from common.footprints import corners, fit_rectangle, polygon_cells
@@ -12,7 +13,12 @@ from common.messages import DetectionRecord, TrackedObject, TruthObject
 from common.occupancy_map import OCCUPIED
 from common.sensor_model import SensorModelParams
 from services.camera_sim.scene import generate_scene
-from services.depth.objects import PixelGrid, detect_objects, half_density_edges_m
+from services.depth.objects import (
+    PixelGrid,
+    detect_objects,
+    detections_header,
+    half_density_edges_m,
+)
 from services.depth.projection import WorldPoints
 from services.evaluation.objects import match_static, score_movers
 from services.fusion.grid import FusedGrid, GridParams
@@ -129,6 +135,69 @@ def test_an_object_cut_by_the_image_border_is_partial() -> None:
     assert len(found) == 1 and found[0].partial
 
 
+def _view_of(
+    points: WorldPoints, pixels: PixelGrid, keep: npt.NDArray[np.bool_], pair: str
+) -> tuple[str, DetectionRecord]:
+    """What one pair whose image holds only the ``keep`` pixels detects of them (one object)."""
+    rows, cols = pixels.rows[keep], pixels.cols[keep]
+    rows, cols = rows - rows.min(), cols - cols.min()  # the image is the part kept
+    seen = WorldPoints(
+        *(getattr(points, f)[keep] for f in ("x_m", "y_m", "height_m", "height_sigma_m"))
+    )
+    view = PixelGrid(rows, cols, (int(rows.max()) + 1, int(cols.max()) + 1))
+    found = detect_objects(seen, view, CAMERA_HEIGHT_M, 0.004, LEFT_MARGIN_PX, SensorModelParams())
+    (record,) = detections_header(found, pair, 0, T0_NS).detections
+    return pair, record
+
+
+def test_two_pairs_each_seeing_part_of_a_box_cut_aslant_give_its_size() -> None:
+    """Two pairs' images end across a box turned 116°, 8 cm apart (a seam; ``--seed 4``'s box_0
+    is seen so): the smaller piece's smallest rectangle lies along the cut, wider than the box,
+    and the rectangle around both views is 1.27 × 0.98 m; what the views saw, joined, is the
+    box."""
+    rng = np.random.default_rng(4)
+    size, yaw = (0.96, 0.82), 2.03
+    points, pixels = _scene_points((5.0, 5.0), size, yaw, 0.3, rng)
+    views = [
+        _view_of(points, pixels, points.y_m < 4.8, "p0"),
+        _view_of(points, pixels, points.y_m > 4.88, "p1"),
+    ]
+    assert all(record.partial for _, record in views)
+    (merged,) = merge_capture(views, gap_m=0.1)
+    assert merged.partial and merged.pairs == ("p0", "p1")
+    assert np.allclose(merged.size_m, size, atol=0.03), merged.size_m
+    assert np.allclose(merged.center_m, (5.0, 5.0), atol=0.02)
+
+
+def test_a_complete_view_much_smaller_than_the_partial_views_is_a_piece() -> None:
+    """One pair sees all of a box's top but for the image's edge (4 000 points); once, another
+    pair matched only a strip of it (57 points, a taller neighbour hiding the rest): that capture
+    takes the complete strip, but the box is the partial views' size, a lower bound, not the
+    strip's confident 0.49 × 0.15 m (offline, ``--seed 1 --pairs 6``'s box_3)."""
+    most = _record((5.0, 5.0), (1.18, 0.97), partial=True, points=4000)
+    strip = _record((5.0, 4.6), (0.49, 0.15), points=57)
+    tracker = ObjectTracker()
+    for k in range(6):
+        tracker.add("p1", T0_NS + k * FRAME_NS, [most], now_s=0.0)
+        tracker.add("p0", T0_NS + k * FRAME_NS, [strip] if k == 3 else [], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0", "p1"})
+    (found,) = tracker.objects()
+    assert found.partial and np.allclose(found.size_m, (1.18, 0.97))
+
+
+def test_complete_views_outnumbering_larger_partial_ones_keep_the_size() -> None:
+    """A cylinder seen whole every frame, whose track once took a neighbour's partial view: the
+    partial view is what is wrong, not the cylinder's complete views."""
+    whole = _record((7.3, 6.1), (0.46, 0.46), points=450)
+    neighbour = _record((7.5, 5.3), (1.19, 0.97), partial=True, points=4000)
+    tracker = ObjectTracker()
+    for k in range(6):
+        tracker.add("p3", T0_NS + k * FRAME_NS, [neighbour if k == 2 else whole], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p3"})
+    (found,) = tracker.objects()
+    assert not found.partial and np.allclose(found.size_m, (0.46, 0.46))
+
+
 def test_fit_rectangle_recovers_a_known_rectangle() -> None:
     rng = np.random.default_rng(3)
     xy = rng.uniform(-0.5, 0.5, (4000, 2)) * [1.2, 0.6]
@@ -146,9 +215,10 @@ def _record(
     partial: bool = False,
     yaw: float = 0.0,
     top: float = 1.0,
+    points: int = 500,
 ) -> DetectionRecord:
     return DetectionRecord(
-        center_m=center, size_m=size, yaw_rad=yaw, top_m=top, points=500, partial=partial
+        center_m=center, size_m=size, yaw_rad=yaw, top_m=top, points=points, partial=partial
     )
 
 

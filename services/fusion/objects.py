@@ -105,6 +105,11 @@ class TrackerConfig:
     best-measured one: fewer are pieces (a plain top matched in fragments, a pallet's deck while
     the floor model still learns; offline, seed 5 / 6 pairs: pallet_0 0.875 × 0.517 m after 20 s
     from 7 such views of 14, while every later view measured 1.20–1.29 × 0.75–0.83)."""
+    piece_share: float = 0.5
+    """A complete view less than this share as long or as wide as the object's partial views
+    is a piece of it, where they outnumber such views (``Track.size``). Offline, ``--seed 1
+    --pairs 6``: box_3 (1.19 × 0.98 m) was reported 0.49 × 0.15 from one view of 57 points, over
+    20 partial views of 4 000 points that measured 1.19 × 0.97."""
     default_frame_interval_s: float = 0.5
     wake_s: float = 3.0
     """Where a moving track was seen in the last this-many seconds, and is not now, is its
@@ -133,16 +138,34 @@ class Observation:
     pairs: tuple[str, ...]
     points: int = 0
     """The world points it was measured on (all its pieces')."""
+    outline_m: tuple[tuple[float, float], ...] = ()
+    """What of its top was seen (``DetectionRecord.outline_m``): empty, the rectangle."""
 
 
 def _polygon(record: DetectionRecord | Observation) -> F64:
     return corners(record.center_m, record.size_m, record.yaw_rad)
 
 
+def _seen(record: DetectionRecord | Observation) -> F64:
+    """What of an object's top a view saw: its outline, else its rectangle."""
+    if len(record.outline_m) >= 3:
+        return np.asarray(record.outline_m, np.float64)
+    return _polygon(record)
+
+
+def _around(views: list[F64]) -> tuple[tuple[float, float], tuple[float, float], float, F64]:
+    """The smallest rectangle around what several partial views saw (centre, size, yaw), and
+    the outline of it all: their outlines' hull, not their rectangles' (a box cut aslant by an
+    image's border is fitted a rectangle along the cut, wider than the box)."""
+    hull = convex_hull(np.vstack(views))
+    cx, cy, length, width, yaw = fit_rectangle(hull)
+    return (cx, cy), (length, width), yaw, hull
+
+
 def merge_capture(detections: list[tuple[str, DetectionRecord]], gap_m: float) -> list[Observation]:
     """Detections of one capture from every pair → one observation per object. Detections of
     different pairs whose footprints overlap (within ``gap_m``) are one object: a complete view
-    wins; partial views alone are joined into the rectangle around them all."""
+    wins; partial views alone are joined into the rectangle around what they all saw."""
     parent = list(range(len(detections)))
 
     def root(k: int) -> int:
@@ -170,29 +193,44 @@ def merge_capture(detections: list[tuple[str, DetectionRecord]], gap_m: float) -
             best = max(complete, key=lambda d: d.points)
             out.append(
                 Observation(
-                    best.center_m, best.size_m, best.yaw_rad, top, False, pairs, best.points
+                    best.center_m,
+                    best.size_m,
+                    best.yaw_rad,
+                    top,
+                    False,
+                    pairs,
+                    best.points,
+                    tuple(best.outline_m),
                 )
             )
             continue
         points = sum(detections[k][1].points for k in members)
         if len(members) == 1:
             d = detections[members[0]][1]
-            out.append(Observation(d.center_m, d.size_m, d.yaw_rad, top, True, pairs, points))
+            out.append(
+                Observation(
+                    d.center_m, d.size_m, d.yaw_rad, top, True, pairs, points, tuple(d.outline_m)
+                )
+            )
             continue
-        cx, cy, length, width, yaw = fit_rectangle(np.vstack([polygons[k] for k in members]))
-        out.append(Observation((cx, cy), (length, width), yaw, top, True, pairs, points))
+        center, size, yaw, hull = _around([_seen(detections[k][1]) for k in members])
+        out.append(Observation(center, size, yaw, top, True, pairs, points, _vertices(hull)))
     return out
+
+
+def _vertices(polygon: F64) -> tuple[tuple[float, float], ...]:
+    return tuple((float(x), float(y)) for x, y in polygon)
 
 
 def _join(pieces: list[Observation]) -> Observation:
     """Pieces of one object in one capture → one partial observation around them all."""
     if len(pieces) == 1:
         return pieces[0]
-    cx, cy, length, width, yaw = fit_rectangle(np.vstack([_polygon(p) for p in pieces]))
+    center, size, yaw, hull = _around([_seen(p) for p in pieces])
     pairs = tuple(sorted({pair for p in pieces for pair in p.pairs}))
     top = max(p.top_m for p in pieces)
     points = sum(p.points for p in pieces)
-    return Observation((cx, cy), (length, width), yaw, top, True, pairs, points)
+    return Observation(center, size, yaw, top, True, pairs, points, _vertices(hull))
 
 
 View = tuple[float, float, float, float, int]
@@ -246,14 +284,24 @@ class Track:
         """Static, or seen twice or more in one place and not moving."""
         return self.static or (not self.moving and self.still_detections >= 2)
 
-    def size(self, best_view_share: float) -> TrackSize:
+    def size(self, config: TrackerConfig) -> TrackSize:
         """Length, width, yaw, top and whether the size is a partial view's lower bound: over the
         complete views with ``best_view_share`` of the best one's points or more (partial views
-        joined from pieces add up their points, not their measure), else over the partial ones."""
-        complete = bool(self.sizes)
-        array = np.asarray(self.sizes if complete else self.partial_sizes, np.float64)
+        joined from pieces add up their points, not their measure), else over the partial ones.
+        Complete views shorter or narrower than ``piece_share`` of what the partial views saw
+        (their median) are pieces of the object, not all of it (a fragment of a plain top, the
+        corner of a box a taller neighbour hides) where the partial views outnumber them; where
+        they do not, the partial views are what is wrong (another object's, taken once)."""
+        views = np.asarray(self.sizes, np.float64).reshape(-1, 5)
+        if self.partial_sizes:
+            seen = np.median(np.asarray(self.partial_sizes, np.float64)[:, :2], axis=0)
+            whole = (views[:, :2] >= config.piece_share * seen).all(axis=1)
+            if np.count_nonzero(~whole) < len(self.partial_sizes):
+                views = views[whole]
+        complete = bool(len(views))
+        array = views if complete else np.asarray(self.partial_sizes, np.float64)
         if complete:
-            array = array[array[:, 4] >= best_view_share * array[:, 4].max()]
+            array = array[array[:, 4] >= config.best_view_share * array[:, 4].max()]
         doubled = 2 * array[:, 2]  # yaw is modulo π: average on the doubled circle
         yaw = math.atan2(float(np.sin(doubled).mean()), float(np.cos(doubled).mean())) / 2
         return (
@@ -346,7 +394,7 @@ class ObjectTracker:
                 gap_s if not self.frame_interval_s else 0.8 * self.frame_interval_s + 0.2 * gap_s
             )
         predicted = [self._predict(t, stamp_ns) for t in self.tracks]
-        sizes = [t.size(self.config.best_view_share) for t in self.tracks]  # a median: once
+        sizes = [t.size(self.config) for t in self.tracks]  # a median: once
         gates = [self._gate_m(covariance) for _, covariance in predicted]
         matches: dict[int, list[int]] = {}
 
@@ -494,7 +542,7 @@ class ObjectTracker:
         track.turns += 1
 
     def _footprint(self, track: Track) -> tuple[tuple[float, float], float]:
-        length, width, yaw, _, _ = track.size(self.config.best_view_share)
+        length, width, yaw, _, _ = track.size(self.config)
         return (length, width), yaw
 
     def _sigma_m(self, obs: Observation) -> float:
@@ -607,7 +655,7 @@ class ObjectTracker:
         for t in self.tracks:
             if t.detections < self.config.confirm_detections:
                 continue
-            length, width, yaw, top, partial = t.size(self.config.best_view_share)
+            length, width, yaw, top, partial = t.size(self.config)
             moving = t.moving
             velocity = (float(t.state[2]), float(t.state[3])) if moving else (0.0, 0.0)
             cov = t.covariance[2:, 2:] if moving else np.zeros((2, 2))
@@ -696,7 +744,7 @@ class ObjectTracker:
         for track in self.tracks:
             if not track.static or track.detections < self.config.confirm_detections:
                 continue
-            length, width, yaw, _, _ = track.size(self.config.best_view_share)
+            length, width, yaw, _, _ = track.size(self.config)
             if max(length, width) > self.config.max_size_m:
                 continue
             footprint = corners(track.center_m, (length, width), yaw)
