@@ -72,6 +72,11 @@ def corners(center_m: tuple[float, float], size_m: tuple[float, float], yaw_rad:
     return out
 
 
+def vertices(polygon_m: F64) -> tuple[tuple[float, float], ...]:
+    """A polygon (N, 2) as the messages carry it."""
+    return tuple((float(x), float(y)) for x, y in polygon_m)
+
+
 def polygons_overlap(a: F64, b: F64, gap_m: float = 0.0) -> bool:
     """Whether two convex polygons (N, 2) come within ``gap_m`` of each other (separating axes)."""
     for polygon in (a, b):

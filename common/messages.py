@@ -188,8 +188,8 @@ class DetectionRecord(Footprint):
     top_m: float
     points: int = Field(ge=0, description="world points the object was measured from")
     partial: bool = Field(description="reaches the edge of what the pair can match")
-    outline_m: list[tuple[float, float]] = Field(
-        default_factory=list,
+    outline_m: tuple[tuple[float, float], ...] = Field(
+        default=(),
         max_length=64,
         description="the part of its top the pair saw, a convex polygon (x, y); empty: the "
         "rectangle. Pairs that each see part of an object are joined on these",
@@ -197,7 +197,9 @@ class DetectionRecord(Footprint):
 
     @field_validator("outline_m")
     @classmethod
-    def _finite_outline(cls, outline: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    def _finite_outline(
+        cls, outline: tuple[tuple[float, float], ...]
+    ) -> tuple[tuple[float, float], ...]:
         if not all(math.isfinite(v) for vertex in outline for v in vertex):
             raise ValueError("outline values must be finite")
         return outline

@@ -162,7 +162,7 @@ def test_detections_with_a_bad_outline_are_rejected(outline: list[tuple[float, f
                 top_m=1.0,
                 points=100,
                 partial=False,
-                outline_m=[(0.8, 1.8), (1.2, 1.8), (1.2, 2.2)],
+                outline_m=((0.8, 1.8), (1.2, 1.8), (1.2, 2.2)),
             )
         ],
     )

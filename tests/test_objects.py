@@ -18,6 +18,7 @@ from services.depth.objects import (
     detect_objects,
     detections_header,
     half_density_edges_m,
+    top_outline,
 )
 from services.depth.projection import WorldPoints
 from services.evaluation.objects import match_static, score_movers
@@ -196,6 +197,27 @@ def test_complete_views_outnumbering_larger_partial_ones_keep_the_size() -> None
         tracker.flush(now_s=0.0, live_pairs={"p3"})
     (found,) = tracker.objects()
     assert not found.partial and np.allclose(found.size_m, (0.46, 0.46))
+
+
+def test_a_top_outline_is_what_the_points_saw_within_their_rectangle() -> None:
+    """The hull of a square's pixel centres, grown half a pixel: the square, to the pixel; a stray
+    point outside the fitted rectangle is clipped off; too few points give no outline; a round
+    top's many hull vertices are thinned to the cap, and still hold its area."""
+    grid = np.mgrid[0:20, 0:20].reshape(2, -1).T * 0.02 + 0.01  # a 0.4 m square's pixel centres
+    rectangle = (0.2, 0.2, 0.4, 0.4, 0.0)
+    square = np.array(top_outline(grid, rectangle, 0.02))
+    assert np.allclose(square.min(axis=0), 0.0, atol=0.005)
+    assert np.allclose(square.max(axis=0), 0.4, atol=0.005)
+    stray = np.vstack([grid, [[0.2, 0.6]]])
+    assert np.array(top_outline(stray, rectangle, 0.02))[:, 1].max() <= 0.4 + 1e-6
+    assert top_outline(grid[:2], rectangle, 0.02) == ()
+    angles = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    disc = np.column_stack([np.cos(angles), np.sin(angles)]) * 0.25 + 0.25
+    outline = np.array(top_outline(disc, (0.25, 0.25, 0.5, 0.5, 0.0), 0.02, max_vertices=12))
+    assert 3 <= len(outline) <= 12
+    x, y = outline[:, 0], outline[:, 1]
+    area = 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))
+    assert area == pytest.approx(np.pi * 0.25**2, rel=0.08)
 
 
 def test_fit_rectangle_recovers_a_known_rectangle() -> None:

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from common.footprints import corners, fit_rectangle, long_side_first
+from common.footprints import corners, fit_rectangle, long_side_first, vertices
 from common.messages import DetectionRecord, DetectionsHeader
 from common.sensor_model import SensorModelParams
 from services.depth.projection import WorldPoints
@@ -160,8 +160,8 @@ def top_outline(
     max_vertices: int = 32,
 ) -> tuple[tuple[float, float], ...]:
     """The convex hull of a top face's points, grown by half a pixel's footprint (pixel centres
-    fall short of the edges) and clipped to its fitted ``rectangle`` (centre x, y, length, width,
-    yaw), which has its stray points trimmed. Of a view cut by the image's border it is the part
+    fall short of the edges) and clipped to the ``rectangle`` fitted to them (centre x, y, length,
+    width, yaw; before the image's edges refine it), which has its stray points trimmed. Of a view cut by the image's border it is the part
     seen, where the rectangle is not: the smallest rectangle around a box cut aslant lies along
     the cut (offline, ``--seed 4``: box_0's halves 1.14 × 0.57 m from one pair, 1.08 × 0.5 from
     the other; 0.96 × 0.82 true, and 1.25 × 1.2 around both)."""
@@ -181,7 +181,7 @@ def top_outline(
     while len(polygon) > max_vertices:
         polygon = cv2.approxPolyDP(polygon, tolerance_m, closed=True)
         tolerance_m *= 2
-    return tuple((float(x), float(y)) for x, y in polygon.reshape(-1, 2))
+    return vertices(polygon.reshape(-1, 2).astype(np.float64)) if len(polygon) >= 3 else ()
 
 
 def _cut_by_view(
@@ -301,7 +301,7 @@ def detections_header(
                 top_m=d.top_m,
                 points=d.points,
                 partial=d.partial,
-                outline_m=list(d.outline_m),
+                outline_m=d.outline_m,
             )
             for d in detections
         ],

@@ -21,7 +21,8 @@ Rules that shape the tracks:
 - a detection overlapping a track's footprint that the track did not take is a piece of it (a
   plain top matches in fragments): joined to it, never a track of its own;
 - a partial detection (at an image border) updates the position loosely and never the size, unless
-  no pair has ever seen all of the object; then the object says ``partial``;
+  no pair has ever seen all of the object, or the views that show all of it are few and much
+  smaller than the partial ones (pieces: ``Track.size``); then the object says ``partial``;
 - a moving track's wake (where it stood over the last ``wake_s``, less where any track stands
   now) is handed to the grid, which forgets the hits there that no frame has shown since
   (:meth:`wake`).
@@ -38,7 +39,14 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import linear_sum_assignment
 
-from common.footprints import convex_hull, corners, fit_rectangle, polygon_cells, polygons_overlap
+from common.footprints import (
+    convex_hull,
+    corners,
+    fit_rectangle,
+    polygon_cells,
+    polygons_overlap,
+    vertices,
+)
 from common.lattice import Window
 from common.messages import DetectionRecord, TrackedObject
 
@@ -200,7 +208,7 @@ def merge_capture(detections: list[tuple[str, DetectionRecord]], gap_m: float) -
                     False,
                     pairs,
                     best.points,
-                    tuple(best.outline_m),
+                    best.outline_m,
                 )
             )
             continue
@@ -208,29 +216,23 @@ def merge_capture(detections: list[tuple[str, DetectionRecord]], gap_m: float) -
         if len(members) == 1:
             d = detections[members[0]][1]
             out.append(
-                Observation(
-                    d.center_m, d.size_m, d.yaw_rad, top, True, pairs, points, tuple(d.outline_m)
-                )
+                Observation(d.center_m, d.size_m, d.yaw_rad, top, True, pairs, points, d.outline_m)
             )
             continue
         center, size, yaw, hull = _around([_seen(detections[k][1]) for k in members])
-        out.append(Observation(center, size, yaw, top, True, pairs, points, _vertices(hull)))
+        out.append(Observation(center, size, yaw, top, True, pairs, points, vertices(hull)))
     return out
 
 
-def _vertices(polygon: F64) -> tuple[tuple[float, float], ...]:
-    return tuple((float(x), float(y)) for x, y in polygon)
-
-
 def _join(pieces: list[Observation]) -> Observation:
-    """Pieces of one object in one capture → one partial observation around them all."""
+    """Pieces of one object in one capture → one partial observation around what they saw."""
     if len(pieces) == 1:
         return pieces[0]
     center, size, yaw, hull = _around([_seen(p) for p in pieces])
     pairs = tuple(sorted({pair for p in pieces for pair in p.pairs}))
     top = max(p.top_m for p in pieces)
     points = sum(p.points for p in pieces)
-    return Observation(center, size, yaw, top, True, pairs, points, _vertices(hull))
+    return Observation(center, size, yaw, top, True, pairs, points, vertices(hull))
 
 
 View = tuple[float, float, float, float, int]
@@ -254,7 +256,7 @@ class Track:
     sizes: deque[View]
     """Complete views."""
     partial_sizes: deque[View]
-    """Partial views, used while no complete one exists."""
+    """Partial views, used while no complete one exists but pieces (``size``)."""
     pairs: tuple[str, ...]
     anchor_m: tuple[float, float]
     """Where the track has stood since ``still_since_ns`` (within ``static_travel_m``)."""
