@@ -5,7 +5,7 @@ import math
 import pytest
 
 from services.camera_sim.lighting import Lighting
-from services.evaluation.lighting import DURING_S, TimelineScore, step_phases
+from services.evaluation.lighting import DURING_S, TimelineScore, over_run, step_phases
 
 
 def _timeline(step_s: float, dip_iou: float, unknown_for_s: float) -> list[TimelineScore]:
@@ -15,7 +15,7 @@ def _timeline(step_s: float, dip_iou: float, unknown_for_s: float) -> list[Timel
         after = t - step_s >= 0
         iou = dip_iou if after and t - step_s < DURING_S else 0.9
         unknown = 0.2 if after and t - step_s < unknown_for_s else 0.03
-        out.append(TimelineScore(t, iou, 0.001, unknown))
+        out.append(TimelineScore(t, iou, 0.001, unknown, 0.95, 0.95, 0.002))
     return out
 
 
@@ -41,3 +41,17 @@ def test_light_steps_are_listed_in_a_window_and_level_is_periodic() -> None:
     assert lighting.level(25.0) == 0.5 and lighting.level(45.0) == 1.0
     assert Lighting().steps_s(0.0, 100.0) == [] and Lighting().lag_ratio(5.0, 0.6) == 1.0
     assert math.isclose(Lighting(drift=True).level(10.0), 1.0)  # sin peak at a quarter period
+
+
+def test_over_the_run_leaves_out_start_up_and_averages_the_rest() -> None:
+    """Six maps: the first two (start-up) read half the map wrong; the rest alternate between a
+    snapshot that caught a mover free and one that did not."""
+    ious = [0.5, 0.5, 0.9, 0.7, 0.9, 0.7]
+    timeline = [
+        TimelineScore(float(k), iou, 0.001, 0.04, 0.9, 0.9, 0.01 * k) for k, iou in enumerate(ious)
+    ][::-1]  # in any order
+    run = over_run(timeline)
+    assert run["maps"] == 4
+    assert run["iou"] == pytest.approx(0.8)
+    assert run["false_free_rate"] == pytest.approx(0.035)
+    assert math.isnan(over_run([])["iou"]) and over_run([])["maps"] == 0

@@ -168,6 +168,8 @@ def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_pa
     assert report["capture_to_map_ms"]["n"] > 5 and report["capture_to_map_ms"]["p50"] > 0
     assert {"camera", "disparity", "model"} <= set(report["stage_ms"])
     assert "moving_appear_s" in report and "moving_clear_s" in report
+    run = report["over_run"]  # the maps recorded along the run, after its first third
+    assert run["maps"] >= 3 and 0.2 < run["iou"] <= 1 and run["false_free_rate"] < 0.5, run
     ros2_log = (tmp_path / "run" / "logs" / "ros2.log").read_text()
     assert "msg=started" in ros2_log and "msg=stopped" in ros2_log, ros2_log  # --ros2 ran
     assert "terminate" not in ros2_log, ros2_log  # and stopped cleanly

@@ -46,7 +46,7 @@ from services.camera_sim import truth as scene_truth
 from services.camera_sim.truth import footprint_mask, top_heights
 from services.evaluation import metrics
 from services.evaluation import objects as object_scores
-from services.evaluation.lighting import TimelineScore, step_phases
+from services.evaluation.lighting import TimelineScore, over_run, step_phases
 from services.evaluation.metrics import OBSTACLE_BAND_M
 
 MAX_RECORD_S = 120.0
@@ -260,7 +260,13 @@ class Evaluator:
             static = metrics.score_cells(occupancy, self.static_occupied, self.seen)
             out.append(
                 TimelineScore(
-                    stamp_ns / 1e9, scores.iou, static.false_free_rate, scores.unknown_fraction
+                    stamp_ns / 1e9,
+                    scores.iou,
+                    static.false_free_rate,
+                    scores.unknown_fraction,
+                    scores.precision,
+                    scores.recall,
+                    scores.false_free_rate,
                 )
             )
         return out
@@ -450,9 +456,10 @@ def report(
         }
         out["capture_to_map_p50_ms"] = out["capture_to_map_excl_camera_ms"]["p50"]
         out |= evaluator.mover_scores(recorder.objects_snapshot(), out["watched_s"])
+        timeline = evaluator.timeline_scores(recorder.timeline_snapshot())
+        out["over_run"] = over_run(timeline)
         if truth.header.light_steps_ns:
             steps_s = [t / 1e9 for t in truth.header.light_steps_ns]
-            timeline = evaluator.timeline_scores(recorder.timeline_snapshot())
             out["lighting_steps"] = step_phases(steps_s, timeline)
     out["targets"] = {
         name: {"value": out[name], "target": f"{op} {bound:g}", "met": _meets(out[name], op, bound)}
@@ -488,6 +495,16 @@ def table(result: dict[str, Any]) -> str:
     lines.append(f"{'false_free_rate_static':<28}{result['false_free_rate_static']:>12.4g}")
     for name in ("raster_length_error_mean_pct", "raster_length_error_max_pct"):
         lines.append(f"{name:<28}{result[name]:>12.4g}")
+    if "over_run" in result:
+        run = result["over_run"]
+        lines += [
+            "",
+            f"over the run ({run['maps']} maps after the first third; the figures above are the "
+            "last map's)",
+            f"{'':<4}IoU {run['iou']:.4f}  precision {run['precision']:.4f}  recall "
+            f"{run['recall']:.4f}  false-free {run['false_free_rate']:.4f} (static "
+            f"{run['false_free_rate_static']:.4f})  unknown {run['unknown_fraction']:.4f}",
+        ]
     if "velocity_error_mps" in result:
         v = result["velocity_error_mps"]
         switches = ", ".join(f"{k} {n:.1f}" for k, n in result["id_switches"].items())
