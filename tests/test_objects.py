@@ -199,6 +199,20 @@ def test_complete_views_outnumbering_larger_partial_ones_keep_the_size() -> None
     assert not found.partial and np.allclose(found.size_m, (0.46, 0.46))
 
 
+def test_stale_partial_views_do_not_outvote_newer_complete_ones() -> None:
+    """A box at a seam seen only in two oversized partial halves for 8 s, then whole from a pair
+    that took over: the complete views are measured against the partial views of their own time
+    (none), not against the 16 older ones, and give the size at once."""
+    halves = _record((5.0, 5.0), (1.3, 1.2), partial=True, points=2000)
+    whole = _record((5.0, 5.0), (0.6, 0.5), points=900)
+    tracker = ObjectTracker()
+    for k in range(22):
+        tracker.add("p0", T0_NS + k * FRAME_NS, [halves if k < 16 else whole], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+    (found,) = tracker.objects()
+    assert not found.partial and np.allclose(found.size_m, (0.6, 0.5))
+
+
 def test_a_top_outline_is_what_the_points_saw_within_their_rectangle() -> None:
     """The hull of a square's pixel centres, grown half a pixel: the square, to the pixel; a stray
     point outside the fitted rectangle is clipped off; too few points give no outline; a round

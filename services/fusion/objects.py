@@ -235,14 +235,14 @@ def _join(pieces: list[Observation]) -> Observation:
     return Observation(center, size, yaw, top, True, pairs, points, vertices(hull))
 
 
-View = tuple[float, float, float, float, int]
-"""One view of an object: length, width, yaw, top, points."""
+View = tuple[float, float, float, float, int, float]
+"""One view of an object: length, width, yaw, top, points, capture time (s)."""
 TrackSize = tuple[float, float, float, float, bool]
 """A track's length, width, yaw, top and whether that is a partial view's lower bound."""
 
 
-def _view(obs: Observation) -> View:
-    return (*obs.size_m, obs.yaw_rad, obs.top_m, obs.points)
+def _view(obs: Observation, stamp_ns: int) -> View:
+    return (*obs.size_m, obs.yaw_rad, obs.top_m, obs.points, stamp_ns / 1e9)
 
 
 @dataclass
@@ -292,16 +292,19 @@ class Track:
         joined from pieces add up their points, not their measure), else over the partial ones.
         Complete views shorter or narrower than ``piece_share`` of what the partial views saw
         (their median) are pieces of the object, not all of it (a fragment of a plain top, the
-        corner of a box a taller neighbour hides) where the partial views outnumber them; where
-        they do not, the partial views are what is wrong (another object's, taken once)."""
-        views = np.asarray(self.sizes, np.float64).reshape(-1, 5)
-        if self.partial_sizes:
-            seen = np.median(np.asarray(self.partial_sizes, np.float64)[:, :2], axis=0)
+        corner of a box a taller neighbour hides) where the partial views of the same time (since
+        the oldest complete view kept) outnumber them; where they do not, the partial views are
+        what is wrong (another object's, taken once)."""
+        views = np.asarray(self.sizes, np.float64).reshape(-1, 6)
+        partial = np.asarray(self.partial_sizes, np.float64).reshape(-1, 6)
+        recent = partial[partial[:, 5] >= views[:, 5].min(initial=math.inf)]
+        if len(recent):
+            seen = np.median(recent[:, :2], axis=0)
             whole = (views[:, :2] >= config.piece_share * seen).all(axis=1)
-            if np.count_nonzero(~whole) < len(self.partial_sizes):
+            if np.count_nonzero(~whole) < len(recent):
                 views = views[whole]
         complete = bool(len(views))
-        array = views if complete else np.asarray(self.partial_sizes, np.float64)
+        array = views if complete else partial
         if complete:
             array = array[array[:, 4] >= config.best_view_share * array[:, 4].max()]
         doubled = 2 * array[:, 2]  # yaw is modulo π: average on the doubled circle
@@ -569,7 +572,7 @@ class ObjectTracker:
             anchor_m=obs.center_m,
             still_since_ns=stamp_ns,
         )
-        (track.partial_sizes if obs.partial else track.sizes).append(_view(obs))
+        (track.partial_sizes if obs.partial else track.sizes).append(_view(obs, stamp_ns))
         track.centres.append((stamp_ns / 1e9, *obs.center_m))
         self.tracks.append(track)
         self.next_id += 1
@@ -589,7 +592,7 @@ class ObjectTracker:
         track.centres.append((stamp_ns / 1e9, *obs.center_m))
         track.pairs = obs.pairs
         track.detections += 1
-        (track.partial_sizes if obs.partial else track.sizes).append(_view(obs))
+        (track.partial_sizes if obs.partial else track.sizes).append(_view(obs, stamp_ns))
         self._classify(track)
         if track.moving and max(obs.size_m) <= self.config.max_size_m:
             margin = 2 * self.config.wake_margin_m
