@@ -161,10 +161,11 @@ def top_outline(
 ) -> tuple[tuple[float, float], ...]:
     """The convex hull of a top face's points, grown by half a pixel's footprint (pixel centres
     fall short of the edges) and clipped to the ``rectangle`` fitted to them (centre x, y, length,
-    width, yaw; before the image's edges refine it), which has its stray points trimmed. Of a view cut by the image's border it is the part
-    seen, where the rectangle is not: the smallest rectangle around a box cut aslant lies along
-    the cut (offline, ``--seed 4``: box_0's halves 1.14 × 0.57 m from one pair, 1.08 × 0.5 from
-    the other; 0.96 × 0.82 true, and 1.25 × 1.2 around both)."""
+    width, yaw; before the image's edges refine it), which has its stray points trimmed. Of a
+    view cut by the image's border it is the part seen, where the rectangle is not: the smallest
+    rectangle around a box cut aslant lies along the cut (offline, ``--seed 4``: box_0's halves
+    1.14 × 0.57 m from one pair, 1.08 × 0.5 from the other; 0.96 × 0.82 true, and 1.25 × 1.2
+    around both)."""
     hull = cv2.convexHull(xy_m.astype(np.float32)).reshape(-1, 2).astype(np.float64)
     if len(hull) < 3:
         return ()
