@@ -197,28 +197,15 @@ def merge_capture(detections: list[tuple[str, DetectionRecord]], gap_m: float) -
         pairs = tuple(sorted({detections[k][0] for k in members}))
         complete = [detections[k][1] for k in members if not detections[k][1].partial]
         top = max(detections[k][1].top_m for k in members)
-        if complete:
-            best = max(complete, key=lambda d: d.points)
+        if complete or len(members) == 1:  # the best complete view, or the one partial view
+            d = max(complete or [detections[members[0]][1]], key=lambda r: r.points)
             out.append(
                 Observation(
-                    best.center_m,
-                    best.size_m,
-                    best.yaw_rad,
-                    top,
-                    False,
-                    pairs,
-                    best.points,
-                    best.outline_m,
+                    d.center_m, d.size_m, d.yaw_rad, top, not complete, pairs, d.points, d.outline_m
                 )
             )
             continue
         points = sum(detections[k][1].points for k in members)
-        if len(members) == 1:
-            d = detections[members[0]][1]
-            out.append(
-                Observation(d.center_m, d.size_m, d.yaw_rad, top, True, pairs, points, d.outline_m)
-            )
-            continue
         center, size, yaw, hull = _around([_seen(detections[k][1]) for k in members])
         out.append(Observation(center, size, yaw, top, True, pairs, points, vertices(hull)))
     return out
