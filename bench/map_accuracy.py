@@ -144,7 +144,7 @@ def run(
         if (k + 1) % 10 == 0:
             print(f"  {k + 1}/{frames} instants, {time.perf_counter() - started:.0f} s", flush=True)
     renderer.close()
-    tracked = object_sizes(tracker, object_scores.blocking_static(static, scene.floor_size_m))
+    tracked = object_sizes(tracker, grid, object_scores.blocking_static(static, scene.floor_size_m))
     breakdown = metrics.error_breakdown(occupancy, truth, seen, objects, window, r)
     figures: dict[str, object] = {
         name: float(np.mean([s[name] for s in snapshots])) for name in SCORED
@@ -160,10 +160,12 @@ def run(
     return figures, (occupancy, truth, seen)
 
 
-def object_sizes(tracker: ObjectTracker, static: list[TruthObject]) -> dict[str, object]:
+def object_sizes(
+    tracker: ObjectTracker, grid: FusedGrid, static: list[TruthObject]
+) -> dict[str, object]:
     """The tracker's static objects' sizes against the truth, as ``overgrid eval`` scores
     ``map/objects``: the mean and max of the length and width errors over the objects found."""
-    tracks = [t for t in tracker.objects() if t.object_class == "static"]
+    tracks = [t for t in tracker.objects(grid) if t.object_class == "static"]
     matches = object_scores.match_static(tracks, static)
     return {
         **object_scores.size_errors(matches),

@@ -552,6 +552,38 @@ def test_partial_flag_reaches_the_object(partial: bool) -> None:
     assert obj.partial is partial
 
 
+def test_a_view_of_a_piece_of_what_the_map_shows_occupied_says_partial() -> None:
+    """A box of 0.9 × 0.6 m whose cells the frames show occupied (and the ring of cells its edges
+    touch), measured whole by every view at 0.45 × 0.3 (a strip of a plain top): the map's cells
+    say it is larger, so the object says partial. Measured at its size it stays complete, and so
+    does the piece without the map to check against; a neighbour's cells do not count, and a broken
+    detection 10⁶ km long costs nothing."""
+    resolution = 0.05
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
+    box_window, _ = polygon_cells(corners((3.0, 2.0), (0.9, 0.6), 0.0), resolution)
+    ring = Window(box_window.i0 - 1, box_window.j0 - 1, box_window.cols + 2, box_window.rows + 2)
+    neighbour = Window(ring.i1 + 1, ring.j0, 20, ring.rows)  # a cell apart: not connected
+    for window in (ring, neighbour):
+        shape = window.shape
+        grid.integrate(
+            window,
+            np.full(shape, 2.0, np.float32),
+            np.full(shape, 1.0, np.float32),
+            np.full(shape, 20, np.uint16),
+            T0_NS,
+        )
+    for size, piece in (((0.45, 0.3), True), ((0.9, 0.6), False)):
+        tracker = ObjectTracker()
+        for k in range(3):
+            broken = _record((3.0, 60.0), (1e9, 0.8))
+            tracker.add("p0", T0_NS + k * FRAME_NS, [_record((3.0, 2.0), size), broken], 0.0)
+            tracker.flush(now_s=0.0, live_pairs={"p0"})
+        checked, _ = sorted(tracker.objects(grid), key=lambda o: o.size_m[0])
+        unchecked, _ = sorted(tracker.objects(), key=lambda o: o.size_m[0])
+        assert checked.partial is piece
+        assert not unchecked.partial and checked.size_m == unchecked.size_m
+
+
 def _truth(
     name: str, center: tuple[float, float], moving: bool, v: tuple[float, float] = (0.0, 0.0)
 ) -> TruthObject:

@@ -523,6 +523,15 @@ class FusedGrid:
                 )
         return out
 
+    @property
+    def resolution_m(self) -> float:
+        return self.params.resolution_m
+
+    def occupied_in(self, window: Window) -> npt.NDArray[np.bool_]:
+        """Cells the frames' evidence calls occupied (not the served layers), over a window."""
+        occupied: npt.NDArray[np.bool_] = self.window_of("occupancy", window) >= OCCUPIED_MIN
+        return occupied
+
     def layer(self, name: str) -> npt.NDArray[Any]:
         """One layer over the whole map (a copy: for tools and tests; the service uses snapshots)."""
         return self.window_of(name, self.window)

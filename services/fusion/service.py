@@ -222,7 +222,7 @@ class FusionState:
         self.objects_header = ObjectsHeader(
             version=self.tracker.version,
             stamp_ns=self.tracker.stamp_ns,
-            objects=self.tracker.objects(),
+            objects=self.tracker.objects(self.grid),
         )
         return self.objects_header
 
