@@ -584,6 +584,49 @@ def test_a_view_of_a_piece_of_what_the_map_shows_occupied_says_partial() -> None
         assert not unchecked.partial and checked.size_m == unchecked.size_m
 
 
+def test_the_cells_a_plain_tops_measured_rim_encloses_are_not_served_free() -> None:
+    """A plain top of 1.0 × 0.6 m of the floor's grey: the frames measure two of its sides (an L
+    of occupied cells) and call the rest of it free, like the floor around it, and its track
+    measured a piece of it at one corner. The cells the rim and the footprint enclose are served
+    unknown, not free; the floor beyond its sides stays free, and so does all of it without the
+    rule. A textured box measured whole keeps the free floor beside a strip of hits that touches
+    it (a lane line's fattening): its footprint is neither a piece nor plain."""
+    resolution = 0.05
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
+
+    def measure(window: Window, logodds: float) -> None:
+        shape = window.shape
+        grid.integrate(
+            window,
+            np.full(shape, logodds, np.float32),
+            np.full(shape, 1.0, np.float32),
+            np.full(shape, 20, np.uint16),
+            T0_NS,
+        )
+
+    measure(Window(40, 20, 60, 40), -2.0)  # floor, x 2–5 m, y 1–3 m: free
+    measure(Window(60, 40, 20, 1), 4.0)  # the top's side along y = 2.0 (x 3.0–4.0)
+    measure(Window(60, 41, 1, 11), 4.0)  # its side along x = 3.0 (y 2.0–2.6)
+    measure(Window(84, 24, 12, 8), 4.0)  # a textured box, x 4.2–4.8 m, y 1.2–1.6 m …
+    measure(Window(96, 24, 1, 10), 4.0)  # … and a strip touching it, x 4.8–4.85 m, y 1.2–1.7 m
+    tracker = ObjectTracker()
+    for k in range(9):  # 4 s at 2 Hz: static
+        views = [_record((3.2, 2.15), (0.4, 0.3)), _record((4.5, 1.4), (0.6, 0.4))]
+        tracker.add("p0", T0_NS + k * FRAME_NS, views, now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+
+    def served(x: float, y: float) -> int:
+        return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
+
+    free_max = 25  # map.yaml's free_thresh
+    top, beyond_end, beyond_side = (3.7, 2.45), (4.3, 2.3), (3.5, 2.85)
+    assert 0 <= served(*top) <= free_max  # the frames call it free
+    grid.set_contested(tracker.enclosed(grid))
+    assert served(*top) == -1
+    assert 0 <= served(*beyond_end) <= free_max and 0 <= served(*beyond_side) <= free_max
+    assert 0 <= served(4.7, 1.65) <= free_max  # beside the strip, within its reach
+
+
 def _truth(
     name: str, center: tuple[float, float], moving: bool, v: tuple[float, float] = (0.0, 0.0)
 ) -> TruthObject:

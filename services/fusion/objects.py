@@ -42,6 +42,7 @@ from scipy.ndimage import label
 from scipy.optimize import linear_sum_assignment
 
 from common.footprints import (
+    Rectangle,
     convex_hull,
     corners,
     fit_rectangle,
@@ -51,6 +52,7 @@ from common.footprints import (
 )
 from common.lattice import Window
 from common.messages import DetectionRecord, TrackedObject
+from services.fusion.grid import OUTLINE_OCCUPIED_SHARE
 
 F64 = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
@@ -135,10 +137,11 @@ class TrackerConfig:
     """A standing object whose occupied map cells more than ``raster_margin_m`` outside its
     footprint, connected to those inside, number this share of the cells inside or more is larger
     than its views saw: its size is a lower bound and it says ``partial``
-    (:func:`raster_overflow`). A whole object's cells reach a cell or two past its sides (a cell
-    holding an edge point is occupied, and a pixel of fattening): offline, nine scenes, 20 s, the
-    share was at most 0.11 for the 57 objects measured within 5 %, and 0.30–0.72 for the four
-    measured whole at 21–75 % too small (``--seed 3`` box_1 0.49 × 0.41 m of 0.86 × 0.65)."""
+    (:meth:`ConnectedCells.overflow`). A whole object's cells reach a cell or two past its
+    sides (a cell holding an edge point is occupied, and a pixel of fattening): offline, nine
+    scenes, 20 s, the share was at most 0.09 for the 45 objects measured within 5 %, and
+    0.23–0.51 for the four reported whole 21–68 % too small (``--seed 3`` box_1 0.49 × 0.41 m
+    of 0.86 × 0.65)."""
     raster_reach_m: float = 1.0
     """… those cells are looked for this far around the footprint."""
     default_frame_interval_s: float = 0.5
@@ -673,13 +676,12 @@ class ObjectTracker:
                 continue
             length, width, yaw, top, partial = t.size(self.config)
             moving = t.moving
-            if (
-                cells is not None
-                and not (moving or partial)
-                and max(length, width) <= self.config.max_size_m
-            ):
-                overflow = raster_overflow(cells, t.center_m, (length, width), yaw, self.config)
-                partial = overflow >= self.config.raster_overflow_share
+            if cells is not None and not (moving or partial):
+                footprint = (*t.center_m, length, width, yaw)
+                connected = connected_cells(cells, footprint, self.config)
+                partial = connected is not None and self._piece(
+                    connected, footprint, cells.resolution_m
+                )
             velocity = (float(t.state[2]), float(t.state[3])) if moving else (0.0, 0.0)
             cov = t.covariance[2:, 2:] if moving else np.zeros((2, 2))
             out.append(
@@ -774,41 +776,109 @@ class ObjectTracker:
             out.append(polygon_cells(footprint, resolution_m))
         return out
 
+    def _piece(self, connected: ConnectedCells, footprint: Rectangle, resolution_m: float) -> bool:
+        """Whether the map's cells show the object larger than ``footprint`` (``raster_margin_m``)."""
+        overflow = connected.overflow(footprint, self.config.raster_margin_m, resolution_m)
+        return overflow >= self.config.raster_overflow_share
+
+    def enclosed(self, cells: OccupiedCells) -> list[tuple[Window, npt.NDArray[np.bool_]]]:
+        """Per static track whose footprint is a piece of what the map's cells show
+        (``raster_margin_m``) or whose own cells the frames call occupied for less than
+        OUTLINE_OCCUPIED_SHARE (a plain top, measured at its rim alone): the cells of the
+        rectangle through its footprint and the occupied cells connected to it
+        (:meth:`ConnectedCells.enclosure`). Fusion serves those the frames do not call occupied
+        unknown (the contested layer), not free: the rest of a plain top of the floor's grey, which
+        the floor model may have taken for floor."""
+        out = []
+        for track in self.tracks:
+            if not track.static or track.detections < self.config.confirm_detections:
+                continue
+            length, width, yaw, _, _ = track.size(self.config)
+            footprint = (*track.center_m, length, width, yaw)
+            connected = connected_cells(cells, footprint, self.config)
+            if connected is None:
+                continue
+            plain = connected.occupied_inside < OUTLINE_OCCUPIED_SHARE * connected.inside
+            if plain or self._piece(connected, footprint, cells.resolution_m):
+                out.append(connected.enclosure(footprint, cells.resolution_m))
+        return out
+
     def ahead_s(self) -> float:
         """One frame interval: how far past the visible time a sweep must reach."""
         return self.frame_interval_s or self.config.default_frame_interval_s
 
 
-def raster_overflow(
-    cells: OccupiedCells,
-    center_m: tuple[float, float],
-    size_m: tuple[float, float],
-    yaw_rad: float,
-    config: TrackerConfig,
-) -> float:
-    """How far the map's cells say an object is larger than a footprint: its occupied cells that
-    connect (8-neighbours) to occupied cells inside the footprint and lie more than
-    ``raster_margin_m`` outside it (within ``raster_reach_m``), counted against the cells inside.
-    An independent measure at the cell's resolution, of every frame of every pair that saw the
-    object: a view that saw a piece of a top (a strip of a plain top, a corner a neighbour hides)
-    measures it small while the cells show all of it."""
+@dataclass(frozen=True)
+class ConnectedCells:
+    """The map's occupied cells connected (8-neighbours) to occupied cells inside a footprint,
+    within ``raster_reach_m`` of it: every frame of every pair that saw the object, to a cell."""
+
+    window: Window
+    connected: Mask
+    inside: int
+    """Cells whose centres the footprint holds …"""
+    occupied_inside: int
+    """… and how many of them are occupied."""
+
+    def overflow(self, footprint: Rectangle, margin_m: float, resolution_m: float) -> float:
+        """The connected cells more than ``margin_m`` outside the footprint, counted against the
+        cells inside it: a view that saw a piece of a top (a strip of a plain top, a corner a
+        neighbour hides) measures it small while the cells show all of it."""
+        along, across = self._offsets(footprint, resolution_m)
+        beyond_length = np.maximum(np.abs(along) - footprint[2] / 2, 0.0)
+        beyond_width = np.maximum(np.abs(across) - footprint[3] / 2, 0.0)
+        outside = np.hypot(beyond_length, beyond_width) > margin_m
+        return int(np.count_nonzero(outside)) / max(self.inside, 1)
+
+    def enclosure(self, footprint: Rectangle, resolution_m: float) -> tuple[Window, Mask]:
+        """The cells of the rectangle, along the footprint's yaw, through the footprint and the
+        outermost connected cells."""
+        along, across = self._offsets(footprint, resolution_m)
+        x, y, length, width, yaw = footprint
+        a0, a1 = min(float(along.min()), -length / 2), max(float(along.max()), length / 2)
+        b0, b1 = min(float(across.min()), -width / 2), max(float(across.max()), width / 2)
+        c, s = math.cos(yaw), math.sin(yaw)
+        middle_along, middle_across = (a0 + a1) / 2, (b0 + b1) / 2
+        center = (
+            x + middle_along * c - middle_across * s,
+            y + middle_along * s + middle_across * c,
+        )
+        return polygon_cells(corners(center, (a1 - a0, b1 - b0), yaw), resolution_m)
+
+    def _offsets(self, footprint: Rectangle, resolution_m: float) -> tuple[F64, F64]:
+        """The connected cells' centres along the footprint's yaw and across, from its centre."""
+        x, y, _, _, yaw = footprint
+        x_m, y_m = self.window.cell_centers(resolution_m)
+        dx, dy = x_m[self.connected] - x, y_m[self.connected] - y
+        c, s = math.cos(yaw), math.sin(yaw)
+        return dx * c + dy * s, dy * c - dx * s
+
+
+def connected_cells(
+    cells: OccupiedCells, footprint: Rectangle, config: TrackerConfig
+) -> ConnectedCells | None:
+    """:class:`ConnectedCells` of a footprint; None where none of its cells is occupied, or it is
+    longer than ``max_size_m`` (a broken detection)."""
     resolution_m = cells.resolution_m
-    footprint = corners(center_m, size_m, yaw_rad)
-    inner_window, inner = polygon_cells(footprint, resolution_m)
+    x, y, length, width, yaw = footprint
+    if max(length, width) > config.max_size_m:
+        return None
+    outline = corners((x, y), (length, width), yaw)
+    inner_window, inner = polygon_cells(outline, resolution_m)
     reach = config.raster_reach_m
-    (x0, y0), (x1, y1) = footprint.min(axis=0) - reach, footprint.max(axis=0) + reach
+    (x0, y0), (x1, y1) = outline.min(axis=0) - reach, outline.max(axis=0) + reach
     window = Window.covering(float(x0), float(y0), float(x1), float(y1), resolution_m)
-    labels, _ = label(cells.occupied_in(window), structure=np.ones((3, 3), np.int8))
+    occupied = cells.occupied_in(window)
+    labels, _ = label(occupied, structure=np.ones((3, 3), np.int8))
     part = inner_window.intersect(window)
-    touched = labels[part.slices_in(window)][inner[part.slices_in(inner_window)]]
+    inside = inner[part.slices_in(inner_window)]
+    touched = labels[part.slices_in(window)][inside]
     touched = np.unique(touched[touched > 0])
     if touched.size == 0:
-        return 0.0
-    x_m, y_m = window.cell_centers(resolution_m)
-    blob = np.isin(labels, touched)
-    dx, dy = x_m[blob] - center_m[0], y_m[blob] - center_m[1]
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    beyond_length = np.maximum(np.abs(dx * c + dy * s) - size_m[0] / 2, 0.0)
-    beyond_width = np.maximum(np.abs(dy * c - dx * s) - size_m[1] / 2, 0.0)
-    outside = np.hypot(beyond_length, beyond_width) > config.raster_margin_m
-    return int(np.count_nonzero(outside)) / max(int(np.count_nonzero(inner)), 1)
+        return None
+    return ConnectedCells(
+        window=window,
+        connected=np.isin(labels, touched),
+        inside=int(np.count_nonzero(inner)),
+        occupied_inside=int(np.count_nonzero(occupied[part.slices_in(window)][inside])),
+    )

@@ -210,7 +210,7 @@ class FusionState:
                 self.outlined, contested = self.grid.by_agreement(
                     self.tracker.outlines(resolution_m)
                 )
-                self.grid.set_contested(contested)
+                self.grid.set_contested(contested + self.tracker.enclosed(self.grid))
         if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
             swept = self.tracker.sweep(resolution_m, self.grid.stamp_ns, until_ns)

@@ -44,7 +44,8 @@ class FusionParams(OvergridParams):
         description="serve the cells inside static objects' measured footprints as occupied "
         "where the frames agree (the rim cells their pixels decide either way); where the frames "
         "call under 3/4 of a footprint occupied, its cells not occupied are served unknown (a "
-        "plain top the floor model took for floor)",
+        "plain top the floor model took for floor), and so are those of the rectangle a plain "
+        "or piecewise-measured top's occupied rim encloses",
     )
     predict_movers: bool = Field(
         False,
