@@ -235,7 +235,10 @@ class TrackedObject(Footprint):
     first_seen_ns: int = Field(ge=0)
     last_seen_ns: int = Field(ge=0)
     pairs: list[str] = Field(description="pairs whose frames saw it last")
-    partial: bool = Field(description="no pair has seen all of it: its size is a lower bound")
+    partial: bool = Field(
+        description="no pair has seen all of it, or the map's cells show it larger: its size is "
+        "a lower bound"
+    )
     detections: int = Field(ge=0, description="frames it was measured in")
 
 

@@ -575,7 +575,7 @@ def test_a_view_of_a_piece_of_what_the_map_shows_occupied_says_partial() -> None
     for size, piece in (((0.45, 0.3), True), ((0.9, 0.6), False)):
         tracker = ObjectTracker()
         for k in range(3):
-            broken = _record((3.0, 60.0), (1e9, 0.8))
+            broken = _record((5.0, 4.2), (1e9, 0.8))  # over the map
             tracker.add("p0", T0_NS + k * FRAME_NS, [_record((3.0, 2.0), size), broken], 0.0)
             tracker.flush(now_s=0.0, live_pairs={"p0"})
         checked, _ = sorted(tracker.objects(grid), key=lambda o: o.size_m[0])
@@ -585,12 +585,14 @@ def test_a_view_of_a_piece_of_what_the_map_shows_occupied_says_partial() -> None
 
 
 def test_the_cells_a_plain_tops_measured_rim_encloses_are_not_served_free() -> None:
-    """A plain top of 1.0 × 0.6 m of the floor's grey: the frames measure two of its sides (an L
-    of occupied cells) and call the rest of it free, like the floor around it, and its track
-    measured a piece of it at one corner. The cells the rim and the footprint enclose are served
-    unknown, not free; the floor beyond its sides stays free, and so does all of it without the
-    rule. A textured box measured whole keeps the free floor beside a strip of hits that touches
-    it (a lane line's fattening): its footprint is neither a piece nor plain."""
+    """The frames call the floor free, and measure plain tops of the floor's grey at their edges
+    alone (the rest of each top free, like the floor):
+    - a top measured whole, its rim all round: its footprint the frames do not agree with;
+    - a box measured on one half (all occupied, so the frames agree with that footprint), its
+      other half's rim reaching 0.7 m further: a piece of what the map shows.
+    The cells each encloses are served unknown, not free, and the floor beyond stays free. A
+    textured box measured whole keeps the free floor beside a strip of hits that touches it (a
+    lane line's fattening): its footprint is neither."""
     resolution = 0.05
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
 
@@ -604,14 +606,23 @@ def test_the_cells_a_plain_tops_measured_rim_encloses_are_not_served_free() -> N
             T0_NS,
         )
 
-    measure(Window(40, 20, 60, 40), -2.0)  # floor, x 2–5 m, y 1–3 m: free
-    measure(Window(60, 40, 20, 1), 4.0)  # the top's side along y = 2.0 (x 3.0–4.0)
-    measure(Window(60, 41, 1, 11), 4.0)  # its side along x = 3.0 (y 2.0–2.6)
-    measure(Window(84, 24, 12, 8), 4.0)  # a textured box, x 4.2–4.8 m, y 1.2–1.6 m …
-    measure(Window(96, 24, 1, 10), 4.0)  # … and a strip touching it, x 4.8–4.85 m, y 1.2–1.7 m
+    measure(Window(0, 0, 200, 100), -2.0)  # the floor: free
+    for rim in (Window(140, 56, 12, 1), Window(140, 63, 12, 1)):  # x 7.0–7.6 m, y 2.8–3.2 m
+        measure(rim, 4.0)
+    for rim in (Window(140, 57, 1, 6), Window(151, 57, 1, 6)):
+        measure(rim, 4.0)
+    measure(Window(60, 40, 10, 12), 4.0)  # a box's near half: x 3.0–3.5 m, y 2.0–2.6 m …
+    for rim in (Window(70, 40, 14, 1), Window(70, 51, 14, 1), Window(83, 41, 1, 10)):
+        measure(rim, 4.0)  # … and its far half's rim, to x = 4.2 m
+    measure(Window(20, 24, 12, 8), 4.0)  # a textured box, x 1.0–1.6 m, y 1.2–1.6 m …
+    measure(Window(32, 24, 1, 10), 4.0)  # … and a strip touching it, x 1.6–1.65 m, y 1.2–1.7 m
     tracker = ObjectTracker()
+    views = [
+        _record((7.3, 3.0), (0.6, 0.4)),
+        _record((3.25, 2.3), (0.6, 0.5), yaw=math.pi / 2),
+        _record((1.3, 1.4), (0.6, 0.4)),
+    ]
     for k in range(9):  # 4 s at 2 Hz: static
-        views = [_record((3.2, 2.15), (0.4, 0.3)), _record((4.5, 1.4), (0.6, 0.4))]
         tracker.add("p0", T0_NS + k * FRAME_NS, views, now_s=0.0)
         tracker.flush(now_s=0.0, live_pairs={"p0"})
 
@@ -619,12 +630,12 @@ def test_the_cells_a_plain_tops_measured_rim_encloses_are_not_served_free() -> N
         return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
 
     free_max = 25  # map.yaml's free_thresh
-    top, beyond_end, beyond_side = (3.7, 2.45), (4.3, 2.3), (3.5, 2.85)
-    assert 0 <= served(*top) <= free_max  # the frames call it free
+    tops = [(7.3, 3.0), (3.9, 2.3)]
+    floor = [(7.3, 3.4), (7.8, 3.0), (4.4, 2.3), (3.9, 2.8), (1.5, 1.65)]
+    assert all(0 <= served(*cell) <= free_max for cell in tops + floor)  # the frames' verdict
     grid.set_contested(tracker.enclosed(grid))
-    assert served(*top) == -1
-    assert 0 <= served(*beyond_end) <= free_max and 0 <= served(*beyond_side) <= free_max
-    assert 0 <= served(4.7, 1.65) <= free_max  # beside the strip, within its reach
+    assert [served(*cell) for cell in tops] == [-1, -1]
+    assert all(0 <= served(*cell) <= free_max for cell in floor)
 
 
 def _truth(

@@ -488,17 +488,20 @@ class FusedGrid:
         """``cells`` (an object's footprint each) split in two: those whose known cells the
         frames' evidence calls occupied for OUTLINE_OCCUPIED_SHARE or more (the map agrees there
         is an object), and the others."""
-        agree, disagree = [], []
+        agree: CellMasks = []
+        disagree: CellMasks = []
         for window, mask in cells:
-            occupancy = self.window_of("occupancy", window)
-            known = mask & (occupancy != UNKNOWN)
-            occupied = known & (occupancy >= OCCUPIED_MIN)
-            total = int(np.count_nonzero(known))
-            if total and np.count_nonzero(occupied) >= OUTLINE_OCCUPIED_SHARE * total:
-                agree.append((window, mask))
-            else:
-                disagree.append((window, mask))
+            (agree if self.agrees(window, mask) else disagree).append((window, mask))
         return agree, disagree
+
+    def agrees(self, window: Window, mask: npt.NDArray[np.bool_]) -> bool:
+        """Whether the frames' evidence calls OUTLINE_OCCUPIED_SHARE or more of the known cells of
+        an object's footprint (``mask`` on ``window``) occupied."""
+        occupancy = self.window_of("occupancy", window)
+        known = mask & (occupancy != UNKNOWN)
+        total = int(np.count_nonzero(known))
+        occupied = int(np.count_nonzero(known & (occupancy >= OCCUPIED_MIN)))
+        return total > 0 and occupied >= OUTLINE_OCCUPIED_SHARE * total
 
     def _writable(self, key: ChunkKey) -> Chunk:
         """The chunk to write into: created when new, copied when a frozen map shares it."""

@@ -26,9 +26,9 @@ Rules that shape the tracks:
 - a moving track's wake (where it stood over the last ``wake_s``, less where any track stands
   now) is handed to the grid, which forgets the hits there that no frame has shown since
   (:meth:`wake`);
-- the map's occupied cells check what the views cannot (:class:`OccupiedParts`): a standing
+- the map's occupied cells check what the views cannot (:class:`ConnectedCells`): a standing
   object they show larger than measured says ``partial``, and where its footprint is such a
-  piece or a plain top (the frames call under OUTLINE_OCCUPIED_SHARE of it occupied), the
+  piece or a plain top (the frames' evidence does not agree with it), the
   rectangle its connected cells span is handed to the grid as contested (:meth:`enclosed`).
 """
 
@@ -56,7 +56,6 @@ from common.footprints import (
 )
 from common.lattice import Window
 from common.messages import DetectionRecord, TrackedObject
-from services.fusion.grid import OUTLINE_OCCUPIED_SHARE
 
 F64 = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
@@ -64,14 +63,14 @@ NOT_ALLOWED = 1e6
 
 
 class OccupiedCells(Protocol):
-    """The map's evidence as the tracker checks sizes against it (``FusedGrid``)."""
-
-    window: Window
+    """The map's evidence as the tracker checks objects against it (``FusedGrid``)."""
 
     @property
     def resolution_m(self) -> float: ...
 
     def occupied_in(self, window: Window) -> Mask: ...
+
+    def agrees(self, window: Window, mask: Mask) -> bool: ...
 
 
 @dataclass(frozen=True)
@@ -139,6 +138,7 @@ class TrackerConfig:
     --pairs 6``: box_3 (1.19 × 0.98 m) was reported 0.49 × 0.15 from one view of 57 points, over
     20 partial views of 4 000 points that measured 1.19 × 0.97."""
     raster_margin_m: float = 0.15
+    """Connected map cells this far outside a footprint or nearer are its own edge's …"""
     raster_overflow_share: float = 0.2
     """A standing object whose occupied map cells more than ``raster_margin_m`` outside its
     footprint, connected to those inside, number this share of the cells inside or more is larger
@@ -676,16 +676,15 @@ class ObjectTracker:
     def objects(self, cells: OccupiedCells | None = None) -> list[TrackedObject]:
         """Confirmed tracks as ``map/objects`` reports them; with the map's ``cells``, a
         standing object they show larger than measured says ``partial`` (``raster_margin_m``)."""
-        parts = None if cells is None else OccupiedParts.of(cells)
         out = []
         for t in self.tracks:
             if t.detections < self.config.confirm_detections:
                 continue
             length, width, yaw, top, partial = t.size(self.config)
             moving = t.moving
-            if parts is not None and not (moving or partial):
+            if cells is not None and not (moving or partial):
                 footprint = (*t.center_m, length, width, yaw)
-                connected = parts.connected(footprint, self.config)
+                connected = connected_cells(cells, footprint, self.config)
                 partial = connected is not None and self._piece(connected, footprint)
             velocity = (float(t.state[2]), float(t.state[3])) if moving else (0.0, 0.0)
             cov = t.covariance[2:, 2:] if moving else np.zeros((2, 2))
@@ -788,25 +787,23 @@ class ObjectTracker:
 
     def enclosed(self, cells: OccupiedCells) -> list[tuple[Window, npt.NDArray[np.bool_]]]:
         """Per static track whose footprint is a piece of what the map's cells show
-        (``raster_margin_m``) or whose own cells the frames call occupied for less than
-        OUTLINE_OCCUPIED_SHARE (a plain top, measured at its rim alone): the cells of the
-        rectangle through its footprint and the occupied cells connected to it
-        (:meth:`ConnectedCells.enclosure`). Fusion serves those the frames do not call occupied
-        unknown (the contested layer), not free: the rest of a plain top of the floor's grey, which
-        the floor model may have taken for floor."""
-        parts = OccupiedParts.of(cells)
+        (``raster_margin_m``) or that the frames' evidence does not agree with (a plain top,
+        measured at its rim alone: ``FusedGrid.agrees``): the cells of the rectangle through its
+        footprint and the occupied cells connected to it (:meth:`ConnectedCells.enclosure`).
+        Fusion serves those the frames do not call occupied unknown (the contested layer), not
+        free: the rest of a plain top of the floor's grey, which the floor model may have taken
+        for floor. Two objects that touch are one part of the map: both enclose the pair."""
         out = []
         for track in self.tracks:
             if not track.static or track.detections < self.config.confirm_detections:
                 continue
             length, width, yaw, _, _ = track.size(self.config)
             footprint = (*track.center_m, length, width, yaw)
-            connected = parts.connected(footprint, self.config)
+            connected = connected_cells(cells, footprint, self.config)
             if connected is None:
                 continue
-            plain = connected.occupied_inside < OUTLINE_OCCUPIED_SHARE * connected.inside
-            if plain or self._piece(connected, footprint):
-                out.append(connected.enclosure(footprint))
+            if not cells.agrees(*connected.footprint_cells) or self._piece(connected, footprint):
+                out.append(connected.enclosure(footprint, cells.resolution_m))
         return out
 
     def ahead_s(self) -> float:
@@ -815,71 +812,17 @@ class ObjectTracker:
 
 
 @dataclass(frozen=True)
-class OccupiedParts:
-    """The map's occupied cells and their connected parts (8-neighbours), labelled once for all
-    the objects checked against them."""
-
-    window: Window
-    occupied: Mask
-    labels: npt.NDArray[np.int32]
-    resolution_m: float
-
-    @staticmethod
-    def of(cells: OccupiedCells) -> OccupiedParts:
-        occupied = cells.occupied_in(cells.window)
-        labels, _ = label(occupied, structure=np.ones((3, 3), np.int8))
-        return OccupiedParts(cells.window, occupied, labels, cells.resolution_m)
-
-    def connected(self, footprint: Rectangle, config: TrackerConfig) -> ConnectedCells | None:
-        """The occupied parts that hold an occupied cell inside ``footprint``, within
-        ``raster_reach_m`` of it; None where it holds none, or is longer than ``max_size_m`` (a
-        broken detection)."""
-        x, y, length, width, yaw = footprint
-        if max(length, width) > config.max_size_m:
-            return None
-        outline = corners((x, y), (length, width), yaw)
-        (x0, y0), (x1, y1) = (
-            outline.min(axis=0) - config.raster_reach_m,
-            outline.max(axis=0) + (config.raster_reach_m),
-        )
-        window = Window.covering(float(x0), float(y0), float(x1), float(y1), self.resolution_m)
-        window = window.intersect(self.window)
-        if window.empty:
-            return None
-        part = window.slices_in(self.window)
-        labels, occupied = self.labels[part], self.occupied[part]
-        x_m, y_m = window.cell_centers(self.resolution_m)
-        c, s = math.cos(yaw), math.sin(yaw)
-        along, across = (x_m - x) * c + (y_m - y) * s, (y_m - y) * c - (x_m - x) * s
-        inside = (np.abs(along) <= length / 2) & (np.abs(across) <= width / 2)
-        touched = np.unique(labels[inside & occupied])
-        touched = touched[touched > 0]
-        if touched.size == 0:
-            return None
-        return ConnectedCells(
-            window=window,
-            connected=np.isin(labels, touched),
-            along_m=along,
-            across_m=across,
-            inside=int(np.count_nonzero(inside)),
-            occupied_inside=int(np.count_nonzero(inside & occupied)),
-        )
-
-
-@dataclass(frozen=True)
 class ConnectedCells:
-    """The map's occupied cells connected to occupied cells inside a footprint, within
-    ``raster_reach_m`` of it: every frame of every pair that saw the object, to a cell."""
+    """The map's occupied cells connected (8-neighbours) to occupied cells inside a footprint,
+    within ``raster_reach_m`` of it: every frame of every pair that saw the object, to a cell."""
 
     window: Window
     connected: Mask
     along_m: F64
     across_m: F64
     """Every cell's centre along the footprint's yaw and across it, from its centre."""
-    inside: int
-    """Cells whose centres the footprint holds …"""
-    occupied_inside: int
-    """… and how many of them are occupied."""
+    footprint_cells: tuple[Window, Mask]
+    """The cells whose centres the footprint holds (``polygon_cells``)."""
 
     def overflow(self, footprint: Rectangle, margin_m: float) -> float:
         """The connected cells more than ``margin_m`` outside the footprint, counted against the
@@ -889,19 +832,53 @@ class ConnectedCells:
         beyond_length = np.maximum(np.abs(self.along_m[self.connected]) - length / 2, 0.0)
         beyond_width = np.maximum(np.abs(self.across_m[self.connected]) - width / 2, 0.0)
         outside = np.hypot(beyond_length, beyond_width) > margin_m
-        return int(np.count_nonzero(outside)) / max(self.inside, 1)
+        return int(np.count_nonzero(outside)) / max(
+            int(np.count_nonzero(self.footprint_cells[1])), 1
+        )
 
-    def enclosure(self, footprint: Rectangle) -> tuple[Window, Mask]:
+    def enclosure(self, footprint: Rectangle, resolution_m: float) -> tuple[Window, Mask]:
         """The cells of the rectangle, along the footprint's yaw, through the footprint and the
         outermost connected cells."""
-        _, _, length, width, _ = footprint
+        x, y, length, width, yaw = footprint
         along, across = self.along_m[self.connected], self.across_m[self.connected]
         a0, a1 = min(float(along.min()), -length / 2), max(float(along.max()), length / 2)
         b0, b1 = min(float(across.min()), -width / 2), max(float(across.max()), width / 2)
-        mask: Mask = (
-            (self.along_m >= a0)
-            & (self.along_m <= a1)
-            & (self.across_m >= b0)
-            & (self.across_m <= b1)
+        c, s = math.cos(yaw), math.sin(yaw)
+        middle_along, middle_across = (a0 + a1) / 2, (b0 + b1) / 2
+        center = (
+            x + middle_along * c - middle_across * s,
+            y + middle_along * s + middle_across * c,
         )
-        return self.window, mask
+        return polygon_cells(corners(center, (a1 - a0, b1 - b0), yaw), resolution_m)
+
+
+def connected_cells(
+    cells: OccupiedCells, footprint: Rectangle, config: TrackerConfig
+) -> ConnectedCells | None:
+    """:class:`ConnectedCells` of a footprint, labelled on its reach alone (the cost follows the
+    object, not the map); None where none of its cells is occupied, or it is longer than
+    ``max_size_m`` (a broken detection)."""
+    x, y, length, width, yaw = footprint
+    if max(length, width) > config.max_size_m:
+        return None
+    resolution_m = cells.resolution_m
+    outline = corners((x, y), (length, width), yaw)
+    inner_window, inner = polygon_cells(outline, resolution_m)
+    reach = config.raster_reach_m
+    (x0, y0), (x1, y1) = outline.min(axis=0) - reach, outline.max(axis=0) + reach
+    window = Window.covering(float(x0), float(y0), float(x1), float(y1), resolution_m)
+    labels, _ = label(cells.occupied_in(window), structure=np.ones((3, 3), np.int8))
+    part = inner_window.intersect(window)
+    touched = labels[part.slices_in(window)][inner[part.slices_in(inner_window)]]
+    touched = np.unique(touched[touched > 0])
+    if touched.size == 0:
+        return None
+    x_m, y_m = window.cell_centers(resolution_m)
+    c, s = math.cos(yaw), math.sin(yaw)
+    return ConnectedCells(
+        window=window,
+        connected=np.isin(labels, touched),
+        along_m=(x_m - x) * c + (y_m - y) * s,
+        across_m=(y_m - y) * c - (x_m - x) * s,
+        footprint_cells=(inner_window, inner),
+    )
