@@ -291,6 +291,13 @@ class Track:
     detections: int = 1
     static: bool = False
     moving: bool = False
+    _size: tuple[TrackerConfig, TrackSize] | None = field(default=None, repr=False)
+    """The size of the views as they are (:meth:`size`): asked for several times a capture."""
+
+    def add_view(self, view: View, partial: bool) -> None:
+        """A view of the object, complete or ``partial``; the size is worked out anew."""
+        (self.partial_sizes if partial else self.sizes).append(view)
+        self._size = None
 
     @property
     def center_m(self) -> tuple[float, float]:
@@ -314,6 +321,8 @@ class Track:
         corner of a box a taller neighbour hides) where the partial views of the same time (since
         the oldest complete view kept) outnumber them; where they do not, the partial views are
         what is wrong (another object's, taken once)."""
+        if self._size is not None and self._size[0] is config:
+            return self._size[1]
         views = np.asarray(self.sizes, np.float64).reshape(-1, 6)
         partial = np.asarray(self.partial_sizes, np.float64).reshape(-1, 6)
         recent = partial[partial[:, 5] >= views[:, 5].min(initial=math.inf)]
@@ -328,13 +337,15 @@ class Track:
             array = array[array[:, 4] >= config.best_view_share * array[:, 4].max()]
         doubled = 2 * array[:, 2]  # yaw is modulo π: average on the doubled circle
         yaw = math.atan2(float(np.sin(doubled).mean()), float(np.cos(doubled).mean())) / 2
-        return (
+        size = (
             float(np.median(array[:, 0])),
             float(np.median(array[:, 1])),
             yaw % math.pi,
             float(np.median(array[:, 3])),
             not complete,
         )
+        self._size = (config, size)
+        return size
 
 
 def _transition(dt_s: float) -> F64:
@@ -591,7 +602,7 @@ class ObjectTracker:
             anchor_m=obs.center_m,
             still_since_ns=stamp_ns,
         )
-        (track.partial_sizes if obs.partial else track.sizes).append(_view(obs, stamp_ns))
+        track.add_view(_view(obs, stamp_ns), obs.partial)
         track.centres.append((stamp_ns / 1e9, *obs.center_m))
         self.tracks.append(track)
         self.next_id += 1
@@ -611,7 +622,7 @@ class ObjectTracker:
         track.centres.append((stamp_ns / 1e9, *obs.center_m))
         track.pairs = obs.pairs
         track.detections += 1
-        (track.partial_sizes if obs.partial else track.sizes).append(_view(obs, stamp_ns))
+        track.add_view(_view(obs, stamp_ns), obs.partial)
         self._classify(track)
         if track.moving and max(obs.size_m) <= self.config.max_size_m:
             margin = 2 * self.config.wake_margin_m
