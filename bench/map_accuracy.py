@@ -121,7 +121,7 @@ def run(
                 tracker.outlines(r)
             )  # as the fusion service does
             grid.set_predicted(outlined)
-            grid.set_contested(contested + tracker.enclosed(grid))
+            grid.set_contested(contested + tracker.check_against(grid).enclosures)
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time
         if k == frames - 1 or (k >= frames // 3 and (frames - 1 - k) % every == 0):
             objects = scene.truth_objects(stamp_ns / 1e9)
@@ -165,7 +165,8 @@ def object_sizes(
 ) -> dict[str, object]:
     """The tracker's static objects' sizes against the truth, as ``overgrid eval`` scores
     ``map/objects``: the mean and max of the length and width errors over the objects found."""
-    tracks = [t for t in tracker.objects(grid) if t.object_class == "static"]
+    pieces = tracker.check_against(grid).pieces
+    tracks = [t for t in tracker.objects(pieces) if t.object_class == "static"]
     matches = object_scores.match_static(tracks, static)
     return {
         **object_scores.size_errors(matches),

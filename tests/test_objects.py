@@ -578,7 +578,9 @@ def test_a_view_of_a_piece_of_what_the_map_shows_occupied_says_partial() -> None
             broken = _record((5.0, 4.2), (1e9, 0.8))  # over the map
             tracker.add("p0", T0_NS + k * FRAME_NS, [_record((3.0, 2.0), size), broken], 0.0)
             tracker.flush(now_s=0.0, live_pairs={"p0"})
-        checked, _ = sorted(tracker.objects(grid), key=lambda o: o.size_m[0])
+        checked, _ = sorted(
+            tracker.objects(tracker.check_against(grid).pieces), key=lambda o: o.size_m[0]
+        )
         unchecked, _ = sorted(tracker.objects(), key=lambda o: o.size_m[0])
         assert checked.partial is piece
         assert not unchecked.partial and checked.size_m == unchecked.size_m
@@ -633,7 +635,7 @@ def test_the_cells_a_plain_tops_measured_rim_encloses_are_not_served_free() -> N
     tops = [(7.3, 3.0), (3.9, 2.3)]
     floor = [(7.3, 3.4), (7.8, 3.0), (4.4, 2.3), (3.9, 2.8), (1.5, 1.65)]
     assert all(0 <= served(*cell) <= free_max for cell in tops + floor)  # the frames' verdict
-    grid.set_contested(tracker.enclosed(grid))
+    grid.set_contested(tracker.check_against(grid).enclosures)
     assert [served(*cell) for cell in tops] == [-1, -1]
     assert all(0 <= served(*cell) <= free_max for cell in floor)
 

@@ -29,14 +29,14 @@ Rules that shape the tracks:
 - the map's occupied cells check what the views cannot (:class:`ConnectedCells`): a standing
   object they show larger than measured says ``partial``, and where its footprint is such a
   piece or a plain top (the frames' evidence does not agree with it), the
-  rectangle its connected cells span is handed to the grid as contested (:meth:`enclosed`).
+  rectangle its connected cells span is handed to the grid as contested (:meth:`check_against`).
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -684,19 +684,16 @@ class ObjectTracker:
             track.state[2:] = 0.0
             track.covariance[2:, :] = track.covariance[:, 2:] = 0.0
 
-    def objects(self, cells: OccupiedCells | None = None) -> list[TrackedObject]:
-        """Confirmed tracks as ``map/objects`` reports them; with the map's ``cells``, a
-        standing object they show larger than measured says ``partial`` (``raster_margin_m``)."""
+    def objects(self, pieces: Collection[int] = frozenset()) -> list[TrackedObject]:
+        """Confirmed tracks as ``map/objects`` reports them; those in ``pieces`` (the map's cells
+        show them larger than measured: :attr:`MapCheck.pieces`) say ``partial``."""
         out = []
         for t in self.tracks:
             if t.detections < self.config.confirm_detections:
                 continue
             length, width, yaw, top, partial = t.size(self.config)
             moving = t.moving
-            if cells is not None and not (moving or partial):
-                footprint = (*t.center_m, length, width, yaw)
-                connected = connected_cells(cells, footprint, self.config)
-                partial = connected is not None and self._piece(connected, footprint)
+            partial = partial or t.id in pieces
             velocity = (float(t.state[2]), float(t.state[3])) if moving else (0.0, 0.0)
             cov = t.covariance[2:, 2:] if moving else np.zeros((2, 2))
             out.append(
@@ -791,35 +788,47 @@ class ObjectTracker:
             out.append(polygon_cells(footprint, resolution_m))
         return out
 
-    def _piece(self, connected: ConnectedCells, footprint: Rectangle) -> bool:
-        """Whether the map's cells show the object larger than ``footprint`` (``raster_margin_m``)."""
-        overflow = connected.overflow(footprint, self.config.raster_margin_m)
-        return overflow >= self.config.raster_overflow_share
-
-    def enclosed(self, cells: OccupiedCells) -> list[tuple[Window, npt.NDArray[np.bool_]]]:
-        """Per static track whose footprint is a piece of what the map's cells show
-        (``raster_margin_m``) or that the frames' evidence does not agree with (a plain top,
-        measured at its rim alone: ``FusedGrid.agrees``): the cells of the rectangle through its
-        footprint and the occupied cells connected to it (:meth:`ConnectedCells.enclosure`).
-        Fusion serves those the frames do not call occupied unknown (the contested layer), not
-        free: the rest of a plain top of the floor's grey, which the floor model may have taken
-        for floor. Two objects that touch are one part of the map: both enclose the pair."""
-        out = []
+    def check_against(self, cells: OccupiedCells) -> MapCheck:
+        """What the map's cells say of the confirmed standing tracks, worked out once a capture
+        (:class:`MapCheck`): a track whose connected cells more than ``raster_margin_m`` outside
+        its footprint number ``raster_overflow_share`` of those inside or more is a piece of what
+        they show; a static track that is such a piece, or that the frames' evidence does not
+        agree with (a plain top measured at its rim alone: ``FusedGrid.agrees``), encloses the
+        rectangle through its footprint and those cells (:meth:`ConnectedCells.enclosure`).
+        Fusion serves the enclosures' cells the frames do not call occupied unknown (the
+        contested layer), not free: the rest of a plain top of the floor's grey, which the floor
+        model may have taken for floor. Two objects that touch are one part of the map: both are
+        pieces of it, and both enclose the pair."""
+        pieces, enclosures = set(), []
         for track in self.tracks:
-            if not track.static or track.detections < self.config.confirm_detections:
+            if track.moving or track.detections < self.config.confirm_detections:
                 continue
             length, width, yaw, _, _ = track.size(self.config)
             footprint = (*track.center_m, length, width, yaw)
             connected = connected_cells(cells, footprint, self.config)
             if connected is None:
                 continue
-            if not cells.agrees(*connected.footprint_cells) or self._piece(connected, footprint):
-                out.append(connected.enclosure(footprint, cells.resolution_m))
-        return out
+            overflow = connected.overflow(footprint, self.config.raster_margin_m)
+            piece = overflow >= self.config.raster_overflow_share
+            if piece:
+                pieces.add(track.id)
+            if track.static and (piece or not cells.agrees(*connected.footprint_cells)):
+                enclosures.append(connected.enclosure(footprint, cells.resolution_m))
+        return MapCheck(frozenset(pieces), enclosures)
 
     def ahead_s(self) -> float:
         """One frame interval: how far past the visible time a sweep must reach."""
         return self.frame_interval_s or self.config.default_frame_interval_s
+
+
+@dataclass(frozen=True)
+class MapCheck:
+    """What the map's cells say of the tracks (:meth:`ObjectTracker.check_against`)."""
+
+    pieces: frozenset[int] = frozenset()
+    """Ids of tracks the cells show larger than measured: their size is a lower bound."""
+    enclosures: list[tuple[Window, Mask]] = field(default_factory=list)
+    """Cells the static tracks' measured rims enclose, for the contested layer."""
 
 
 @dataclass(frozen=True)

@@ -48,7 +48,7 @@ from services.fusion.grid import (
 )
 from services.fusion.inbox import Delivery, Inbox
 from services.fusion.intake import Rejected, TileGate, decode_detections, decode_presence
-from services.fusion.objects import ObjectTracker
+from services.fusion.objects import MapCheck, ObjectTracker
 from services.fusion.persistence import StateWriter, load_grid
 from services.fusion.settings import FusionSettings
 from services.fusion.snapshot import CONTENT_TYPES, MapQuery, MapSnapshot, parse_map_query
@@ -204,13 +204,15 @@ class FusionState:
         now_ns = time.time_ns()
         resolution_m = self.grid.params.resolution_m
         changed = self.tracker.flush(now_ns / 1e9, self.alive)
+        check = MapCheck()
         if changed:
             self.grid.forget_occupied(*self.tracker.wake(resolution_m))
+            check = self.tracker.check_against(self.grid)
             if self.settings.outline_static:  # once a capture: tracks and evidence both moved
                 self.outlined, contested = self.grid.by_agreement(
                     self.tracker.outlines(resolution_m)
                 )
-                self.grid.set_contested(contested + self.tracker.enclosed(self.grid))
+                self.grid.set_contested(contested + check.enclosures)
         if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
             swept = self.tracker.sweep(resolution_m, self.grid.stamp_ns, until_ns)
@@ -222,7 +224,7 @@ class FusionState:
         self.objects_header = ObjectsHeader(
             version=self.tracker.version,
             stamp_ns=self.tracker.stamp_ns,
-            objects=self.tracker.objects(self.grid),
+            objects=self.tracker.objects(check.pieces),
         )
         return self.objects_header
 
