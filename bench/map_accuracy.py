@@ -121,7 +121,9 @@ def run(
                 tracker.outlines(r)
             )  # as the fusion service does
             grid.set_predicted(outlined)
-            grid.set_contested(contested + tracker.check_against(grid).enclosures)
+            check = tracker.check_against(grid)
+            grid.set_contested(contested + check.enclosures)
+            grid.set_rim(check.rims)
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time
         if k == frames - 1 or (k >= frames // 3 and (frames - 1 - k) % every == 0):
             objects = scene.truth_objects(stamp_ns / 1e9)

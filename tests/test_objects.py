@@ -9,6 +9,7 @@ import pytest
 
 from common.footprints import corners, fit_rectangle, polygon_cells
 from common.lattice import Window
+from common.mapfiles import OCCUPIED_MIN
 from common.messages import DetectionRecord, TrackedObject, TruthObject
 from common.occupancy_map import OCCUPIED
 from common.sensor_model import SensorModelParams
@@ -638,6 +639,54 @@ def test_the_cells_a_plain_tops_measured_rim_encloses_are_not_served_free() -> N
     grid.set_contested(tracker.check_against(grid).enclosures)
     assert [served(*cell) for cell in tops] == [-1, -1]
     assert all(0 <= served(*cell) <= free_max for cell in floor)
+
+
+def test_the_cells_just_outside_a_whole_static_objects_footprint_are_its_rim() -> None:
+    """The frames call a cell occupied all round each of three boxes (side faces, fattening):
+    a box measured whole, a small box standing against its side (touching, it is a piece of what
+    the map shows: ``partial``), and a box every view of which is cut by the image border (its
+    size a lower bound). The whole box's ring is its rim, served unknown, less the small box's
+    cells; the partial boxes keep their rings; the floor two cells out stays free and the boxes'
+    own cells stay occupied."""
+    resolution = 0.05
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
+
+    def measure(window: Window, logodds: float) -> None:
+        shape = window.shape
+        grid.integrate(
+            window,
+            np.full(shape, logodds, np.float32),
+            np.full(shape, 1.0, np.float32),
+            np.full(shape, 20, np.uint16),
+            T0_NS,
+        )
+
+    measure(Window(0, 0, 200, 100), -2.0)  # the floor: free
+    measure(Window(19, 23, 14, 10), 4.0)  # whole box x 1.0–1.6, y 1.2–1.6, and a cell round it
+    measure(Window(31, 25, 6, 6), 4.0)  # a small box against it: x 1.6–1.8, y 1.3–1.5, and ring
+    measure(Window(99, 23, 14, 10), 4.0)  # partial box x 5.0–5.6, y 1.2–1.6, and a cell round it
+    tracker = ObjectTracker()
+    views = [
+        _record((1.3, 1.4), (0.6, 0.4)),
+        _record((1.7, 1.4), (0.2, 0.2)),
+        _record((5.3, 1.4), (0.6, 0.4), partial=True),
+    ]
+    for k in range(9):  # 4 s at 2 Hz: static
+        tracker.add("p0", T0_NS + k * FRAME_NS, views, now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+
+    def served(x: float, y: float) -> int:
+        return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
+
+    rim = [(0.975, 1.4), (1.3, 1.175), (1.3, 1.625), (0.975, 1.175), (1.625, 1.225)]
+    partial_ring = [(4.975, 1.4), (5.3, 1.625)]
+    tops = [(1.3, 1.4), (1.625, 1.4), (1.7, 1.4), (5.3, 1.4)]  # (1.625, 1.4): the small box's
+    floor = [(0.925, 1.4), (1.3, 1.675)]
+    assert all(served(*cell) >= OCCUPIED_MIN for cell in rim)  # the frames' verdict
+    assert grid.set_rim(tracker.check_against(grid).rims)
+    assert [served(*cell) for cell in rim] == [-1] * len(rim)
+    assert all(served(*cell) >= OCCUPIED_MIN for cell in tops + partial_ring)
+    assert all(0 <= served(*cell) <= 25 for cell in floor)
 
 
 def _truth(

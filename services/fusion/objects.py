@@ -150,6 +150,13 @@ class TrackerConfig:
     of 0.86 × 0.65)."""
     raster_reach_m: float = 1.0
     """… those cells are looked for this far around the footprint."""
+    rim_margin_m: float = 0.01
+    rim_reach_m: float = 0.1
+    """A whole static object's connected cells whose centres lie more than ``rim_margin_m`` and
+    at most ``rim_reach_m`` outside its footprint are its rim (:meth:`ConnectedCells.rim`): the
+    cells its side faces and the matcher's fattening make occupied, that its footprint, measured
+    to a centimetre or two, does not hold. Offline, nine scenes (20 s), served unknown: IoU
+    +0.007 to +0.025 on eight, false-free unchanged (README, "How good is the map")."""
     default_frame_interval_s: float = 0.5
     wake_s: float = 3.0
     """Where a moving track was seen in the last this-many seconds, and is not now, is its
@@ -760,11 +767,7 @@ class ObjectTracker:
                 state, _ = self._predict(track, self.stamp_ns)
                 standing.append(corners((float(state[0]), float(state[1])), (length, width), yaw))
         for footprint in standing:
-            now_window, now_mask = polygon_cells(footprint, resolution_m)
-            for window, mask in cells:
-                both = window.intersect(now_window)
-                if not both.empty:
-                    mask[both.slices_in(window)] &= ~now_mask[both.slices_in(now_window)]
+            subtract_cells(cells, polygon_cells(footprint, resolution_m))
         return cells, self.stamp_ns / 1e9 - self.config.wake_missed_frames * self.ahead_s()
 
     def outlines(self, resolution_m: float) -> list[tuple[Window, npt.NDArray[np.bool_]]]:
@@ -798,27 +801,58 @@ class ObjectTracker:
         Fusion serves the enclosures' cells the frames do not call occupied unknown (the
         contested layer), not free: the rest of a plain top of the floor's grey, which the floor
         model may have taken for floor. Two objects that touch are one part of the map: both are
-        pieces of it, and both enclose the pair."""
-        pieces, enclosures = set(), []
+        pieces of it, and both enclose the pair. A whole static track the frames agree with hands
+        over its rim instead (:meth:`ConnectedCells.rim`, less every track's footprint), which
+        fusion serves unknown (the rim layer)."""
+        config, resolution_m = self.config, cells.resolution_m
+        pieces, enclosures, rims = set(), [], []
         for track in self.tracks:
-            if track.moving or track.detections < self.config.confirm_detections:
+            if track.moving or track.detections < config.confirm_detections:
                 continue
-            length, width, yaw, _, _ = track.size(self.config)
+            length, width, yaw, _, partial = track.size(config)
             footprint = (*track.center_m, length, width, yaw)
-            connected = connected_cells(cells, footprint, self.config)
+            connected = connected_cells(cells, footprint, config)
             if connected is None:
                 continue
-            overflow = connected.overflow(footprint, self.config.raster_margin_m)
-            piece = overflow >= self.config.raster_overflow_share
+            overflow = connected.overflow(footprint, config.raster_margin_m)
+            piece = overflow >= config.raster_overflow_share
             if piece:
                 pieces.add(track.id)
             if track.static and (piece or not cells.agrees(*connected.footprint_cells)):
-                enclosures.append(connected.enclosure(footprint, cells.resolution_m))
-        return MapCheck(frozenset(pieces), enclosures)
+                enclosures.append(connected.enclosure(footprint, resolution_m))
+            elif track.static and not partial:
+                rims.append(connected.rim(footprint, config.rim_margin_m, config.rim_reach_m))
+        return MapCheck(frozenset(pieces), enclosures, self._outside_tracks(rims, resolution_m))
+
+    def _outside_tracks(
+        self, cells: list[tuple[Window, Mask]], resolution_m: float
+    ) -> list[tuple[Window, Mask]]:
+        """``cells`` less every confirmed track's footprint (a rim is no other object's cells: a
+        box beside it, a mover passing)."""
+        for track in self.tracks:
+            if not cells:
+                break
+            if track.detections < self.config.confirm_detections:
+                continue
+            (length, width), yaw = self._footprint(track)
+            if max(length, width) > self.config.max_size_m:
+                continue
+            footprint = polygon_cells(corners(track.center_m, (length, width), yaw), resolution_m)
+            subtract_cells(cells, footprint)
+        return cells
 
     def ahead_s(self) -> float:
         """One frame interval: how far past the visible time a sweep must reach."""
         return self.frame_interval_s or self.config.default_frame_interval_s
+
+
+def subtract_cells(cells: list[tuple[Window, Mask]], cut: tuple[Window, Mask]) -> None:
+    """Clear ``cut``'s cells from each of ``cells`` (in place)."""
+    cut_window, cut_mask = cut
+    for window, mask in cells:
+        both = window.intersect(cut_window)
+        if not both.empty:
+            mask[both.slices_in(window)] &= ~cut_mask[both.slices_in(cut_window)]
 
 
 @dataclass(frozen=True)
@@ -829,6 +863,8 @@ class MapCheck:
     """Ids of tracks the cells show larger than measured: their size is a lower bound."""
     enclosures: list[tuple[Window, Mask]] = field(default_factory=list)
     """Cells the static tracks' measured rims enclose, for the contested layer."""
+    rims: list[tuple[Window, Mask]] = field(default_factory=list)
+    """Occupied cells just outside whole static tracks' footprints, for the rim layer."""
 
 
 @dataclass(frozen=True)
@@ -844,17 +880,29 @@ class ConnectedCells:
     footprint_cells: tuple[Window, Mask]
     """The cells whose centres the footprint holds (``polygon_cells``)."""
 
+    def outside_m(self, footprint: Rectangle) -> F64:
+        """Every cell centre's distance outside the footprint (0 inside)."""
+        _, _, length, width, _ = footprint
+        beyond_length = np.maximum(np.abs(self.along_m) - length / 2, 0.0)
+        beyond_width = np.maximum(np.abs(self.across_m) - width / 2, 0.0)
+        return np.asarray(np.hypot(beyond_length, beyond_width), np.float64)
+
     def overflow(self, footprint: Rectangle, margin_m: float) -> float:
         """The connected cells more than ``margin_m`` outside the footprint, counted against the
         cells inside it: a view that saw a piece of a top (a strip of a plain top, a corner a
         neighbour hides) measures it small while the cells show all of it."""
-        _, _, length, width, _ = footprint
-        beyond_length = np.maximum(np.abs(self.along_m[self.connected]) - length / 2, 0.0)
-        beyond_width = np.maximum(np.abs(self.across_m[self.connected]) - width / 2, 0.0)
-        outside = np.hypot(beyond_length, beyond_width) > margin_m
+        outside = self.connected & (self.outside_m(footprint) > margin_m)
         return int(np.count_nonzero(outside)) / max(
             int(np.count_nonzero(self.footprint_cells[1])), 1
         )
+
+    def rim(self, footprint: Rectangle, margin_m: float, reach_m: float) -> tuple[Window, Mask]:
+        """The connected cells whose centres lie more than ``margin_m`` and at most ``reach_m``
+        outside the footprint. A cell is the object's by its centre; the frames make one occupied
+        by a share of its pixels, which its side faces (tens of points on one line) and a pixel
+        or two of fattening reach from beside it."""
+        outside_m = self.outside_m(footprint)
+        return self.window, self.connected & (outside_m > margin_m) & (outside_m <= reach_m)
 
     def enclosure(self, footprint: Rectangle, resolution_m: float) -> tuple[Window, Mask]:
         """The cells of the rectangle, along the footprint's yaw, through the footprint and the

@@ -213,6 +213,7 @@ class FusionState:
                     self.tracker.outlines(resolution_m)
                 )
                 self.grid.set_contested(contested + check.enclosures)
+                self.grid.set_rim(check.rims)
         if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
             swept = self.tracker.sweep(resolution_m, self.grid.stamp_ns, until_ns)
