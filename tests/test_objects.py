@@ -546,11 +546,34 @@ def test_polygon_cells_are_the_cells_whose_centres_it_holds() -> None:
 @pytest.mark.parametrize("partial", [False, True])
 def test_partial_flag_reaches_the_object(partial: bool) -> None:
     tracker = ObjectTracker()
-    for k in range(3):
+    for k in range(4):  # enough views to be sure of a size
         tracker.add("p0", T0_NS + k * FRAME_NS, [_record((4.0, 3.0), (0.8, 0.5), partial)], 0.0)
         tracker.flush(0.0, {"p0"})
     (obj,) = tracker.objects()
     assert obj.partial is partial
+
+
+@pytest.mark.parametrize(
+    ("widths", "partial"),
+    [
+        ((0.17, 0.23, 0.22, 0.31, 0.32, 0.30, 0.22, 0.25), True),  # a top matched in part
+        ((0.40, 0.41, 0.40, 0.39, 0.40, 0.41, 0.40, 0.40), False),
+        ((0.40, 0.40, 0.40), True),  # too few views to tell
+    ],
+)
+def test_views_too_few_or_that_disagree_on_the_size_say_partial(
+    widths: tuple[float, ...], partial: bool
+) -> None:
+    """Complete views of one box whose widths spread (interquartile range) over 5 % of their
+    median give no confident size, nor do three views: the object says partial; eight views
+    within a centimetre do not."""
+    tracker = ObjectTracker()
+    for k, width in enumerate(widths):
+        tracker.add("p0", T0_NS + k * FRAME_NS, [_record((4.0, 3.0), (0.48, width))], 0.0)
+        tracker.flush(0.0, {"p0"})
+    (obj,) = tracker.objects()
+    assert obj.partial is partial
+    assert obj.size_m[1] == pytest.approx(float(np.median(widths)))
 
 
 def test_a_view_of_a_piece_of_what_the_map_shows_occupied_says_partial() -> None:
@@ -575,7 +598,7 @@ def test_a_view_of_a_piece_of_what_the_map_shows_occupied_says_partial() -> None
         )
     for size, piece in (((0.45, 0.3), True), ((0.9, 0.6), False)):
         tracker = ObjectTracker()
-        for k in range(3):
+        for k in range(4):  # enough views to be sure of a size
             broken = _record((5.0, 4.2), (1e9, 0.8))  # over the map
             tracker.add("p0", T0_NS + k * FRAME_NS, [_record((3.0, 2.0), size), broken], 0.0)
             tracker.flush(now_s=0.0, live_pairs={"p0"})
