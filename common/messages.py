@@ -236,8 +236,13 @@ class TrackedObject(Footprint):
     last_seen_ns: int = Field(ge=0)
     pairs: list[str] = Field(description="pairs whose frames saw it last")
     partial: bool = Field(
-        description="its size is no confident measure: no pair has seen all of it, or the map's "
-        "cells show it larger (a lower bound), or its views are too few or disagree"
+        description="no pair has seen all of it, or the map's cells show it larger: its size is "
+        "a lower bound"
+    )
+    size_unsure: bool = Field(
+        default=False,
+        description="its complete views are too few or disagree: the size is their median, no "
+        "confident measure",
     )
     detections: int = Field(ge=0, description="frames it was measured in")
 

@@ -203,7 +203,7 @@ def test_complete_views_outnumbering_larger_partial_ones_keep_the_size() -> None
 def test_stale_partial_views_do_not_outvote_newer_complete_ones() -> None:
     """A box at a seam seen only in two oversized partial halves for 8 s, then whole from a pair
     that took over: the complete views are measured against the partial views of their own time
-    (none), not against the 16 older ones, and give the size at once."""
+    (none), not against the 16 older ones, and give the size from the fourth of them on."""
     halves = _record((5.0, 5.0), (1.3, 1.2), partial=True, points=2000)
     whole = _record((5.0, 5.0), (0.6, 0.5), points=900)
     tracker = ObjectTracker()
@@ -554,25 +554,25 @@ def test_partial_flag_reaches_the_object(partial: bool) -> None:
 
 
 @pytest.mark.parametrize(
-    ("widths", "partial"),
+    ("widths", "unsure"),
     [
         ((0.17, 0.23, 0.22, 0.31, 0.32, 0.30, 0.22, 0.25), True),  # a top matched in part
         ((0.40, 0.41, 0.40, 0.39, 0.40, 0.41, 0.40, 0.40), False),
         ((0.40, 0.40, 0.40), True),  # too few views to tell
     ],
 )
-def test_views_too_few_or_that_disagree_on_the_size_say_partial(
-    widths: tuple[float, ...], partial: bool
+def test_views_too_few_or_that_disagree_on_the_size_say_size_unsure(
+    widths: tuple[float, ...], unsure: bool
 ) -> None:
     """Complete views of one box whose widths spread (interquartile range) over 5 % of their
-    median give no confident size, nor do three views: the object says partial; eight views
-    within a centimetre do not."""
+    median give no confident size, nor do three views: the object says ``size_unsure`` (not
+    ``partial``: the median is no lower bound); eight views within a centimetre do not."""
     tracker = ObjectTracker()
     for k, width in enumerate(widths):
         tracker.add("p0", T0_NS + k * FRAME_NS, [_record((4.0, 3.0), (0.48, width))], 0.0)
         tracker.flush(0.0, {"p0"})
     (obj,) = tracker.objects()
-    assert obj.partial is partial
+    assert obj.size_unsure is unsure and not obj.partial
     assert obj.size_m[1] == pytest.approx(float(np.median(widths)))
 
 
@@ -702,7 +702,7 @@ def test_the_cells_just_outside_a_whole_static_objects_footprint_are_its_rim() -
         return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
 
     rim = [(0.975, 1.4), (1.3, 1.175), (1.3, 1.625), (0.975, 1.175), (1.625, 1.225)]
-    partial_ring = [(4.975, 1.4), (5.3, 1.625)]
+    partial_ring = [(4.975, 1.4), (5.3, 1.625), (1.825, 1.4)]  # (1.825, 1.4): the small box's
     tops = [(1.3, 1.4), (1.625, 1.4), (1.7, 1.4), (5.3, 1.4)]  # (1.625, 1.4): the small box's
     floor = [(0.925, 1.4), (1.3, 1.675)]
     assert all(served(*cell) >= OCCUPIED_MIN for cell in rim)  # the frames' verdict

@@ -40,6 +40,8 @@ class ObjectMatch:
     length_m: float
     width_m: float
     partial: bool
+    unsure: bool
+    """Its size is a lower bound (``partial``) or the median of views that disagree."""
     merged: bool
     """Its track's footprint also covers another object's centre."""
 
@@ -75,7 +77,9 @@ def match_static(
         mine = [t for t in tracks if _inside(obj, t.center_m, MATCH_MARGIN_M)]
         length_true, width_true = true_extent(obj)
         if not mine:
-            out.append(ObjectMatch(obj.name, length_true, width_true, 0, 0.0, 0.0, False, False))
+            out.append(
+                ObjectMatch(obj.name, length_true, width_true, 0, 0.0, 0.0, False, False, False)
+            )
             continue
         best = max(mine, key=lambda t: t.detections)
         polygon = corners(best.center_m, best.size_m, best.yaw_rad)
@@ -90,6 +94,7 @@ def match_static(
                 best.size_m[0],
                 best.size_m[1],
                 best.partial,
+                best.size_unsure,
                 merged,
             )
         )
@@ -98,11 +103,14 @@ def match_static(
 
 def size_errors(matches: Sequence[ObjectMatch]) -> dict[str, float]:
     """The headline size figures over the objects found: mean and max of their length and width
-    errors (%), over all of them and over those seen whole (not ``partial``)."""
+    errors (%), over all of them and over those measured with confidence (``_complete``: seen
+    whole, by views that agree; neither ``partial`` nor ``size_unsure``), and how many those are."""
     found = [m for m in matches if m.tracks >= 1]
     errors = [e for m in found for e in m.errors_pct]
-    complete = [e for m in found if not m.partial for e in m.errors_pct]
+    sure = [m for m in found if not (m.partial or m.unsure)]
+    complete = [e for m in sure for e in m.errors_pct]
     return {
+        "objects_measured_sure": len(sure),
         "length_error_mean_pct": float(np.mean(errors)) if errors else math.nan,
         "length_error_max_pct": max(errors, default=math.nan),
         "length_error_mean_pct_complete": float(np.mean(complete)) if complete else math.nan,

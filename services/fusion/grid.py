@@ -593,7 +593,9 @@ class FusedGrid:
                 window = window.union(chunk_window(key))
             self.window = chunk_aligned(window)
         for key in keys:
-            layers = dict(chunks[key])
+            # The evidence only: the mask layers are rebuilt from the tracks (a frozen snapshot's
+            # would come back read-only, and unrecorded in ``_marked``).
+            layers = {name: chunks[key][name] for name in EVIDENCE_LAYERS if name in chunks[key]}
             cw = chunk_window(key)
             if not site.contains(cw):  # cells beyond the site are not part of this map
                 inside = np.zeros((CHUNK_CELLS, CHUNK_CELLS), np.bool_)

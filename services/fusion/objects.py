@@ -29,7 +29,11 @@ Rules that shape the tracks:
 - the map's occupied cells check what the views cannot (:class:`ConnectedCells`): a standing
   object they show larger than measured says ``partial``, and where its footprint is such a
   piece or a plain top (the frames' evidence does not agree with it), the
-  rectangle its connected cells span is handed to the grid as contested (:meth:`check_against`).
+  rectangle its connected cells span is handed to the grid as contested (:meth:`check_against`);
+  around a whole static object the frames agree with, its connected cells 1–10 cm outside its
+  footprint (less every track's footprint) are handed over as its rim;
+- a size is the median of the views seen whole; fewer than four of them, or views that disagree,
+  make it ``size_unsure`` (:func:`_views_unsure`).
 """
 
 from __future__ import annotations
@@ -139,12 +143,13 @@ class TrackerConfig:
     20 partial views of 4 000 points that measured 1.19 × 0.97."""
     view_spread_share: float = 0.05
     view_spread_min_views: int = 4
-    """A size needs this many views (2 s at 2 Hz) whose lengths and widths spread (interquartile
-    range) over no more than this share of their median; otherwise it is no confident measure and
-    the object says ``partial``. Offline, nine scenes (20 s): every object measured within 3 %
-    spread 0.047 or less; of those off by more than 5 % and not flagged before, most spread
-    0.052–0.34 (a plain top matched in part, its image edges found on its print: ``--floor
-    speckle`` box_3's widths 0.17–0.32 m, 0.40 true), and two had one or two views."""
+    """A size needs this many complete views (1.5 s apart at 2 Hz) whose lengths and widths
+    spread (interquartile range) over no more than this share of their median; otherwise it is
+    their median but no confident measure, and the object says ``size_unsure``. Offline, nine
+    scenes (20 s): every object measured within 3 % spread 0.047 or less; of those off by more
+    than 5 % and not flagged ``partial``, most spread 0.052–0.34 (a plain top matched in part, its
+    image edges found on its print: ``--floor speckle`` box_3's widths 0.17–0.32 m, 0.40 true),
+    and two had one or two views."""
     raster_margin_m: float = 0.15
     """Connected map cells this far outside a footprint or nearer are its own edge's …"""
     raster_overflow_share: float = 0.2
@@ -271,9 +276,9 @@ def _join(pieces: list[Observation]) -> Observation:
 
 View = tuple[float, float, float, float, int, float]
 """One view of an object: length, width, yaw, top, points, capture time (s)."""
-TrackSize = tuple[float, float, float, float, bool]
-"""A track's length, width, yaw, top and whether that is no confident measure: a partial view's
-lower bound, or the median of views too few or that disagree."""
+TrackSize = tuple[float, float, float, float, bool, bool]
+"""A track's length, width, yaw, top, whether that is a partial view's lower bound, and whether it
+is the median of complete views too few or that disagree (:func:`_views_unsure`)."""
 
 
 def _view(obs: Observation, stamp_ns: int) -> View:
@@ -329,10 +334,9 @@ class Track:
         return self.static or (not self.moving and self.still_detections >= 2)
 
     def size(self, config: TrackerConfig) -> TrackSize:
-        """Length, width, yaw, top and whether the size is no confident measure (a partial view's
-        lower bound, or views too few or that disagree: :func:`_views_unsure`): over the complete views
-        with ``best_view_share`` of the best one's points or more (partial views joined from
-        pieces add up their points, not their measure), else over the partial ones.
+        """:data:`TrackSize`: over the complete views with ``best_view_share`` of the best one's
+        points or more (partial views joined from pieces add up their points, not their
+        measure), else over the partial ones (a lower bound).
         Complete views shorter or narrower than ``piece_share`` of what the partial views saw
         (their median) are pieces of the object, not all of it (a fragment of a plain top, the
         corner of a box a taller neighbour hides) where the partial views of the same time (since
@@ -352,7 +356,6 @@ class Track:
         array = views if complete else partial
         if complete:
             array = array[array[:, 4] >= config.best_view_share * array[:, 4].max()]
-            complete = not _views_unsure(array[:, :2], config)
         doubled = 2 * array[:, 2]  # yaw is modulo π: average on the doubled circle
         yaw = math.atan2(float(np.sin(doubled).mean()), float(np.cos(doubled).mean())) / 2
         size = (
@@ -361,6 +364,7 @@ class Track:
             yaw % math.pi,
             float(np.median(array[:, 3])),
             not complete,
+            complete and _views_unsure(array[:, :2], config),
         )
         self._size = (config, size)
         return size
@@ -584,7 +588,7 @@ class ObjectTracker:
     def _fits(self, size: TrackSize, obs: Observation) -> bool:
         """Whether ``obs`` is the object of a track of ``size`` (``size_ratio``): neither larger
         along an axis nor smaller along both."""
-        length, width, _, _, _ = size
+        length, width, *_ = size
         pairs = list(zip(sorted((length, width)), sorted(obs.size_m), strict=True))
         ratio = self.config.size_ratio
         larger = any(seen > own * ratio for own, seen in pairs)
@@ -605,7 +609,7 @@ class ObjectTracker:
         track.turns += 1
 
     def _footprint(self, track: Track) -> tuple[tuple[float, float], float]:
-        length, width, yaw, _, _ = track.size(self.config)
+        length, width, yaw, *_ = track.size(self.config)
         return (length, width), yaw
 
     def _sigma_m(self, obs: Observation) -> float:
@@ -719,7 +723,7 @@ class ObjectTracker:
         for t in self.tracks:
             if t.detections < self.config.confirm_detections:
                 continue
-            length, width, yaw, top, partial = t.size(self.config)
+            length, width, yaw, top, partial, unsure = t.size(self.config)
             moving = t.moving
             partial = partial or t.id in pieces
             velocity = (float(t.state[2]), float(t.state[3])) if moving else (0.0, 0.0)
@@ -741,6 +745,7 @@ class ObjectTracker:
                     last_seen_ns=t.stamp_ns,
                     pairs=list(t.pairs),
                     partial=partial,
+                    size_unsure=unsure,
                     detections=t.detections,
                 )
             )
@@ -782,14 +787,20 @@ class ObjectTracker:
         standing = [
             footprint for stamp, _, footprint in self.wake_footprints if stamp == self.stamp_ns
         ]
+        for footprint in standing + self._footprints_now():
+            subtract_cells(cells, polygon_cells(footprint, resolution_m))
+        return cells, self.stamp_ns / 1e9 - self.config.wake_missed_frames * self.ahead_s()
+
+    def _footprints_now(self) -> list[F64]:
+        """Every track's footprint (corners) where it is at the newest capture, as predicted: a
+        mover this capture missed, an object whose plain top frames rarely measure."""
+        out = []
         for track in self.tracks:
             (length, width), yaw = self._footprint(track)
             if max(length, width) <= self.config.max_size_m:
                 state, _ = self._predict(track, self.stamp_ns)
-                standing.append(corners((float(state[0]), float(state[1])), (length, width), yaw))
-        for footprint in standing:
-            subtract_cells(cells, polygon_cells(footprint, resolution_m))
-        return cells, self.stamp_ns / 1e9 - self.config.wake_missed_frames * self.ahead_s()
+                out.append(corners((float(state[0]), float(state[1])), (length, width), yaw))
+        return out
 
     def outlines(self, resolution_m: float) -> list[tuple[Window, npt.NDArray[np.bool_]]]:
         """Per static track, the cells whose centres its footprint holds: measured to a centimetre
@@ -805,7 +816,7 @@ class ObjectTracker:
         for track in self.tracks:
             if not track.static or track.detections < self.config.confirm_detections:
                 continue
-            length, width, yaw, _, _ = track.size(self.config)
+            length, width, yaw, *_ = track.size(self.config)
             if max(length, width) > self.config.max_size_m:
                 continue
             footprint = corners(track.center_m, (length, width), yaw)
@@ -830,7 +841,7 @@ class ObjectTracker:
         for track in self.tracks:
             if track.moving or track.detections < config.confirm_detections:
                 continue
-            length, width, yaw, _, partial = track.size(config)
+            length, width, yaw, _, partial, unsure = track.size(config)
             footprint = (*track.center_m, length, width, yaw)
             connected = connected_cells(cells, footprint, config)
             if connected is None:
@@ -841,25 +852,18 @@ class ObjectTracker:
                 pieces.add(track.id)
             if track.static and (piece or not cells.agrees(*connected.footprint_cells)):
                 enclosures.append(connected.enclosure(footprint, resolution_m))
-            elif track.static and not partial:
+            elif track.static and not (partial or unsure):
                 rims.append(connected.rim(footprint, config.rim_margin_m, config.rim_reach_m))
         return MapCheck(frozenset(pieces), enclosures, self._outside_tracks(rims, resolution_m))
 
     def _outside_tracks(
         self, cells: list[tuple[Window, Mask]], resolution_m: float
     ) -> list[tuple[Window, Mask]]:
-        """``cells`` less every confirmed track's footprint (a rim is no other object's cells: a
-        box beside it, a mover passing)."""
-        for track in self.tracks:
-            if not cells:
-                break
-            if track.detections < self.config.confirm_detections:
-                continue
-            (length, width), yaw = self._footprint(track)
-            if max(length, width) > self.config.max_size_m:
-                continue
-            footprint = polygon_cells(corners(track.center_m, (length, width), yaw), resolution_m)
-            subtract_cells(cells, footprint)
+        """``cells`` less every track's footprint where it is now (a rim is no other object's
+        cells: a box beside it, a mover passing, one just put down)."""
+        if cells:
+            for footprint in self._footprints_now():
+                subtract_cells(cells, polygon_cells(footprint, resolution_m))
         return cells
 
     def ahead_s(self) -> float:

@@ -276,7 +276,8 @@
         const [bx, by] = worldToScreen(cx + o.velocity_mps[0], cy + o.velocity_mps[1]); // 1 s ahead
         arrow(ax, ay, bx, by, COLORS.object);
       }
-      const size = o.size_m ? ` ${o.partial ? "≥" : ""}${o.size_m[0].toFixed(2)}×${o.size_m[1].toFixed(2)} m` : "";
+      const bound = o.partial ? "≥" : o.size_unsure ? "~" : "";
+      const size = o.size_m ? ` ${bound}${o.size_m[0].toFixed(2)}×${o.size_m[1].toFixed(2)} m` : "";
       const [sx, sy] = worldToScreen(cx, cy);
       label(`${o.id}${o.class ? " " + o.class : ""}${size}`, sx + 6, sy - 20, COLORS.object);
     }
