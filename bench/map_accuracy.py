@@ -123,7 +123,7 @@ def run(
             grid.set_predicted(outlined)
             check = tracker.check_against(grid)
             grid.set_contested(contested + check.enclosures)
-            grid.set_rim(check.rims)
+            grid.set_fringe(check.fringes)
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time
         if k == frames - 1 or (k >= frames // 3 and (frames - 1 - k) % every == 0):
             objects = scene.truth_objects(stamp_ns / 1e9)

@@ -236,24 +236,24 @@ def test_the_predicted_layer_is_served_occupied_and_clears() -> None:
     assert not grid.set_predicted([])  # nothing predicted: nothing to visit
 
 
-def test_a_rim_is_served_unknown_where_the_frames_call_it_occupied_but_not_over_a_prediction() -> (
+def test_a_fringe_is_served_unknown_where_the_frames_call_it_occupied_but_not_over_a_prediction() -> (
     None
 ):
-    """The rim layer (just outside a static object's measured footprint) serves its cells unknown,
+    """The fringe layer (just outside a static object's measured footprint) serves its cells unknown,
     occupied or not, while the evidence stays as measured; a predicted cell (a mover's path
-    through the rim) stays occupied; the cells show the frames again once the rim is gone."""
+    through the fringe) stays occupied; the cells show the frames again once it is gone."""
     grid = FusedGrid(P)
     _integrate(grid, Window(0, 0, 20, 20), -1.0)
     _integrate(grid, Window(4, 4, 6, 1), 3.0)
-    rim = (Window(4, 4, 6, 2), np.ones((2, 6), np.bool_))  # occupied row 4, free row 5
-    assert grid.set_rim([rim])
+    fringe = (Window(4, 4, 6, 2), np.ones((2, 6), np.bool_))  # occupied row 4, free row 5
+    assert grid.set_fringe([fringe])
     served, evidence = grid.served_occupancy(), grid.layer("occupancy")
     assert (served[4:6, 4:10] == UNKNOWN).all() and (evidence[4, 4:10] >= OCCUPIED_MIN).all()
     assert served[3, 4] == evidence[3, 4] and served[6, 4] == evidence[6, 4]
     grid.set_predicted([(Window(7, 4, 1, 1), np.ones((1, 1), np.bool_))])
     assert grid.served_occupancy()[4, 7] == OCCUPIED
-    assert not grid.set_rim([rim])  # unchanged
-    assert grid.set_rim([]) and grid.served_occupancy()[4, 5] == evidence[4, 5]
+    assert not grid.set_fringe([fringe])  # unchanged
+    assert grid.set_fringe([]) and grid.served_occupancy()[4, 5] == evidence[4, 5]
 
 
 def test_a_contested_footprint_is_served_unknown_where_the_frames_call_it_free() -> None:

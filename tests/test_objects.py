@@ -610,6 +610,18 @@ def test_a_view_of_a_piece_of_what_the_map_shows_occupied_says_partial() -> None
         assert not unchecked.partial and checked.size_m == unchecked.size_m
 
 
+def _measure(grid: FusedGrid, window: Window, logodds: float) -> None:
+    """One tile of ``logodds`` over ``window`` (20 pixels a cell, 1 m tops)."""
+    shape = window.shape
+    grid.integrate(
+        window,
+        np.full(shape, logodds, np.float32),
+        np.full(shape, 1.0, np.float32),
+        np.full(shape, 20, np.uint16),
+        T0_NS,
+    )
+
+
 def test_the_cells_a_plain_tops_measured_rim_encloses_are_not_served_free() -> None:
     """The frames call the floor free, and measure plain tops of the floor's grey at their edges
     alone (the rest of each top free, like the floor):
@@ -623,14 +635,7 @@ def test_the_cells_a_plain_tops_measured_rim_encloses_are_not_served_free() -> N
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
 
     def measure(window: Window, logodds: float) -> None:
-        shape = window.shape
-        grid.integrate(
-            window,
-            np.full(shape, logodds, np.float32),
-            np.full(shape, 1.0, np.float32),
-            np.full(shape, 20, np.uint16),
-            T0_NS,
-        )
+        _measure(grid, window, logodds)
 
     measure(Window(0, 0, 200, 100), -2.0)  # the floor: free
     for rim in (Window(140, 56, 12, 1), Window(140, 63, 12, 1)):  # x 7.0–7.6 m, y 2.8–3.2 m
@@ -664,25 +669,18 @@ def test_the_cells_a_plain_tops_measured_rim_encloses_are_not_served_free() -> N
     assert all(0 <= served(*cell) <= free_max for cell in floor)
 
 
-def test_the_cells_just_outside_a_whole_static_objects_footprint_are_its_rim() -> None:
+def test_the_cells_just_outside_a_whole_static_objects_footprint_are_its_fringe() -> None:
     """The frames call a cell occupied all round each of three boxes (side faces, fattening):
     a box measured whole, a small box standing against its side (touching, it is a piece of what
     the map shows: ``partial``), and a box every view of which is cut by the image border (its
-    size a lower bound). The whole box's ring is its rim, served unknown, less the small box's
+    size a lower bound). The whole box's ring is its fringe, served unknown, less the small box's
     cells; the partial boxes keep their rings; the floor two cells out stays free and the boxes'
     own cells stay occupied."""
     resolution = 0.05
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
 
     def measure(window: Window, logodds: float) -> None:
-        shape = window.shape
-        grid.integrate(
-            window,
-            np.full(shape, logodds, np.float32),
-            np.full(shape, 1.0, np.float32),
-            np.full(shape, 20, np.uint16),
-            T0_NS,
-        )
+        _measure(grid, window, logodds)
 
     measure(Window(0, 0, 200, 100), -2.0)  # the floor: free
     measure(Window(19, 23, 14, 10), 4.0)  # whole box x 1.0–1.6, y 1.2–1.6, and a cell round it
@@ -701,13 +699,13 @@ def test_the_cells_just_outside_a_whole_static_objects_footprint_are_its_rim() -
     def served(x: float, y: float) -> int:
         return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
 
-    rim = [(0.975, 1.4), (1.3, 1.175), (1.3, 1.625), (0.975, 1.175), (1.625, 1.225)]
+    fringe = [(0.975, 1.4), (1.3, 1.175), (1.3, 1.625), (0.975, 1.175), (1.625, 1.225)]
     partial_ring = [(4.975, 1.4), (5.3, 1.625), (1.825, 1.4)]  # (1.825, 1.4): the small box's
     tops = [(1.3, 1.4), (1.625, 1.4), (1.7, 1.4), (5.3, 1.4)]  # (1.625, 1.4): the small box's
     floor = [(0.925, 1.4), (1.3, 1.675)]
-    assert all(served(*cell) >= OCCUPIED_MIN for cell in rim)  # the frames' verdict
-    assert grid.set_rim(tracker.check_against(grid).rims)
-    assert [served(*cell) for cell in rim] == [-1] * len(rim)
+    assert all(served(*cell) >= OCCUPIED_MIN for cell in fringe)  # the frames' verdict
+    assert grid.set_fringe(tracker.check_against(grid).fringes)
+    assert [served(*cell) for cell in fringe] == [-1] * len(fringe)
     assert all(served(*cell) >= OCCUPIED_MIN for cell in tops + partial_ring)
     assert all(0 <= served(*cell) <= 25 for cell in floor)
 

@@ -36,7 +36,7 @@ LAYER_FILLS: tuple[tuple[str, type[np.generic], float | bool], ...] = (
     ("occupancy", np.int8, UNKNOWN),
     ("predicted", np.bool_, False),
     ("contested", np.bool_, False),
-    ("rim", np.bool_, False),
+    ("fringe", np.bool_, False),
 )
 """Every layer, its dtype and the value of a cell never observed."""
 EVIDENCE_LAYERS = ("logodds", "height_m", "known", "last_seen_s")
@@ -171,7 +171,7 @@ class Chunk:
     occupancy: npt.NDArray[np.int8]
     predicted: npt.NDArray[np.bool_]
     contested: npt.NDArray[np.bool_]
-    rim: npt.NDArray[np.bool_]
+    fringe: npt.NDArray[np.bool_]
     decay_check_s: float
     """Observation time of its oldest known cell (or earlier): decay looks here only once that is
     ``decay_after_s`` old, so a pass costs the chunks that may be stale, not the whole map."""
@@ -200,11 +200,11 @@ class Chunk:
         self.occupancy[cells] = UNKNOWN
 
     def served(self) -> npt.NDArray[np.int8]:
-        """What clients read: the evidence, with the rim layer's cells and the contested layer's
+        """What clients read: the evidence, with the fringe layer's cells and the contested layer's
         not called occupied unknown, and the predicted layer's occupied."""
         occupancy = self.occupancy
-        if self.rim.any():
-            occupancy = rules.unknown_where_rim(occupancy, self.rim)
+        if self.fringe.any():
+            occupancy = rules.unknown_where_fringe(occupancy, self.fringe)
         if self.contested.any():
             occupancy = rules.unknown_where_contested(occupancy, self.contested)
         return rules.occupied_where_predicted(occupancy, self.predicted)
@@ -311,7 +311,7 @@ class FusedGrid:
         self._marked: dict[str, set[ChunkKey]] = {
             "predicted": set(),
             "contested": set(),
-            "rim": set(),
+            "fringe": set(),
         }
         """Per mask layer, the chunks where it holds cells."""
         self._frozen = FrozenMap(epoch_ns, 0, 0, params.resolution_m, self.window, {})
@@ -468,10 +468,10 @@ class FusedGrid:
         evidence does not agree with (see :meth:`by_agreement`); True if it changed."""
         return self._set_mask_layer("contested", footprints)
 
-    def set_rim(self, rims: CellMasks) -> bool:
-        """Replace the rim layer by these cells: just outside static objects' measured footprints
+    def set_fringe(self, fringes: CellMasks) -> bool:
+        """Replace the fringe layer by these cells: just outside static objects' measured footprints
         (``ObjectTracker.check_against``); True if it changed."""
-        return self._set_mask_layer("rim", rims)
+        return self._set_mask_layer("fringe", fringes)
 
     def _set_mask_layer(self, name: str, cells: CellMasks) -> bool:
         marked = self._marked[name]

@@ -31,7 +31,7 @@ Rules that shape the tracks:
   piece or a plain top (the frames' evidence does not agree with it), the
   rectangle its connected cells span is handed to the grid as contested (:meth:`check_against`);
   around a whole static object the frames agree with, its connected cells 1–10 cm outside its
-  footprint (less every track's footprint) are handed over as its rim;
+  footprint (less every track's footprint) are handed over as its fringe;
 - a size is the median of the views seen whole; fewer than four of them, or views that disagree,
   make it ``size_unsure`` (:func:`_views_unsure`).
 """
@@ -163,10 +163,10 @@ class TrackerConfig:
     of 0.86 × 0.65)."""
     raster_reach_m: float = 1.0
     """… those cells are looked for this far around the footprint."""
-    rim_margin_m: float = 0.01
-    rim_reach_m: float = 0.1
-    """A whole static object's connected cells whose centres lie more than ``rim_margin_m`` and
-    at most ``rim_reach_m`` outside its footprint are its rim (:meth:`ConnectedCells.rim`): the
+    fringe_margin_m: float = 0.01
+    fringe_reach_m: float = 0.1
+    """A whole static object's connected cells whose centres lie more than ``fringe_margin_m`` and
+    at most ``fringe_reach_m`` outside its footprint are its fringe (:meth:`ConnectedCells.fringe`): the
     cells its side faces and the matcher's fattening make occupied, that its footprint, measured
     to a centimetre or two, does not hold. Offline, nine scenes (20 s), served unknown: IoU
     +0.007 to +0.025 on eight, false-free unchanged (README, "How good is the map")."""
@@ -810,7 +810,7 @@ class ObjectTracker:
         cells unknown where they do not (the contested layer). A partial view's footprint is a lower
         bound, so its cells lie inside the object as far as the track's views agree on where the
         piece lies (the centre is filtered over them; the agreement test guards the rest).
-        Objects cut by an image's border or at a seam keep their rims so (offline static
+        Objects cut by an image's border or at a seam keep their fringes so (offline static
         false-free 0.32 → 0.14 % on the default scene, 0.66 → 0.09 % on ``--seed 2``)."""
         out = []
         for track in self.tracks:
@@ -834,10 +834,10 @@ class ObjectTracker:
         contested layer), not free: the rest of a plain top of the floor's grey, which the floor
         model may have taken for floor. Two objects that touch are one part of the map: both are
         pieces of it, and both enclose the pair. A whole static track the frames agree with hands
-        over its rim instead (:meth:`ConnectedCells.rim`, less every track's footprint), which
-        fusion serves unknown (the rim layer)."""
+        over its fringe instead (:meth:`ConnectedCells.fringe`, less every track's footprint),
+        which fusion serves unknown (the fringe layer)."""
         config, resolution_m = self.config, cells.resolution_m
-        pieces, enclosures, rims = set(), [], []
+        pieces, enclosures, fringes = set(), [], []
         for track in self.tracks:
             if track.moving or track.detections < config.confirm_detections:
                 continue
@@ -853,13 +853,15 @@ class ObjectTracker:
             if track.static and (piece or not cells.agrees(*connected.footprint_cells)):
                 enclosures.append(connected.enclosure(footprint, resolution_m))
             elif track.static and not (partial or unsure):
-                rims.append(connected.rim(footprint, config.rim_margin_m, config.rim_reach_m))
-        return MapCheck(frozenset(pieces), enclosures, self._outside_tracks(rims, resolution_m))
+                fringes.append(
+                    connected.fringe(footprint, config.fringe_margin_m, config.fringe_reach_m)
+                )
+        return MapCheck(frozenset(pieces), enclosures, self._outside_tracks(fringes, resolution_m))
 
     def _outside_tracks(
         self, cells: list[tuple[Window, Mask]], resolution_m: float
     ) -> list[tuple[Window, Mask]]:
-        """``cells`` less every track's footprint where it is now (a rim is no other object's
+        """``cells`` less every track's footprint where it is now (a fringe is no other object's
         cells: a box beside it, a mover passing, one just put down)."""
         if cells:
             for footprint in self._footprints_now():
@@ -887,9 +889,9 @@ class MapCheck:
     pieces: frozenset[int] = frozenset()
     """Ids of tracks the cells show larger than measured: their size is a lower bound."""
     enclosures: list[tuple[Window, Mask]] = field(default_factory=list)
-    """Cells the static tracks' measured rims enclose, for the contested layer."""
-    rims: list[tuple[Window, Mask]] = field(default_factory=list)
-    """Occupied cells just outside whole static tracks' footprints, for the rim layer."""
+    """Cells the static tracks' measured fringes enclose, for the contested layer."""
+    fringes: list[tuple[Window, Mask]] = field(default_factory=list)
+    """Occupied cells just outside whole static tracks' footprints, for the fringe layer."""
 
 
 @dataclass(frozen=True)
@@ -921,7 +923,7 @@ class ConnectedCells:
             int(np.count_nonzero(self.footprint_cells[1])), 1
         )
 
-    def rim(self, footprint: Rectangle, margin_m: float, reach_m: float) -> tuple[Window, Mask]:
+    def fringe(self, footprint: Rectangle, margin_m: float, reach_m: float) -> tuple[Window, Mask]:
         """The connected cells whose centres lie more than ``margin_m`` and at most ``reach_m``
         outside the footprint. A cell is the object's by its centre; the frames make one occupied
         by a share of its pixels, which its side faces (tens of points on one line) and a pixel

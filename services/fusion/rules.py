@@ -115,12 +115,12 @@ def unknown_where_contested(
     return np.where(contested & (occupancy < OCCUPIED_MIN), np.int8(UNKNOWN), occupancy)
 
 
-def unknown_where_rim(
-    occupancy: npt.NDArray[np.int8], rim: npt.NDArray[np.bool_]
+def unknown_where_fringe(
+    occupancy: npt.NDArray[np.int8], fringe: npt.NDArray[np.bool_]
 ) -> npt.NDArray[np.int8]:
-    """Unknown where the rim layer holds the cell (a copy; served map only): just outside a static
+    """Unknown where the fringe layer holds the cell (a copy; served map only): just outside a static
     object's footprint, measured below the cell size, where its side faces and the matcher's
     fattening make the frames call the cell occupied. Unknown, not free: the evidence says
     occupied, the object's measured outline says not; a client that treats unknown as an
     obstacle keeps its old margin."""
-    return np.where(rim, np.int8(UNKNOWN), occupancy)
+    return np.where(fringe, np.int8(UNKNOWN), occupancy)

@@ -198,7 +198,7 @@ class FusionState:
 
     def refresh_objects(self) -> ObjectsHeader | None:
         """Merge and track the captures that are complete; the predicted layer holds the static
-        objects' footprints the frames agree with (the contested layer the others, the rim layer
+        objects' footprints the frames agree with (the contested layer the others, the fringe layer
         the occupied cells just outside whole ones) and the moving tracks' paths up to one frame
         interval past now (the map's visible time); returns the new object list if the tracks
         changed."""
@@ -214,7 +214,7 @@ class FusionState:
                     self.tracker.outlines(resolution_m)
                 )
                 self.grid.set_contested(contested + check.enclosures)
-                self.grid.set_rim(check.rims)
+                self.grid.set_fringe(check.fringes)
         if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
             swept = self.tracker.sweep(resolution_m, self.grid.stamp_ns, until_ns)
