@@ -303,6 +303,7 @@ class Evaluator:
                     "width_error_pct": m.errors_pct[1] if m.tracks else None,
                     "tracks": m.tracks,
                     "partial": m.partial,
+                    "size_unsure": m.unsure,
                     "merged": m.merged,
                 }
                 for m in matches
@@ -495,6 +496,12 @@ def table(result: dict[str, Any]) -> str:
     lines.append(f"{'false_free_rate_static':<28}{result['false_free_rate_static']:>12.4g}")
     for name in ("raster_length_error_mean_pct", "raster_length_error_max_pct"):
         lines.append(f"{name:<28}{result[name]:>12.4g}")
+    if "objects_measured_sure" in result:
+        lines.append(
+            f"{'length error, sure objects':<28}{result['length_error_mean_pct_complete']:>6.2f}"
+            f"/{result['length_error_max_pct_complete']:<5.2f} % mean/max over "
+            f"{result['objects_measured_sure']} (neither partial nor size unsure)"
+        )
     if "over_run" in result:
         run = result["over_run"]
         lines += [
@@ -519,8 +526,10 @@ def table(result: dict[str, Any]) -> str:
             if row["length_error_pct"] is None:
                 lines.append(f"{row['name']:<22}  {where}")
                 continue
-            notes = ("  partial" if row.get("partial") else "") + (
-                f"  {row['tracks']} tracks" if row.get("tracks", 1) > 1 else ""
+            notes = (
+                ("  partial" if row.get("partial") else "")
+                + ("  size unsure" if row.get("size_unsure") else "")
+                + (f"  {row['tracks']} tracks" if row.get("tracks", 1) > 1 else "")
             )
             lines.append(
                 f"{row['name']:<22}{row['true_length_m']:>9.3f}→{row['length_m']:<8.3f}"
