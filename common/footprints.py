@@ -72,6 +72,29 @@ def corners(center_m: tuple[float, float], size_m: tuple[float, float], yaw_rad:
     return out
 
 
+ROUND_VERTICES = 32
+"""A round footprint's polygon: its sides touch the ellipse (it holds all of it, and reaches
+0.5 % of the radius past it between them)."""
+
+
+def footprint_polygon(
+    center_m: tuple[float, float], size_m: tuple[float, float], yaw_rad: float, round_: bool
+) -> F64:
+    """The rectangle's corners, or for a round footprint the polygon around the ellipse inscribed
+    in it (a circle when length = width), counter-clockwise."""
+    if not round_:
+        return corners(center_m, size_m, yaw_rad)
+    angle = np.arange(ROUND_VERTICES) * (2 * math.pi / ROUND_VERTICES)
+    around = 1.0 / math.cos(math.pi / ROUND_VERTICES)
+    along = around * size_m[0] / 2 * np.cos(angle)
+    across = around * size_m[1] / 2 * np.sin(angle)
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    out: F64 = np.column_stack(
+        [center_m[0] + c * along - s * across, center_m[1] + s * along + c * across]
+    )
+    return out
+
+
 def vertices(polygon_m: F64) -> tuple[tuple[float, float], ...]:
     """A polygon (N, 2) as the messages carry it."""
     return tuple((float(x), float(y)) for x, y in polygon_m)

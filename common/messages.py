@@ -165,13 +165,17 @@ OBJECTS_KIND = "objects"
 
 class Footprint(BaseModel):
     """An oriented rectangle on the floor: centre, length ≥ width, yaw of the long side (world
-    frame, metres, radians in [0, π))."""
+    frame, metres, radians in [0, π)); a round one is the circle inscribed in it."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     center_m: tuple[float, float]
     size_m: tuple[float, float] = Field(description="length, width")
     yaw_rad: float
+    round: bool = Field(
+        default=False,
+        description="a round top (a cylinder's): the circle inscribed in the rectangle",
+    )
 
     @field_validator("center_m", "size_m", "yaw_rad")
     @classmethod

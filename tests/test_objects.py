@@ -253,9 +253,16 @@ def _record(
     yaw: float = 0.0,
     top: float = 1.0,
     points: int = 500,
+    round_: bool = False,
 ) -> DetectionRecord:
     return DetectionRecord(
-        center_m=center, size_m=size, yaw_rad=yaw, top_m=top, points=points, partial=partial
+        center_m=center,
+        size_m=size,
+        yaw_rad=yaw,
+        top_m=top,
+        points=points,
+        partial=partial,
+        round=round_,
     )
 
 
@@ -708,6 +715,41 @@ def test_the_cells_just_outside_a_whole_static_objects_footprint_are_its_fringe(
     assert [served(*cell) for cell in fringe] == [-1] * len(fringe)
     assert all(served(*cell) >= OCCUPIED_MIN for cell in tops + partial_ring)
     assert all(0 <= served(*cell) <= 25 for cell in floor)
+
+
+@pytest.mark.parametrize("round_", [True, False])
+def test_a_round_objects_outline_and_fringe_follow_its_circle(round_: bool) -> None:
+    """A drum 0.5 m across whose frames call the whole square around it occupied (its side
+    faces and fattening): seen round, its outline is the circle's cells and the square's corner
+    cells outside the circle are its fringe, served unknown; seen as a box, the corners are its
+    own cells and stay occupied."""
+    resolution = 0.05
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 100, 100)))
+    _measure(grid, Window(0, 0, 100, 100), -2.0)  # the floor: free
+    _measure(grid, Window(35, 35, 10, 10), 4.0)  # x, y 1.75–2.25: the square around the drum
+    tracker = ObjectTracker()
+    for k in range(9):  # 4 s at 2 Hz: static
+        view = _record((2.0, 2.0), (0.5, 0.5), round_=round_)
+        tracker.add("p0", T0_NS + k * FRAME_NS, [view], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+    (obj,) = tracker.objects()
+    assert obj.round is round_
+    ((window, outline),) = tracker.outlines(resolution)
+    if round_:  # the circle, grown by a centimetre (its radius is measured to about one)
+        x, y = window.cell_centers(resolution)
+        distance = np.hypot(x - 2.0, y - 2.0)
+        clear = np.abs(distance - 0.26) > 0.002  # the polygon's sides leave a millimetre or two
+        assert np.array_equal(outline[clear], (distance <= 0.26)[clear])
+    centre, corner = (40, 40), (35, 35)  # cells (i, j): x, y 2.025 and 1.775
+    assert outline[centre[1] - window.j0, centre[0] - window.i0]
+    corner_in_outline = 0 <= corner[1] - window.j0 < window.rows and bool(
+        outline[corner[1] - window.j0, corner[0] - window.i0]
+    )
+    assert corner_in_outline is not round_
+    grid.set_fringe(tracker.check_against(grid).fringes)
+    served = grid.served_occupancy()
+    assert bool(served[corner[1], corner[0]] == -1) is round_
+    assert served[centre[1], centre[0]] >= OCCUPIED_MIN
 
 
 def _truth(

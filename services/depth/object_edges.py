@@ -267,7 +267,7 @@ def _refine_round(
     fitted = math.sqrt(max(k0 + a * a + b * b, 0.0))
     center = (d.center_xy_m[0] + a, d.center_xy_m[1] + b)
     return (
-        replace(d, center_xy_m=center, length_m=2 * fitted, width_m=2 * fitted),
+        replace(d, center_xy_m=center, length_m=2 * fitted, width_m=2 * fitted, round=True),
         float(np.mean(strengths)),
     )
 

@@ -78,6 +78,9 @@ class Detection:
     outline_m: tuple[tuple[float, float], ...] = ()
     """What of its top the pair saw (:func:`top_outline`): pairs that each see part of it are
     joined on these, not on their rectangles."""
+    round: bool = False
+    """A round top (its image edges fit a circle better than a rectangle): the footprint is the
+    circle of diameter ``length_m``."""
 
 
 @dataclass(frozen=True)
@@ -303,6 +306,7 @@ def detections_header(
                 points=d.points,
                 partial=d.partial,
                 outline_m=d.outline_m,
+                round=d.round,
             )
             for d in detections
         ],

@@ -257,7 +257,11 @@
     const [l, w] = o.size_m;
     const c = Math.cos(o.yaw_rad || 0);
     const s = Math.sin(o.yaw_rad || 0);
-    return [[-1, -1], [1, -1], [1, 1], [-1, 1]].map(([a, b]) => [cx + (a * l * c - b * w * s) / 2, cy + (a * l * s + b * w * c) / 2]);
+    // A round top (a drum, a person) is the ellipse inscribed in its rectangle.
+    const unit = o.round
+      ? Array.from({ length: 32 }, (_, k) => [Math.cos((k * Math.PI) / 16), Math.sin((k * Math.PI) / 16)])
+      : [[-1, -1], [1, -1], [1, 1], [-1, 1]];
+    return unit.map(([a, b]) => [cx + (a * l * c - b * w * s) / 2, cy + (a * l * s + b * w * c) / 2]);
   }
 
   function drawObjects() {
