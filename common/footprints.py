@@ -1,5 +1,5 @@
-"""Oriented rectangles on the floor: fitting them to points, their corners, overlap, and the
-lattice cells a convex polygon covers. Pure numpy: depth measures objects with it, fusion merges,
+"""Oriented rectangles on the floor (a round one: the circle inscribed in it, as a polygon): fitting
+them to points, their corners, overlap, and the lattice cells a convex polygon covers. Pure numpy: depth measures objects with it, fusion merges,
 tracks and sweeps them, eval scores them."""
 
 from __future__ import annotations

@@ -124,5 +124,5 @@ def objects_cli(argv: Sequence[str] | None = None) -> None:
             f"{o.size_m[0]:>8.3f}{o.size_m[1]:>7.3f}{o.yaw_rad * 57.29578:>6.0f}{o.top_m:>7.2f}"
             f"{o.velocity_mps[0]:>8.2f}{o.velocity_mps[1]:>8.2f}{sigma_v:>6.2f}  {age_s:>6.1f}  "
             f"{','.join(o.pairs)}{'  partial' if o.partial else ''}"
-            f"{'  size unsure' if o.size_unsure else ''}"
+            f"{'  size unsure' if o.size_unsure else ''}{'  round' if o.round else ''}"
         )

@@ -752,6 +752,23 @@ def test_a_round_objects_outline_and_fringe_follow_its_circle(round_: bool) -> N
     assert served[centre[1], centre[0]] >= OCCUPIED_MIN
 
 
+def test_a_track_is_round_where_most_of_its_views_are_and_takes_their_diameter() -> None:
+    """Five round views of a drum 0.5 m across and three box views of it (0.56 × 0.44: a
+    rectangle fitted where its rim had few steps) make a round track of the round views'
+    diameter; a partial view is never round (a circle cut by the image's border is not one)."""
+    tracker = ObjectTracker()
+    views = [_record((2.0, 2.0), (0.5, 0.5), round_=True)] * 5 + [
+        _record((2.0, 2.0), (0.56, 0.44), yaw=0.3)
+    ] * 3
+    for k, view in enumerate(views):
+        tracker.add("p0", T0_NS + k * FRAME_NS, [view], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+    (obj,) = tracker.objects()
+    assert obj.round and obj.size_m == (0.5, 0.5) and obj.yaw_rad == 0.0
+    cut = merge_capture([("p0", _record((2.0, 2.0), (0.5, 0.3), partial=True, round_=True))], 0.1)
+    assert not cut[0].round
+
+
 def _truth(
     name: str, center: tuple[float, float], moving: bool, v: tuple[float, float] = (0.0, 0.0)
 ) -> TruthObject:

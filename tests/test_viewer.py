@@ -238,6 +238,8 @@ def test_objects_reach_the_page_with_what_it_draws() -> None:
             "top_m": 1.1,
             "velocity_mps": [0.5, 0.0],
             "partial": False,
+            "size_unsure": False,
+            "round": False,
         }
     ]
 

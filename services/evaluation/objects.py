@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.footprints import corners
+from common.footprints import footprint_polygon
 from common.messages import TrackedObject, TruthObject
 from services.evaluation.metrics import OBSTACLE_BAND_M, true_extent
 
@@ -82,7 +82,7 @@ def match_static(
             )
             continue
         best = max(mine, key=lambda t: t.detections)
-        polygon = corners(best.center_m, best.size_m, best.yaw_rad)
+        polygon = footprint_polygon(best.center_m, best.size_m, best.yaw_rad, best.round)
         others = [o for o in truth if o is not obj]
         merged = any(_in_polygon(polygon, (o.center_m[0], o.center_m[1])) for o in others)
         out.append(

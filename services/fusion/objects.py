@@ -370,14 +370,20 @@ class Track:
             array = array[array[:, 4] >= config.best_view_share * array[:, 4].max()]
         doubled = 2 * array[:, 2]  # yaw is modulo π: average on the doubled circle
         yaw = math.atan2(float(np.sin(doubled).mean()), float(np.cos(doubled).mean())) / 2
+        length, width = float(np.median(array[:, 0])), float(np.median(array[:, 1]))
+        round_views = array[array[:, 6] > 0]
+        round_ = 2 * len(round_views) > len(array)
+        if round_:  # a circle: the round views' diameter (a yaw means nothing)
+            length = width = float(np.median(round_views[:, 0]))
+            yaw = 0.0
         size = (
-            float(np.median(array[:, 0])),
-            float(np.median(array[:, 1])),
+            length,
+            width,
             yaw % math.pi,
             float(np.median(array[:, 3])),
             not complete,
             complete and _views_unsure(array[:, :2], config),
-            bool(2 * np.count_nonzero(array[:, 6]) > len(array)),
+            round_,
         )
         self._size = (config, size)
         return size

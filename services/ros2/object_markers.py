@@ -1,9 +1,10 @@
 """``map/objects`` as oriented boxes in the robots' map frame, independent of any ROS library: the
 fields of both object messages.
 
-- visualization_msgs/MarkerArray: one CUBE per tracked object (its oriented footprint, from the
-  floor to its top), after a DELETEALL, so a track that ended disappears from RViz without
-  bookkeeping of ids. Every ROS 2 robot can show and read it (id, pose, size) with no extra package.
+- visualization_msgs/MarkerArray: one CUBE per tracked object (its oriented footprint, the box
+  around a round one, from the floor to its top), after a DELETEALL, so a track that ended
+  disappears from RViz without bookkeeping of ids. Every ROS 2 robot can show and read it (id,
+  pose, size) with no extra package.
 - vision_msgs/Detection3DArray: the typed form a perception or planning node consumes, one
   Detection3D per track (its box, its id, its class as the one hypothesis). vision_msgs has no
   wheel: the native output registers its definitions with rosbags (services/ros2/cdr.py), the rclpy

@@ -13,7 +13,18 @@ from services.viewer.footprints import Polygon
 RATE_WINDOW_S = 3.0
 """Frame rates are averaged over this long: steady to read, still quick to show a stall."""
 OBJECT_FIELDS = frozenset(
-    {"id", "class", "center_m", "size_m", "yaw_rad", "top_m", "velocity_mps", "partial"}
+    {
+        "id",
+        "class",
+        "center_m",
+        "size_m",
+        "yaw_rad",
+        "top_m",
+        "velocity_mps",
+        "partial",
+        "size_unsure",
+        "round",
+    }
 )
 """What the page shows of a tracked object; the rest (covariance, stamps, pairs) stays out."""
 
