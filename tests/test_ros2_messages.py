@@ -118,8 +118,9 @@ def test_cdr_round_trips_through_rosbags(distro: cdr.Distro) -> None:
     assert metres[0, 1] == pytest.approx(0.7) and np.isnan(metres[0, 0])
 
 
-def tracked_objects(version: int = 1) -> ObjectsHeader:
-    """A map/objects message with one moving box, 0.8 × 0.4 m, 1.2 m tall, at (1, 2)."""
+def tracked_objects(version: int = 1, drum: bool = False) -> ObjectsHeader:
+    """A map/objects message with one moving box, 0.8 × 0.4 m, 1.2 m tall, at (1, 2); ``drum``:
+    and a static round one, 0.5 m across, 0.9 m tall, at (3, 1)."""
     box = TrackedObject(
         center_m=(1.0, 2.0),
         size_m=(0.8, 0.4),
@@ -135,7 +136,21 @@ def tracked_objects(version: int = 1) -> ObjectsHeader:
         partial=False,
         detections=3,
     )
-    return ObjectsHeader(version=version, stamp_ns=STAMP_NS, objects=[box])
+    round_ = box.model_copy(
+        update={
+            "center_m": (3.0, 1.0),
+            "size_m": (0.5, 0.5),
+            "yaw_rad": 0.0,
+            "id": 6,
+            "object_class": "static",
+            "top_m": 0.9,
+            "velocity_mps": (0.0, 0.0),
+            "round": True,
+        }
+    )
+    return ObjectsHeader(
+        version=version, stamp_ns=STAMP_NS, objects=[box, round_] if drum else [box]
+    )
 
 
 def test_objects_are_boxes_from_the_floor_to_their_top_in_the_map_frame() -> None:
@@ -162,6 +177,11 @@ def test_marker_array_clears_then_adds_one_cube_per_object(distro: cdr.Distro) -
     )
     assert (cube.scale.x, cube.scale.y, cube.scale.z) == pytest.approx((0.8, 0.4, 1.2))
     assert cube.header.frame_id == "map" and len(cube.points) == 0
+    with_drum = object_markers(tracked_objects(drum=True), "map", PlanarPose())
+    array = cdr.decode(distro, cdr.marker_array_cdr(distro, with_drum), cdr.MARKER_ARRAY)
+    _, _, drum = array.markers
+    assert (drum.id, drum.type) == (6, cdr.MARKER_CYLINDER)
+    assert (drum.scale.x, drum.scale.y, drum.scale.z) == pytest.approx((0.5, 0.5, 0.9))
 
 
 TF_MESSAGE_HASH = "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
@@ -300,7 +320,7 @@ def test_cdr_equals_rclpys_serialize_message_outside_alignment_padding() -> None
     occupancy_map = a_map()
     grid = grid_message(occupancy_map, "map", PlanarPose(1.0, 2.0, 0.3))
     image = height_image(occupancy_map, "map")
-    markers = object_markers(tracked_objects(), "map", PlanarPose(1.0, 2.0, 0.3))
+    markers = object_markers(tracked_objects(drum=True), "map", PlanarPose(1.0, 2.0, 0.3))
     cases = [
         (
             cdr.OCCUPANCY_GRID,

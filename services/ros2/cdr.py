@@ -39,7 +39,7 @@ IMAGE = "sensor_msgs/msg/Image"
 MARKER = "visualization_msgs/msg/Marker"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
-MARKER_CUBE, MARKER_ADD, MARKER_DELETEALL = 1, 0, 3
+MARKER_CUBE, MARKER_CYLINDER, MARKER_ADD, MARKER_DELETEALL = 1, 3, 0, 3
 """visualization_msgs/Marker's constants."""
 DETECTION_3D_ARRAY = "vision_msgs/msg/Detection3DArray"
 DETECTION_3D = "vision_msgs/msg/Detection3D"
@@ -240,7 +240,7 @@ def marker_array_cdr(distro: Distro, markers: ObjectMarkers) -> bytes:
                 header=header,
                 ns=NAMESPACE,
                 id=box.id,
-                type=MARKER_CUBE,
+                type=MARKER_CYLINDER if box.round else MARKER_CUBE,
                 action=MARKER_ADD,
                 pose=_pose(store, box.center_xyz_m, box.orientation_xyzw),
                 scale=_vector3(store, box.size_xyz_m),

@@ -119,12 +119,14 @@ def height_image_msg(image_type: Any, image: HeightImage) -> Any:
 
 
 def marker_array_msg(marker_type: Any, array_type: Any, markers: ObjectMarkers) -> Any:
-    """A DELETEALL, then a CUBE per box (services/ros2/object_markers.py)."""
+    """A DELETEALL, then a CUBE per box, a CYLINDER per round one
+    (services/ros2/object_markers.py)."""
     clear = marker_type(ns=NAMESPACE, action=marker_type.DELETEALL)
     _set_header(clear.header, markers.stamp_ns, markers.frame_id)
     message = array_type(markers=[clear])
     for box in markers.boxes:
-        marker = marker_type(ns=NAMESPACE, id=box.id, type=marker_type.CUBE)
+        shape = marker_type.CYLINDER if box.round else marker_type.CUBE
+        marker = marker_type(ns=NAMESPACE, id=box.id, type=shape)
         marker.action = marker_type.ADD
         _set_header(marker.header, markers.stamp_ns, markers.frame_id)
         _set_pose(marker.pose, box.center_xyz_m, box.orientation_xyzw)

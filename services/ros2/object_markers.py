@@ -1,8 +1,8 @@
 """``map/objects`` as oriented boxes in the robots' map frame, independent of any ROS library: the
 fields of both object messages.
 
-- visualization_msgs/MarkerArray: one CUBE per tracked object (its oriented footprint, the box
-  around a round one, from the floor to its top), after a DELETEALL, so a track that ended
+- visualization_msgs/MarkerArray: one CUBE per tracked object (its oriented footprint, from the
+  floor to its top; a CYLINDER for a round one), after a DELETEALL, so a track that ended
   disappears from RViz without bookkeeping of ids. Every ROS 2 robot can show and read it (id,
   pose, size) with no extra package.
 - vision_msgs/Detection3DArray: the typed form a perception or planning node consumes, one
@@ -38,6 +38,8 @@ class BoxMarker:
     size_xyz_m: tuple[float, float, float]
     color_rgba: tuple[float, float, float, float]
     object_class: str
+    round: bool = False
+    """A round top: a CYLINDER whose diameters are the size's x and y."""
 
 
 @dataclass(frozen=True)
@@ -61,6 +63,7 @@ def object_markers(header: ObjectsHeader, frame_id: str, world_in_map: PlanarPos
                 size_xyz_m=(tracked.size_m[0], tracked.size_m[1], height_m),
                 color_rgba=COLOR_RGBA[tracked.object_class],
                 object_class=tracked.object_class,
+                round=tracked.round,
             )
         )
     return ObjectMarkers(header.stamp_ns, frame_id, tuple(boxes))
