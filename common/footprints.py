@@ -1,6 +1,7 @@
-"""Oriented rectangles on the floor (a round one: the circle inscribed in it, as a polygon): fitting
-them to points, their corners, overlap, and the lattice cells a convex polygon covers. Pure numpy: depth measures objects with it, fusion merges,
-tracks and sweeps them, eval scores them."""
+"""Oriented rectangles on the floor (a round one: the circle inscribed in it, as a polygon):
+fitting them to points, their corners, overlap, and the lattice cells a convex polygon covers.
+Pure numpy: depth measures objects with it, fusion merges, tracks and sweeps them, eval scores
+them."""
 
 from __future__ import annotations
 
@@ -65,10 +66,15 @@ def long_side_first(size_a: float, size_b: float, yaw_rad: float) -> tuple[float
 
 def corners(center_m: tuple[float, float], size_m: tuple[float, float], yaw_rad: float) -> F64:
     """The rectangle's four corners (4, 2), counter-clockwise."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
     half = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], np.float64) * np.asarray(size_m) / 2
+    return _placed(half, center_m, yaw_rad)
+
+
+def _placed(local_m: F64, center_m: tuple[float, float], yaw_rad: float) -> F64:
+    """Points given along a footprint's yaw and across it (N, 2), in the world."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
     rotation = np.array([[c, -s], [s, c]])
-    out: F64 = half @ rotation.T + np.asarray(center_m)
+    out: F64 = local_m @ rotation.T + np.asarray(center_m)
     return out
 
 
@@ -86,13 +92,8 @@ def footprint_polygon(
         return corners(center_m, size_m, yaw_rad)
     angle = np.arange(ROUND_VERTICES) * (2 * math.pi / ROUND_VERTICES)
     around = 1.0 / math.cos(math.pi / ROUND_VERTICES)
-    along = around * size_m[0] / 2 * np.cos(angle)
-    across = around * size_m[1] / 2 * np.sin(angle)
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    out: F64 = np.column_stack(
-        [center_m[0] + c * along - s * across, center_m[1] + s * along + c * across]
-    )
-    return out
+    unit = np.column_stack([np.cos(angle), np.sin(angle)])
+    return _placed(unit * (around * np.asarray(size_m) / 2), center_m, yaw_rad)
 
 
 def vertices(polygon_m: F64) -> tuple[tuple[float, float], ...]:

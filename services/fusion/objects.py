@@ -167,9 +167,9 @@ class TrackerConfig:
     fringe_margin_m: float = 0.01
     fringe_reach_m: float = 0.1
     """A whole static object's connected cells whose centres lie more than ``fringe_margin_m`` and
-    at most ``fringe_reach_m`` outside its footprint are its fringe (:meth:`ConnectedCells.fringe`): the
-    cells its side faces and the matcher's fattening make occupied, that its footprint, measured
-    to a centimetre or two, does not hold. Offline, nine scenes (20 s), served unknown: IoU
+    at most ``fringe_reach_m`` outside its footprint are its fringe
+    (:meth:`ConnectedCells.fringe`): the cells its side faces and the matcher's fattening make
+    occupied, that its footprint, measured to a centimetre or two, does not hold. Offline, nine scenes (20 s), served unknown: IoU
     +0.007 to +0.025 on eight, false-free unchanged (README, "How good is the map")."""
     default_frame_interval_s: float = 0.5
     wake_s: float = 3.0
@@ -913,7 +913,7 @@ class MapCheck:
     pieces: frozenset[int] = frozenset()
     """Ids of tracks the cells show larger than measured: their size is a lower bound."""
     enclosures: list[tuple[Window, Mask]] = field(default_factory=list)
-    """Cells the static tracks' measured fringes enclose, for the contested layer."""
+    """Cells the static tracks' measured rims enclose, for the contested layer."""
     fringes: list[tuple[Window, Mask]] = field(default_factory=list)
     """Occupied cells just outside whole static tracks' footprints, for the fringe layer."""
 

@@ -118,9 +118,9 @@ def unknown_where_contested(
 def unknown_where_fringe(
     occupancy: npt.NDArray[np.int8], fringe: npt.NDArray[np.bool_]
 ) -> npt.NDArray[np.int8]:
-    """Unknown where the fringe layer holds the cell (a copy; served map only): just outside a static
-    object's footprint, measured below the cell size, where its side faces and the matcher's
-    fattening make the frames call the cell occupied. Unknown, not free: the evidence says
+    """Unknown where the fringe layer holds the cell (a copy; served map only): just outside a
+    static object's footprint, measured below the cell size, where its side faces and the
+    matcher's fattening make the frames call the cell occupied. Unknown, not free: the evidence says
     occupied, the object's measured outline says not; a client that treats unknown as an
     obstacle keeps its old margin."""
     return np.where(fringe, np.int8(UNKNOWN), occupancy)
