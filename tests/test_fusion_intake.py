@@ -143,13 +143,17 @@ def test_a_tile_beyond_the_site_is_rejected_at_the_edge() -> None:
 
 
 @pytest.mark.parametrize(
-    "outline",
+    ("field", "value"),
     [
-        [(1.0, 2.0), (math.nan, 2.0), (1.5, 2.5)],  # not finite
-        [(0.01 * k, 0.0) for k in range(65)],  # more vertices than an outline may have
+        ("outline_m", [(1.0, 2.0), (math.nan, 2.0), (1.5, 2.5)]),  # not finite
+        ("outline_m", [(0.01 * k, 0.0) for k in range(65)]),  # more vertices than allowed
+        ("round", "banana"),  # not a flag
+        ("round", [True]),
     ],
 )
-def test_detections_with_a_bad_outline_are_rejected(outline: list[tuple[float, float]]) -> None:
+def test_detections_with_a_bad_outline_or_round_flag_are_rejected(
+    field: str, value: object
+) -> None:
     good = DetectionsHeader(
         pair="p0",
         seq=1,
@@ -169,7 +173,7 @@ def test_detections_with_a_bad_outline_are_rejected(outline: list[tuple[float, f
     now_ns = time.time_ns()
     assert decode_detections(encode(DETECTIONS_KIND, good), "depth/p0/objects", now_ns, _gate())
     envelope = msgpack.unpackb(encode(DETECTIONS_KIND, good))
-    envelope["header"]["detections"][0]["outline_m"] = outline  # all else as sent
+    envelope["header"]["detections"][0][field] = value  # all else as sent
     payload = msgpack.packb(envelope)
     with pytest.raises(Rejected) as rejected:
         decode_detections(payload, "depth/p0/objects", now_ns, _gate())
