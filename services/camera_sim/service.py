@@ -239,9 +239,11 @@ def main(settings: CameraSimSettings) -> None:
             stamp_ns = time.time_ns()
             started = time.perf_counter()
             renderer.set_time(stamp_ns / 1e9)
-            for capture in captures:
-                pair = capture.calibration.pair
-                left, right = capture.capture(stamp_ns)
+            # Every pair rendered before any is sent: a rig triggered together delivers together
+            # (sent as rendered, a capture's last pair came 0.2 s after its first, and fusion,
+            # which fuses a capture whole, waited for it).
+            frames = [(capture.calibration.pair, capture.capture(stamp_ns)) for capture in captures]
+            for pair, (left, right) in frames:
                 fields = {"pair": pair, "seq": seq, "stamp_ns": stamp_ns}
                 publishers[pair].put(frame_payload(fields, left, right, encode_jpeg))
                 stats["published"] += 1

@@ -166,7 +166,7 @@ class TileGate:
         )
 
     def accepted(self, tile: AcceptedTile) -> None:
-        """Record the stamp of a tile the map took (a tile the map refused does not count)."""
+        """Record the stamp of a tile taken (held for its capture; a refused one does not count)."""
         self.newest_stamp_ns[tile.header.pair] = tile.header.stamp_ns
 
 

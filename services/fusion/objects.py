@@ -61,6 +61,7 @@ from common.footprints import (
 )
 from common.lattice import Window
 from common.messages import DetectionRecord, TrackedObject
+from services.fusion.captures import CaptureGroups
 
 F64 = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
@@ -80,12 +81,6 @@ class OccupiedCells(Protocol):
 
 @dataclass(frozen=True)
 class TrackerConfig:
-    group_window_s: float = 0.03
-    """Detections of different pairs captured this close together are one capture."""
-    group_wait_s: float = 1.0
-    """A capture's detections are merged once every live pair reported it (or a later capture),
-    or after this long. Pairs of one capture can arrive a few hundred ms apart (a camera source
-    rendering them in turn); the predicted layer covers that wait for movers."""
     merge_gap_m: float = 0.1
     """Footprints of different pairs closer than this in one capture are one object."""
     measurement_sigma_m: float = 0.05
@@ -425,10 +420,8 @@ class ObjectTracker:
     version: int = 0
     stamp_ns: int = 0
     frame_interval_s: float = 0.0
-    pending: dict[int, list[tuple[str, DetectionRecord]]] = field(default_factory=dict)
-    """Detections waiting for the rest of their capture: group stamp → (pair, detection)."""
-    pending_pairs: dict[int, set[str]] = field(default_factory=dict)
-    pending_since_s: dict[int, float] = field(default_factory=dict)
+    captures: CaptureGroups[DetectionRecord] = field(default_factory=CaptureGroups)
+    """Detections waiting for the rest of their capture."""
     wake_footprints: deque[tuple[int, F64, F64]] = field(default_factory=deque)
     """Capture stamp, grown footprint and footprint of every observation of a moving track."""
 
@@ -436,24 +429,12 @@ class ObjectTracker:
         self, pair: str, stamp_ns: int, detections: list[DetectionRecord], now_s: float
     ) -> None:
         """One pair's detections of one frame (an empty list says it saw nothing: still counts)."""
-        window_ns = self.config.group_window_s * 1e9
-        group = next((g for g in self.pending if abs(g - stamp_ns) <= window_ns), stamp_ns)
-        self.pending.setdefault(group, []).extend((pair, d) for d in detections)
-        self.pending_pairs.setdefault(group, set()).add(pair)
-        self.pending_since_s.setdefault(group, now_s)
+        self.captures.add(pair, stamp_ns, detections, now_s)
 
     def flush(self, now_s: float, live_pairs: set[str]) -> bool:
         """Process every complete (or waited-for) capture in stamp order; True if tracks changed."""
         changed = False
-        groups = sorted(self.pending)
-        complete = [live_pairs <= self.pending_pairs[g] for g in groups]
-        for k, group in enumerate(groups):
-            waited = now_s - self.pending_since_s[group] >= self.config.group_wait_s
-            # A later capture complete: the pairs missing here skipped this frame.
-            if not (any(complete[k:]) or waited):
-                break  # captures are processed in order
-            detections = self.pending.pop(group)
-            del self.pending_pairs[group], self.pending_since_s[group]
+        for group, detections in self.captures.ready(now_s, live_pairs):
             if group <= self.stamp_ns:
                 continue  # older than a capture already processed
             self.update(group, merge_capture(detections, self.config.merge_gap_m))

@@ -37,6 +37,7 @@ from common.messages import MAP_UPDATE_KIND, OBJECTS_KIND, MapUpdateHeader, Obje
 from common.occupancy_map import OccupancyMap
 from common.settings import parse_settings, startup_error
 from common.zenoh_session import open_session
+from services.fusion.captures import CaptureGroups
 from services.fusion.grid import (
     CellMasks,
     FrozenMap,
@@ -47,7 +48,13 @@ from services.fusion.grid import (
     update_parts,
 )
 from services.fusion.inbox import Delivery, Inbox
-from services.fusion.intake import Rejected, TileGate, decode_detections, decode_presence
+from services.fusion.intake import (
+    AcceptedTile,
+    Rejected,
+    TileGate,
+    decode_detections,
+    decode_presence,
+)
 from services.fusion.objects import MapCheck, ObjectTracker
 from services.fusion.persistence import StateWriter, load_grid
 from services.fusion.settings import FusionSettings
@@ -86,6 +93,8 @@ class View:
     last_tile_s: Mapping[str, float] = field(default_factory=dict)
     capture_to_fused_ms: Mapping[str, float] = field(default_factory=dict)
     processes: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    lagging: frozenset[str] = frozenset()
+    """Pairs a capture is no longer held for (:class:`CaptureGroups`)."""
     objects: ObjectsHeader = field(
         default_factory=lambda: ObjectsHeader(version=0, stamp_ns=0, objects=[])
     )
@@ -113,6 +122,10 @@ class FusionState:
         self.processes: dict[str, set[str]] = {}
         """Each pair's depth processes alive (liveliness tokens ``depth/{pair}/alive/{instance}``)."""
         self.contributors: set[str] = set()
+        self.tiles: CaptureGroups[tuple[str, AcceptedTile]] = CaptureGroups(
+            wait_s=settings.capture_wait_s
+        )
+        """Admitted tiles (with their keys) waiting for the rest of their capture."""
         self.tracker = ObjectTracker()
         self.objects_header = ObjectsHeader(version=0, stamp_ns=0, objects=[])
         self.outlined: CellMasks = []
@@ -138,38 +151,43 @@ class FusionState:
             else:
                 self._presence(delivery)
         except Rejected as rejection:
-            self._count(delivery, rejection.reason, str(rejection))
+            self._count(delivery.kind, delivery.key, rejection.reason, str(rejection))
         except Exception as error:
-            frames = traceback.extract_tb(error.__traceback__)
-            where = f" at {Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else ""
-            self._count(delivery, "internal", f"{type(error).__name__}: {error}{where}")
+            self._count(delivery.kind, delivery.key, "internal", _internal(error))
 
-    def _count(self, delivery: Delivery, reason: str, detail: str) -> None:
+    def _count(self, kind: str, key: str, reason: str, detail: str) -> None:
         counters = {
             "tile": self.rejected,
             "detections": self.detections_rejected,
-        }.get(delivery.kind, self.liveliness_rejected)
+        }.get(kind, self.liveliness_rejected)
         counters[reason] += 1
         self.warn.warning(
-            f"{delivery.kind}_{reason}",
-            f"{delivery.kind} rejected",
-            reason=reason,
-            on=delivery.key,
-            error=detail[:200],
+            f"{kind}_{reason}", f"{kind} rejected", reason=reason, on=key, error=detail[:200]
         )
 
     def _tile(self, delivery: Delivery) -> None:
+        """A pair's tile: checked now, fused with the rest of its capture (:meth:`fuse_captures`)."""
         tile = self.gate.admit(delivery.payload, delivery.arrival_ns, delivery.key)
-        try:
-            self.grid.integrate_tile(tile, tile.header.stamp_ns)
-        except TileOutsideMap as error:
-            raise Rejected(error.reason, str(error)) from None
         self.gate.accepted(tile)
         pair = tile.header.pair
-        self.accepted[pair] += 1
-        self.contributors.add(pair)
         self.last_tile_s[pair] = time.time()
-        self.capture_to_fused_ms[pair] = (time.time_ns() - tile.header.stamp_ns) / 1e6
+        self.tiles.add(pair, tile.header.stamp_ns, [(delivery.key, tile)], time.time())
+
+    def fuse_captures(self, everything: bool = False) -> None:
+        """Fuse the tiles of every complete capture (``everything``: all held, at shutdown)."""
+        for _, tiles in self.tiles.ready(time.time(), self.alive, everything):
+            for pair, (key, tile) in tiles:
+                try:
+                    self.grid.integrate_tile(tile, tile.header.stamp_ns)
+                except TileOutsideMap as error:
+                    self._count("tile", key, error.reason, str(error))
+                    continue
+                except Exception as error:
+                    self._count("tile", key, "internal", _internal(error))
+                    continue
+                self.accepted[pair] += 1
+                self.contributors.add(pair)
+                self.capture_to_fused_ms[pair] = (time.time_ns() - tile.header.stamp_ns) / 1e6
 
     def _detections(self, delivery: Delivery) -> None:
         """One pair's objects of one frame: held until the rest of the capture arrives."""
@@ -270,8 +288,16 @@ class FusionState:
             dict(self.last_tile_s),
             dict(self.capture_to_fused_ms),
             {pair: tuple(sorted(i)) for pair, i in self.processes.items()},
+            frozenset(self.tiles.lagging),
             self.objects_header,
         )
+
+
+def _internal(error: Exception) -> str:
+    """What an unexpected exception says, with where it was raised."""
+    frames = traceback.extract_tb(error.__traceback__)
+    where = f" at {Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else ""
+    return f"{type(error).__name__}: {error}{where}"
 
 
 def update_payload(
@@ -445,6 +471,7 @@ def health_of(view: View, writer: StateWriter | None, dropped: Mapping[str, int]
                 if p in view.last_tile_s
                 else None,
                 "capture_to_fused_ms": view.capture_to_fused_ms.get(p),
+                "lagging": p in view.lagging,
             }
             for p in pairs
         },
@@ -654,6 +681,7 @@ def main(settings: FusionSettings) -> None:
     for worker in workers:
         worker.close()
     snapshots.close()
+    state.fuse_captures(everything=True)
     state.publish()
     writer.hand_over(state.view.frozen, state.unsaved)
     writer.close()
@@ -680,6 +708,7 @@ def run(
             wait_s = max(0.0, settings.publish_interval_s - (time.monotonic() - last["publish"]))
         for delivery in inbox.take(min(wait_s, IDLE_WAIT_S)):
             state.handle(delivery)
+        state.fuse_captures()
         objects = state.refresh_objects()
         if objects is not None:
             put_objects(objects_payload(objects, "msgpack"))

@@ -11,6 +11,7 @@ from pydantic import Field, field_validator, model_validator
 
 from common.lattice import Window
 from common.settings import CommaList, OvergridParams, ZenohSettings
+from services.fusion.captures import CaptureGroups
 from services.fusion.params import GridParams
 
 
@@ -31,13 +32,23 @@ class FusionParams(OvergridParams):
         2.0, gt=0.0, description="drop tiles captured longer ago than this"
     )
     max_message_mb: float = Field(64.0, gt=0.0, description="reject larger tile messages")
+    capture_wait_s: float = Field(
+        CaptureGroups.wait_s,
+        ge=0.0,
+        description="how long a capture's tiles wait for the rest of the live pairs' before they "
+        "are fused without them: each map then shows one instant (0: fuse each tile as it comes, "
+        "sooner, but a map stamped with the newest capture shows the other pairs' older frames)",
+    )
     publish_interval_s: float = Field(
         0.02,
         gt=0.0,
         description="shortest time between map snapshots (and map/updates) while tiles arrive",
     )
     save_interval_s: float = Field(
-        0.5, gt=0.0, description="period of state saves: a crash loses at most this much"
+        0.5,
+        gt=0.0,
+        description="period of state saves: a crash loses at most this much (and the tiles waiting "
+        "for the rest of their capture)",
     )
     outline_static: bool = Field(
         True,
