@@ -146,7 +146,10 @@ def run(
         if (k + 1) % 10 == 0:
             print(f"  {k + 1}/{frames} instants, {time.perf_counter() - started:.0f} s", flush=True)
     renderer.close()
-    tracked = object_sizes(tracker, grid, object_scores.blocking_static(static, scene.floor_size_m))
+    blocking = object_scores.blocking_static(static, scene.floor_size_m)
+    tracked = object_sizes(
+        tracker, grid, blocking, object_scores.seen_whole(blocking, seen, window, r)
+    )
     breakdown = metrics.error_breakdown(occupancy, truth, seen, objects, window, r)
     figures: dict[str, object] = {
         name: float(np.mean([s[name] for s in snapshots])) for name in SCORED
@@ -163,7 +166,7 @@ def run(
 
 
 def object_sizes(
-    tracker: ObjectTracker, grid: FusedGrid, static: list[TruthObject]
+    tracker: ObjectTracker, grid: FusedGrid, static: list[TruthObject], in_view: set[str]
 ) -> dict[str, object]:
     """The tracker's static objects' sizes against the truth, as ``overgrid eval`` scores
     ``map/objects``: the mean and max of the length and width errors over the objects found."""
@@ -171,7 +174,7 @@ def object_sizes(
     tracks = [t for t in tracker.objects(pieces) if t.object_class == "static"]
     matches = object_scores.match_static(tracks, static)
     return {
-        **object_scores.size_errors(matches),
+        **object_scores.size_errors(matches, in_view),
         "static_found": f"{sum(m.tracks >= 1 for m in matches)}/{len(matches)}",
         "static_split": sum(m.tracks > 1 for m in matches),
         "static_merged": sum(m.merged for m in matches),
@@ -256,7 +259,10 @@ def main() -> None:
         f"object sizes from the tracks: mean {result['length_error_mean_pct']:.1f} %, "
         f"max {result['length_error_max_pct']:.1f} % (complete views: "
         f"{result['length_error_mean_pct_complete']:.1f} %, "
-        f"{result['length_error_max_pct_complete']:.1f} %), found {result['static_found']}, "
+        f"{result['length_error_max_pct_complete']:.1f} %; tops wholly in view: "
+        f"{result['length_error_mean_pct_in_view']:.1f} %, "
+        f"{result['length_error_max_pct_in_view']:.1f} % over {result['objects_in_view']}), "
+        f"found {result['static_found']}, "
         f"split {result['static_split']}, merged {result['static_merged']}"
     )
     for name, (tl, tw, ml, mw, n, part) in result["tracked_objects"].items():  # type: ignore[attr-defined]

@@ -12,6 +12,7 @@ from common.occupancy_map import UNKNOWN, OccupancyMap
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.truth import footprint_mask, top_heights
 from services.evaluation import metrics
+from services.evaluation import objects as object_scores
 
 RES = 0.05
 WINDOW = Window(0, 0, 80, 60)  # 4 m × 3 m
@@ -196,3 +197,19 @@ def test_error_breakdown_tells_an_edge_ring_from_floor_errors_and_names_the_obje
     assert shares["cells"] == int(truth.sum())
     assert shares["free"] == pytest.approx(1 / truth.sum())
     assert shares["unknown"] == pytest.approx(1 / truth.sum())
+
+
+def test_sizes_in_view_are_over_the_objects_whose_top_the_cameras_see_whole() -> None:
+    whole, cut = _box("whole", 1.0, 1.0, 0.6, 0.4), _box("cut", 3.0, 1.0, 0.6, 0.4)
+    seen = np.ones(WINDOW.shape, bool)
+    seen[:, 61:] = False  # the view ends at x = 3.05 m: the cut box's far half is unseen
+    in_view = object_scores.seen_whole([whole, cut], seen, WINDOW, RES)
+    assert in_view == {"whole"}
+    matches = [
+        object_scores.ObjectMatch("whole", 0.6, 0.4, 1, 0.606, 0.4, False, False, False),
+        object_scores.ObjectMatch("cut", 0.6, 0.4, 1, 0.35, 0.4, True, False, False),
+    ]
+    errors = object_scores.size_errors(matches, in_view)
+    assert errors["objects_in_view"] == 1
+    assert errors["length_error_max_pct_in_view"] == pytest.approx(1.0)
+    assert errors["length_error_max_pct"] == pytest.approx(100 * 0.25 / 0.6)

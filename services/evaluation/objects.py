@@ -4,14 +4,16 @@ no merges), movers' velocities and identity over time. Pure: scores lists of obj
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from common.footprints import footprint_polygon
+from common.lattice import Window
 from common.messages import TrackedObject, TruthObject
-from services.evaluation.metrics import OBSTACLE_BAND_M, true_extent
+from services.camera_sim.truth import footprint_mask
+from services.evaluation.metrics import OBSTACLE_BAND_M, Mask, true_extent
 
 MATCH_MARGIN_M = 0.15
 """A track belongs to a truth object whose footprint, grown by this, holds the track's centre."""
@@ -101,20 +103,38 @@ def match_static(
     return out
 
 
-def size_errors(matches: Sequence[ObjectMatch]) -> dict[str, float]:
+def size_errors(
+    matches: Sequence[ObjectMatch], in_view: Collection[str] = frozenset()
+) -> dict[str, float]:
     """The headline size figures over the objects found: mean and max of their length and width
-    errors (%), over all of them and over those measured with confidence (``_complete``: seen
-    whole, by views that agree; neither ``partial`` nor ``size_unsure``), and how many those are."""
+    errors (%), over all of them, over those measured with confidence (``_complete``: seen
+    whole, by views that agree; neither ``partial`` nor ``size_unsure``), and over those whose top
+    lies wholly in the cameras' view (``_in_view``, names from :func:`seen_whole`: the others no
+    camera can measure whole, whatever the tracker says of them), and how many those are."""
     found = [m for m in matches if m.tracks >= 1]
     errors = [e for m in found for e in m.errors_pct]
     sure = [m for m in found if not (m.partial or m.unsure)]
     complete = [e for m in sure for e in m.errors_pct]
+    viewed = [e for m in found if m.name in in_view for e in m.errors_pct]
     return {
         "objects_measured_sure": len(sure),
+        "objects_in_view": sum(1 for m in matches if m.name in in_view),
         "length_error_mean_pct": float(np.mean(errors)) if errors else math.nan,
         "length_error_max_pct": max(errors, default=math.nan),
         "length_error_mean_pct_complete": float(np.mean(complete)) if complete else math.nan,
         "length_error_max_pct_complete": max(complete, default=math.nan),
+        "length_error_mean_pct_in_view": float(np.mean(viewed)) if viewed else math.nan,
+        "length_error_max_pct_in_view": max(viewed, default=math.nan),
+    }
+
+
+def seen_whole(
+    objects: Sequence[TruthObject], seen: Mask, window: Window, resolution_m: float
+) -> set[str]:
+    """Names of the objects every cell of whose footprint is ``seen`` (at its top's height, by
+    some pair: :func:`metrics.seen_by_cameras`): the ones whose size the cameras can measure."""
+    return {
+        obj.name for obj in objects if not (footprint_mask(obj, window, resolution_m) & ~seen).any()
     }
 
 

@@ -214,6 +214,13 @@ class Evaluator:
             top_heights(static, self.window, resolution_m),
             blockers=static,
         )
+        self.in_view = object_scores.seen_whole(
+            object_scores.blocking_static(static, self.floor_size_m),
+            self.seen,
+            self.window,
+            resolution_m,
+        )
+        """Static objects whose top the cameras see whole (their sizes are measurable)."""
         self.static_occupied = scene_truth.occupancy(
             static, self.window, resolution_m, OBSTACLE_BAND_M
         ).astype(np.bool_)
@@ -291,7 +298,7 @@ class Evaluator:
         static = [t for t in tracks if t.object_class == "static"]
         matches = object_scores.match_static(static, self.static_objects(truth))
         return {
-            **object_scores.size_errors(matches),
+            **object_scores.size_errors(matches, self.in_view),
             "tracked_objects": [
                 {
                     "name": m.name,
@@ -501,6 +508,11 @@ def table(result: dict[str, Any]) -> str:
             f"{'length error, sure objects':<28}{result['length_error_mean_pct_complete']:>6.2f}"
             f"/{result['length_error_max_pct_complete']:<5.2f} % mean/max over "
             f"{result['objects_measured_sure']} (neither partial nor size unsure)"
+        )
+        lines.append(
+            f"{'length error, in view':<28}{result['length_error_mean_pct_in_view']:>6.2f}"
+            f"/{result['length_error_max_pct_in_view']:<5.2f} % mean/max over "
+            f"{result['objects_in_view']} (tops wholly in the cameras' view)"
         )
     if "over_run" in result:
         run = result["over_run"]
