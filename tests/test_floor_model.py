@@ -90,6 +90,21 @@ def _eroded(mask: np.ndarray, px: int = 4) -> np.ndarray:
     return cv2.erode(mask.astype(np.uint8), np.ones((2 * px + 1, 2 * px + 1), np.uint8)) > 0
 
 
+@pytest.mark.parametrize("window_px", [3, 5, 7])
+@pytest.mark.parametrize("shape", [(240, 320), (3, 4)])
+def test_window_means_are_cv2_blurs_of_the_terms_to_the_bit(
+    window_px: int, shape: tuple[int, int]
+) -> None:
+    """One plane and the product of two, the borders included (a 3 × 4 image reflects past its
+    far side as well)."""
+    planes = np.random.default_rng(0).normal(100.0, 40.0, (2, *shape)).astype(np.float32)
+    terms = np.array([(0, floor_model.NO_PLANE), (0, 1)], np.int64)
+    means = floor_model.window_means(planes, terms, window_px)
+    window = (window_px, window_px)
+    assert np.array_equal(means[0], cv2.blur(planes[0], window))
+    assert np.array_equal(means[1], cv2.blur(planes[0] * planes[1], window))
+
+
 def test_floor_test_flags_a_raised_textured_patch_and_not_the_floor() -> None:
     """A rendered speckle floor (realistic cameras, published calibration), with a patch of its own
     texture pasted 2 px of disparity above the floor (≈ 0.5 m) into both rectified images."""

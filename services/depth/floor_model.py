@@ -110,7 +110,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import NamedTuple, TypeVar
 
 import cv2
 import numpy as np
@@ -374,6 +374,224 @@ class FloorTest:
     contradict: Mask
 
 
+class FloorTestThresholds(NamedTuple):
+    """The floor test's thresholds in float32, as numpy compares a float32 image with a number."""
+
+    texture_var: np.float32
+    agree_zncc: np.float32
+    contradict_zncc: np.float32
+    measure_zncc: np.float32
+    measure_energy: np.float32
+    max_shift_px: np.float32
+    floor_shift_px: np.float32
+    raised_shift_px: np.float32
+
+    @staticmethod
+    def of(config: FloorModelConfig) -> FloorTestThresholds:
+        return FloorTestThresholds(
+            *(
+                np.float32(value)
+                for value in (
+                    config.texture_gray**2,
+                    config.agree_zncc,
+                    config.contradict_zncc,
+                    config.measure_zncc,
+                    config.measure_energy,
+                    config.max_shift_px,
+                    config.floor_shift_px,
+                    config.raised_shift_px,
+                )
+            )
+        )
+
+
+@compiled
+def _floor_decisions(
+    means: F32,
+    inside: Mask,
+    limits: FloorTestThresholds,
+    textured: Mask,
+    x_textured: Mask,
+    along_baseline: Mask,
+    matchable: Mask,
+    shift_px: F32,
+    agree: Mask,
+    contradict: Mask,
+) -> None:
+    """The floor test's verdicts at each pixel from its window means (``FLOOR_TEST_TERMS``'
+    order), in float32 as the numpy expressions they replace: a few dozen whole-image passes
+    cost more than the window sums."""
+    x_energy_min, x_energy_share = np.float32(X_ENERGY_MIN), np.float32(X_ENERGY_SHARE)
+    tiny, nan = np.float32(1e-6), np.float32(np.nan)
+    rows, cols = inside.shape
+    for row in range(rows):
+        for col in range(cols):  # & and | rather than and, or: fewer branches
+            mean_l, mean_r, mean_g = means[0, row, col], means[1, row, col], means[2, row, col]
+            mean_across, mean_lx, mean_ly = (
+                means[3, row, col],
+                means[4, row, col],
+                means[5, row, col],
+            )
+            var_l = means[6, row, col] - mean_l * mean_l
+            var_r = means[7, row, col] - mean_r * mean_r
+            covariance = means[8, row, col] - mean_l * mean_r
+            energy = means[9, row, col] - mean_g * mean_g
+            along = means[10, row, col] - (mean_r - mean_l) * mean_g
+            energy_across = means[11, row, col] - mean_across * mean_across
+            left_energy_x = means[12, row, col] - mean_lx * mean_lx
+            left_energy_y = means[13, row, col] - mean_ly * mean_ly
+            left_textured = var_l > limits.texture_var
+            is_textured = left_textured & (var_r > limits.texture_var) & inside[row, col]
+            zncc = covariance / np.sqrt(max(var_l * var_r, tiny))
+            shift = along / max(energy, tiny)
+            size = abs(shift)
+            # Texture along x, against an absolute floor and against the texture across it: grain
+            # or board gaps along the baseline have gradients, but none along x to match on.
+            is_along = is_textured & (energy < energy_across * x_energy_share)
+            is_x_textured = is_textured & (energy > x_energy_min) & (is_along ^ True)
+            strong = is_x_textured & (energy >= limits.measure_energy)
+            measured = strong & (zncc >= limits.measure_zncc) & (size < limits.max_shift_px)
+            # A shift too large for the linearisation to measure is still no floor.
+            strong &= size >= limits.max_shift_px
+            textured[row, col] = is_textured
+            x_textured[row, col] = is_x_textured
+            along_baseline[row, col] = is_along
+            matchable[row, col] = (
+                left_textured
+                & (left_energy_x > x_energy_min)
+                & (left_energy_x >= left_energy_y * x_energy_share)
+            )
+            shift_px[row, col] = shift if measured else nan
+            agree[row, col] = (
+                measured & (zncc >= limits.agree_zncc) & (size <= limits.floor_shift_px)
+            )
+            contradict[row, col] = is_textured & (
+                (zncc < limits.contradict_zncc)
+                | strong
+                | (measured & (size >= limits.raised_shift_px))
+            )
+
+
+NO_PLANE = -1
+"""A term of :func:`window_means` that is one plane, not a product of two."""
+
+
+def window_means(planes: F32, terms: npt.NDArray[np.int64], window_px: int) -> F32:
+    """The mean over a ``window_px`` square about every pixel of each term, a row of ``terms``:
+    ``planes[i]``, or the float32 product ``planes[i] * planes[j]``, (i, j) or (i, NO_PLANE). Equal
+    to ``cv2.blur`` of each term to the bit (sums in float64 in its order, borders reflected
+    without the edge pixel), in one pass without the products' images: a dozen blurs and their
+    products as numpy passes were the floor test's main cost."""
+    if window_px % 2 != 1:
+        raise ValueError(f"window_means needs an odd window, not {window_px}")
+    means = np.empty((len(terms), *planes.shape[1:]), np.float32)
+    _window_means(np.ascontiguousarray(planes, np.float32), terms, window_px // 2, means)
+    return means
+
+
+@compiled
+def _reflected(index: int, length: int) -> int:
+    """``index`` reflected into [0, length) without repeating the edge (cv2.BORDER_REFLECT_101)."""
+    if length == 1:
+        return 0
+    while index < 0 or index >= length:
+        index = -index if index < 0 else 2 * length - 2 - index
+    return index
+
+
+@compiled
+def _window_means(planes: F32, terms: npt.NDArray[np.int64], half_px: int, means: F32) -> None:
+    """cv2.blur's box filter for float32, term by term: each row's sums along x (left to right),
+    then a running sum of the last rows' sums down each column, scaled once."""
+    _, rows, cols = planes.shape
+    size = 2 * half_px + 1
+    scale = 1.0 / (size * size)
+    padded = np.empty(cols + 2 * half_px, np.float64)
+    row_sums = np.empty((size, cols), np.float64)  # the last ``size`` rows' sums, a ring
+    column = np.empty(cols, np.float64)
+    for term in range(terms.shape[0]):
+        first, product = planes[terms[term, 0]], terms[term, 1] != NO_PLANE
+        second = planes[max(terms[term, 1], 0)]
+        column[:] = 0.0
+        for step in range(rows + 2 * half_px):  # the window's rows from its top, reflected
+            row = _reflected(step - half_px, rows)
+            # Loops over rows' views (not 2-D indexing): so they vectorise.
+            values, first_row, second_row = (
+                padded[half_px : half_px + cols],
+                first[row],
+                second[row],
+            )
+            if product:
+                for col in range(cols):
+                    values[col] = first_row[col] * second_row[col]
+            else:
+                for col in range(cols):
+                    values[col] = first_row[col]
+            for k in range(half_px):
+                padded[half_px - 1 - k] = padded[half_px + _reflected(-1 - k, cols)]
+                padded[half_px + cols + k] = padded[half_px + _reflected(cols + k, cols)]
+            sums = row_sums[step % size]
+            if size == 5:  # the windows this module uses: unrolled, the loop vectorises
+                for col in range(cols):
+                    sums[col] = (
+                        padded[col]
+                        + padded[col + 1]
+                        + padded[col + 2]
+                        + padded[col + 3]
+                        + padded[col + 4]
+                    )
+            else:
+                sums[:] = padded[:cols]
+                for k in range(1, size):
+                    shifted = padded[k : k + cols]
+                    for col in range(cols):
+                        sums[col] += shifted[col]
+            if step < size - 1:
+                for col in range(cols):
+                    column[col] += sums[col]
+                continue
+            out, oldest = means[term, step - size + 1], row_sums[(step + 1) % size]
+            for col in range(cols):
+                total = column[col] + sums[col]
+                out[col] = np.float32(total * scale)
+                column[col] = total - oldest[col]
+
+
+def _gradient(image: F32, dx: int, dy: int, out: F32 | None = None) -> F32:
+    """Sobel derivative along x (dx) or y (dy), in gray levels per pixel of a smoothed image
+    (into ``out`` if given)."""
+    gradient: F32 = np.asarray(
+        cv2.Sobel(image, cv2.CV_32F, dx, dy, dst=out, ksize=3, scale=1.0 / 16.0), np.float32
+    )
+    return gradient
+
+
+FLOOR_TEST_PLANES = ("left", "warped", "gradient", "across", "left_x", "left_y", "error")
+"""The floor test's planes: both images (the right one floor-warped, at the left one's gain), the
+x- and y-gradients of their sum and of the left image, and the right minus the left."""
+_LEFT, _WARPED, _GRADIENT, _ACROSS, _LEFT_X, _LEFT_Y, _ERROR = range(len(FLOOR_TEST_PLANES))
+# The terms whose window means it takes (:func:`_floor_decisions` reads them in this order).
+FLOOR_TEST_TERMS = np.array(
+    [
+        (_LEFT, NO_PLANE),
+        (_WARPED, NO_PLANE),
+        (_GRADIENT, NO_PLANE),
+        (_ACROSS, NO_PLANE),
+        (_LEFT_X, NO_PLANE),
+        (_LEFT_Y, NO_PLANE),
+        (_LEFT, _LEFT),
+        (_WARPED, _WARPED),
+        (_LEFT, _WARPED),
+        (_GRADIENT, _GRADIENT),
+        (_ERROR, _GRADIENT),
+        (_ACROSS, _ACROSS),
+        (_LEFT_X, _LEFT_X),
+        (_LEFT_Y, _LEFT_Y),
+    ],
+    np.int64,
+)
+
+
 def floor_test(left: F32, warped: F32, inside: Mask, config: FloorModelConfig) -> FloorTest:
     """Zero-mean normalised cross-correlation of ``left`` and ``warped`` (the right image remapped
     at the floor's disparity) over a small window, and the residual shift between them.
@@ -382,50 +600,43 @@ def floor_test(left: F32, warped: F32, inside: Mask, config: FloorModelConfig) -
     left(u) = warped(u − δ) ≈ warped(u) − δ·∂warped/∂u, so δ = ⟨(warped − left)·g⟩ / ⟨g²⟩ over the
     window with g the x-gradient, means removed, after one global gain between the cameras.
     """
-    k = (config.window_px, config.window_px)
     step = GAIN_SAMPLE_STEP
     left_sample, right_sample = left[::step, ::step], warped[::step, ::step]
     seen = right_sample >= 0
     ratio = float(left_sample[seen].mean()) / max(float(right_sample[seen].mean()), 1.0)
-    warped = warped * np.float32(ratio)
-    gradient = cv2.Sobel(left + warped, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 16.0)
-    mean_l, mean_r, mean_g = cv2.blur(left, k), cv2.blur(warped, k), cv2.blur(gradient, k)
-    var_l = cv2.blur(left * left, k) - mean_l * mean_l
-    var_r = cv2.blur(warped * warped, k) - mean_r * mean_r
-    texture = np.float32(config.texture_gray**2)
-    textured: Mask = (var_l > texture) & (var_r > texture) & inside
-    covariance = cv2.blur(left * warped, k) - mean_l * mean_r
-    zncc = covariance / np.sqrt(np.maximum(var_l * var_r, np.float32(1e-6)))
-    energy = cv2.blur(gradient * gradient, k) - mean_g * mean_g
-    along = cv2.blur((warped - left) * gradient, k) - (mean_r - mean_l) * mean_g
-    shift = along / np.maximum(energy, np.float32(1e-6))
-    size = np.abs(shift)
-    # Texture along x, against an absolute floor and against the texture across it: grain or
-    # board gaps along the baseline have gradients, but none along x to match on.
-    across = cv2.Sobel(left + warped, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 16.0)
-    mean_across = cv2.blur(across, k)
-    energy_across = cv2.blur(across * across, k) - mean_across * mean_across
-    along_baseline: Mask = textured & (energy < energy_across * X_ENERGY_SHARE)
-    x_textured: Mask = textured & (energy > X_ENERGY_MIN) & ~along_baseline
-    left_x = cv2.Sobel(left, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 16.0)
-    left_y = cv2.Sobel(left, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 16.0)
-    left_energy_x = cv2.blur(left_x * left_x, k) - cv2.blur(left_x, k) ** 2
-    left_energy_y = cv2.blur(left_y * left_y, k) - cv2.blur(left_y, k) ** 2
-    matchable: Mask = (
-        (var_l > texture)
-        & (left_energy_x > X_ENERGY_MIN)
-        & (left_energy_x >= left_energy_y * X_ENERGY_SHARE)
+    planes = np.empty((len(FLOOR_TEST_PLANES), *left.shape), np.float32)
+    np.copyto(planes[_LEFT], left)
+    warped = np.multiply(warped, np.float32(ratio), out=planes[_WARPED])
+    both = left + warped
+    _gradient(both, 1, 0, out=planes[_GRADIENT])
+    _gradient(both, 0, 1, out=planes[_ACROSS])
+    _gradient(left, 1, 0, out=planes[_LEFT_X])
+    _gradient(left, 0, 1, out=planes[_LEFT_Y])
+    np.subtract(warped, left, out=planes[_ERROR])
+    means = window_means(planes, FLOOR_TEST_TERMS, config.window_px)
+    shape = left.shape
+    test = FloorTest(
+        textured=np.empty(shape, np.bool_),
+        x_textured=np.empty(shape, np.bool_),
+        along_baseline=np.empty(shape, np.bool_),
+        matchable=np.empty(shape, np.bool_),
+        shift_px=np.empty(shape, np.float32),
+        agree=np.empty(shape, np.bool_),
+        contradict=np.empty(shape, np.bool_),
     )
-    measured = x_textured & (zncc >= config.measure_zncc) & (energy >= config.measure_energy)
-    measured &= size < config.max_shift_px
-    shift_px: F32 = np.where(measured, shift, np.float32(np.nan))
-    agree: Mask = measured & (zncc >= config.agree_zncc) & (size <= config.floor_shift_px)
-    # A shift too large for the linearisation to measure is still no floor.
-    strong = x_textured & (energy >= config.measure_energy) & (size >= config.max_shift_px)
-    contradict: Mask = textured & (
-        (zncc < config.contradict_zncc) | strong | (measured & (size >= config.raised_shift_px))
+    _floor_decisions(
+        means,
+        inside,
+        FloorTestThresholds.of(config),
+        test.textured,
+        test.x_textured,
+        test.along_baseline,
+        test.matchable,
+        test.shift_px,
+        test.agree,
+        test.contradict,
     )
-    return FloorTest(textured, x_textured, along_baseline, matchable, shift_px, agree, contradict)
+    return test
 
 
 def floor_shift_2d(left: F32, warped: F32, config: FloorModelConfig) -> tuple[F32, F32]:
@@ -714,6 +925,21 @@ class WindowMoments:
 
 BACKGROUND_TEXTURE_WINDOW_PX = 10
 TEXTURE_SAMPLE_STEP = 2
+MOMENT_PLANES = ("weight", "background", "now", "mean", "image")
+"""The planes of :meth:`FloorModel._window_moments`, on the sampled grid: the weight, the
+background's mean and the image where weighted (zero elsewhere), and both unweighted."""
+_WEIGHT, _BACKGROUND, _NOW, _MEAN, _IMAGE = range(len(MOMENT_PLANES))
+MOMENT_TERMS = np.array(
+    [
+        (_WEIGHT, NO_PLANE),
+        (_BACKGROUND, NO_PLANE),
+        (_NOW, NO_PLANE),
+        (_BACKGROUND, _MEAN),
+        (_NOW, _IMAGE),
+        (_NOW, _MEAN),
+    ],
+    np.int64,
+)
 BACKGROUND_TEXTURE_GRAY = 1.5
 """Local standard deviation (gray levels) of a background below which it has no texture to check."""
 COVERED_ZNCC = 0.3
@@ -1132,23 +1358,21 @@ class FloorModel:
         of ``weight_mask``, on every other pixel of each axis (a window's statistics hardly
         change from one pixel to the next); NaN where the window holds none."""
         step = TEXTURE_SAMPLE_STEP
-        k = (BACKGROUND_TEXTURE_WINDOW_PX // step, BACKGROUND_TEXTURE_WINDOW_PX // step)
-        weight = weight_mask[::step, ::step].astype(np.float32)
-        mean = self.mean[side, ::step, ::step]
-        image = normalised[::step, ::step]
-        background, now = mean * weight, image * weight
-        count = cv2.blur(weight, k)
-
-        def averaged(values: F32) -> F32:
-            with np.errstate(invalid="ignore", divide="ignore"):
-                return np.asarray(cv2.blur(values, k) / count, np.float32)
-
-        mean_bg, mean_now = averaged(background), averaged(now)
+        sampled = weight_mask[::step, ::step]
+        planes = np.empty((len(MOMENT_PLANES), *sampled.shape), np.float32)
+        planes[_WEIGHT] = sampled
+        planes[_MEAN] = self.mean[side, ::step, ::step]
+        planes[_IMAGE] = normalised[::step, ::step]
+        np.multiply(planes[_MEAN], planes[_WEIGHT], out=planes[_BACKGROUND])
+        np.multiply(planes[_IMAGE], planes[_WEIGHT], out=planes[_NOW])
+        share, *weighted = window_means(planes, MOMENT_TERMS, BACKGROUND_TEXTURE_WINDOW_PX // step)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_bg, mean_now, bg_bg, now_now, now_bg = (mean / share for mean in weighted)
         return WindowMoments(
-            var_background=averaged(background * mean) - mean_bg * mean_bg,
-            var_now=averaged(now * image) - mean_now * mean_now,
-            covariance=averaged(now * mean) - mean_now * mean_bg,
-            share=np.asarray(count, np.float32),
+            var_background=bg_bg - mean_bg * mean_bg,
+            var_now=now_now - mean_now * mean_now,
+            covariance=now_bg - mean_now * mean_bg,
+            share=share,
         )
 
     def _upsampled(self, sampled: Mask) -> Mask:
