@@ -335,18 +335,24 @@ class FloorGeometry:
             floor_px_per_m=rectifier.focal_px / height_m,
         )
 
-    def height_m(self, disparity_px: F32) -> F32:
+    def height_m(self, disparity_px: F32, at: Mask | None = None) -> F32:
+        """The height of the surface at ``disparity_px`` at every pixel, or with ``at`` at those
+        pixels only (``disparity_px`` holds their values, in order): the same figures, without the
+        passes over the rest of the image."""
+        ray_down = self.ray_down if at is None else self.ray_down[at]
         with np.errstate(divide="ignore", invalid="ignore"):
             depth = np.float32(self.focal_baseline_px_m) / disparity_px
-        height: F32 = (np.float32(self.camera_height_m) - depth * self.ray_down).astype(np.float32)
+        height: F32 = (np.float32(self.camera_height_m) - depth * ray_down).astype(np.float32)
         return height
 
-    def disparity_px(self, height_m: F32) -> F32:
-        """The disparity of a surface at ``height_m`` at every pixel (inverse of :meth:`height_m`)."""
+    def disparity_px(self, height_m: F32, at: Mask | None = None) -> F32:
+        """The disparity of a surface at ``height_m`` at every pixel (inverse of :meth:`height_m`),
+        or with ``at`` at those pixels only (``height_m`` holds their values, in order)."""
+        ray_down = self.ray_down if at is None else self.ray_down[at]
         with np.errstate(divide="ignore", invalid="ignore"):
             disparity: F32 = (
                 np.float32(self.focal_baseline_px_m)
-                * self.ray_down
+                * ray_down
                 / (np.float32(self.camera_height_m) - height_m)
             ).astype(np.float32)
         return disparity
@@ -1195,7 +1201,7 @@ class FloorModel:
         vouched = np.where(support.anchored, support.consistent, matches & low)
         measured[carried | (interpolated & ~vouched & ~observed)] = np.nan
         bridged = ~np.isfinite(measured) & ~observed & self._in_band(support.bridge_m)
-        measured[bridged] = self.geometry.disparity_px(support.bridge_m)[bridged]  # rule 7
+        measured[bridged] = self.geometry.disparity_px(support.bridge_m[bridged], bridged)  # 7
         # Rule 4: where the image departs from the floor's background, the matcher's filling at
         # the floor (a plain top takes the floor's disparity in from around) is no floor evidence,
         # nor a floor reading where the floor's texture is gone (a dark body's lower rim).
@@ -1287,10 +1293,10 @@ class FloorModel:
         gap = closed & ~band & np.isfinite(height)
         if gap.any():
             top: F32 = np.asarray(
-                cv2.dilate(np.where(band, height, -np.inf).astype(np.float32), self._gap_kernel),
+                cv2.dilate(np.where(band, height, np.float32(-np.inf)), self._gap_kernel),
                 np.float32,
             )
-            evidence[gap] = self.geometry.disparity_px(top)[gap]
+            evidence[gap] = self.geometry.disparity_px(top[gap], gap)
 
     def _paint(self, matches: Mask, test: FloorTest, empty: Mask) -> Mask:
         """Rule 11: pixels of ``empty`` (no evidence) never modelled whose texture runs along the
@@ -1319,9 +1325,10 @@ class FloorModel:
         region_near = cv2.dilate(
             labels.astype(np.float32), np.ones((REGION_EDGE_PX,) * 2, np.uint8)
         ).astype(np.int32)
-        height = self.geometry.height_m(measured)
-        edge = np.isfinite(height) & (region_near > 0)
-        region, edge_height = region_near[edge], height[edge]
+        near = region_near > 0
+        height = self.geometry.height_m(measured[near], near)
+        edge = np.isfinite(height)
+        region, edge_height = region_near[near][edge], height[edge]
         raised = self._in_band(edge_height)
         raised_count = np.bincount(region[raised], minlength=count)
         fill = raised_count >= REGION_MIN_RAISED
@@ -1337,8 +1344,7 @@ class FloorModel:
         region_height = np.full(count, np.nan, np.float32)
         region_height[fill] = sorted_height[upper[fill]]
         target = holes & fill[labels]
-        fill_height = region_height[labels]
-        measured[target] = self.geometry.disparity_px(fill_height)[target]
+        measured[target] = self.geometry.disparity_px(region_height[labels[target]], target)
 
     def _texture_kept(self, side: int, normalised: F32, alike: Mask) -> Mask:
         """Where the background has texture, whether the image still shows it: the slope of the
