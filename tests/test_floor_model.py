@@ -946,6 +946,6 @@ def test_a_floor_reading_beside_what_was_never_floor_is_not_believed_where_the_i
     model.mean[0] = floor
     modelled = np.ones((height, width), np.bool_)
     modelled[100:140, 100:140] = False  # an object standing since start-up
-    gone = model._texture_gone(floor, modelled)
+    _, gone = model._texture_checks([floor, floor], [modelled, modelled], modelled)
     assert gone[120, 96:100].all() and gone[96:100, 120].all()  # within 4 px of it
     assert not gone[120, 60:80].any() and not gone[20:60, 120].any()  # away from it

@@ -933,34 +933,40 @@ def _paint_gaps(floor: Mask, candidates: Mask, gap_px: F32, paint: Mask) -> None
             last = row
 
 
-@dataclass(frozen=True)
-class WindowMoments:
-    """Windowed second moments of a background and an image (:meth:`FloorModel._window_moments`)."""
-
-    var_background: F32
-    var_now: F32
-    covariance: F32
-    share: F32
-    """Share of the window's pixels that are weighted."""
-
-
 BACKGROUND_TEXTURE_WINDOW_PX = 10
 TEXTURE_SAMPLE_STEP = 2
-MOMENT_PLANES = ("weight", "background", "now", "mean", "image")
-"""The planes of :meth:`FloorModel._window_moments`, on the sampled grid: the weight, the
-background's mean and the image where weighted (zero elsewhere), and both unweighted."""
-_WEIGHT, _BACKGROUND, _NOW, _MEAN, _IMAGE = range(len(MOMENT_PLANES))
-MOMENT_TERMS = np.array(
+TEXTURE_WINDOW_SIDES = (0, 1, 0)
+"""The texture checks' weighted windows (:meth:`FloorModel._texture_checks`), by camera: the
+background's texture kept in either camera (over its pixels alike their background), and gone in
+the left one (over the modelled pixels)."""
+_MEAN_PLANES, _IMAGE_PLANES = (0, 1), (2, 3)
+"""The texture checks' planes on the sampled grid: each camera's background mean and image; then,
+per window, its weight and the background and image where weighted (zero elsewhere)."""
+
+
+def _window_planes(window: int) -> tuple[int, int, int]:
+    """The weight, weighted background and weighted image planes of a texture window."""
+    first = len(_MEAN_PLANES) + len(_IMAGE_PLANES) + 3 * window
+    return first, first + 1, first + 2
+
+
+TEXTURE_TERMS = np.array(
     [
-        (_WEIGHT, NO_PLANE),
-        (_BACKGROUND, NO_PLANE),
-        (_NOW, NO_PLANE),
-        (_BACKGROUND, _MEAN),
-        (_NOW, _IMAGE),
-        (_NOW, _MEAN),
+        term
+        for window, side in enumerate(TEXTURE_WINDOW_SIDES)
+        for weight, background, now in (_window_planes(window),)
+        for term in (
+            (weight, NO_PLANE),
+            (background, NO_PLANE),
+            (now, NO_PLANE),
+            (background, _MEAN_PLANES[side]),
+            (now, _IMAGE_PLANES[side]),
+            (now, _MEAN_PLANES[side]),
+        )
     ],
     np.int64,
 )
+"""Six window means per texture window (:func:`_window_moments` reads them in this order)."""
 BACKGROUND_TEXTURE_GRAY = 1.5
 """Local standard deviation (gray levels) of a background below which it has no texture to check."""
 COVERED_ZNCC = 0.3
@@ -970,6 +976,50 @@ MODELLED_WINDOW_SHARE = 0.95
 """A window less modelled than this holds something that was never floor: its texture check fails."""
 TEXTURE_KEPT = 0.5
 """Share of the background's texture (regression slope) a pixel must still show to match it."""
+
+
+@compiled
+def _window_moments(
+    means: F32, window: int, row: int, col: int
+) -> tuple[np.float32, np.float32, np.float32, np.float32]:
+    """A texture window's weighted share, background and image variances and their covariance at
+    one pixel of the sampled grid, in float32 as numpy computes them; NaN where the window holds
+    no weighted pixel."""
+    first = 6 * window
+    share = means[first, row, col]
+    if share == 0:  # every weighted sum is 0 too: numpy's 0 / 0
+        nan = np.float32(np.nan)
+        return share, nan, nan, nan
+    mean_bg = means[first + 1, row, col] / share
+    mean_now = means[first + 2, row, col] / share
+    var_bg = means[first + 3, row, col] / share - mean_bg * mean_bg
+    var_now = means[first + 4, row, col] / share - mean_now * mean_now
+    covariance = means[first + 5, row, col] / share - mean_now * mean_bg
+    return share, var_bg, var_now, covariance
+
+
+@compiled
+def _texture_verdicts(means: F32, kept: Mask, gone: Mask) -> None:
+    """Per pixel of the sampled grid, from the windows' means (``TEXTURE_TERMS``): both cameras'
+    background texture kept, and the left one's gone (:meth:`FloorModel._texture_checks`)."""
+    textured_var = np.float32(BACKGROUND_TEXTURE_GRAY**2)
+    kept_slope, covered_zncc = np.float32(TEXTURE_KEPT), np.float32(COVERED_ZNCC)
+    modelled_share, tiny = np.float32(MODELLED_WINDOW_SHARE), np.float32(1e-6)
+    rows, cols = kept.shape
+    for row in range(rows):
+        for col in range(cols):
+            both_kept = True
+            for window in range(2):  # a plain background (or none: NaN) has nothing to check
+                _, var_bg, _, covariance = _window_moments(means, window, row, col)
+                if var_bg >= textured_var and not covariance / var_bg >= kept_slope:
+                    both_kept = False
+            kept[row, col] = both_kept
+            share, var_bg, var_now, covariance = _window_moments(means, 2, row, col)
+            is_gone = share < modelled_share
+            if var_bg >= textured_var:
+                zncc = covariance / np.sqrt(max(var_bg * var_now, tiny))
+                is_gone |= zncc < covered_zncc
+            gone[row, col] = is_gone
 
 
 def _blur(image: U8 | F32, sigma_px: float) -> F32:
@@ -1254,41 +1304,60 @@ class FloorModel:
         return gains[0], gains[1]
 
     def _match(self, left: F32, warped: F32, inside: Mask) -> tuple[Mask, float, Mask]:
-        """Whether both cameras match their backgrounds at each pixel after gain normalisation;
-        the share of modelled pixels that departs (for the re-learn decision); and where the
-        left background's texture is gone (:meth:`_texture_gone`)."""
+        """Whether both cameras match their backgrounds at each pixel after gain normalisation
+        (their grey and texture: :meth:`_texture_checks`); the share of modelled pixels that
+        departs (for the re-learn decision); and where the left background's texture is gone."""
         modelled = self._modelled & inside
         self._gain = self._gains(left, warped, modelled)
         normalised = [
             image * np.float32(1.0 / max(gain, 1e-3))
             for image, gain in zip((left, warped), self._gain, strict=True)
         ]
-        both = modelled.copy()
-        textured_alike = np.ones(self.shape, np.bool_)
-        for side in (0, 1):
-            alike = modelled & (np.abs(normalised[side] - self.mean[side]) <= self.tolerance[side])
-            both &= alike
-            textured_alike &= self._texture_kept(side, normalised[side], alike)
+        alike = [
+            modelled & (np.abs(normalised[side] - self.mean[side]) <= self.tolerance[side])
+            for side in (0, 1)
+        ]
+        both = alike[0] & alike[1]
+        kept, gone = self._texture_checks(normalised, alike, modelled)
         count = int(np.count_nonzero(modelled))
         departed = 0.0 if count < MIN_FIT_PIXELS else 1.0 - float(np.count_nonzero(both)) / count
-        return both & textured_alike, departed, self._texture_gone(normalised[0], modelled)
+        return both & kept, departed, gone
 
-    def _texture_gone(self, normalised: F32, modelled: Mask) -> Mask:
-        """Where the left background has texture and the image no longer shows it: the windowed
-        correlation of image and background over the modelled pixels is under COVERED_ZNCC. A
-        shadow scales the floor's texture and keeps it; something standing over the floor hides
-        it. Where under MODELLED_WINDOW_SHARE of the window is modelled, something that was never
-        floor stands within it (an object beside the pixel): a floor reading there is no more
-        believed (offline, default scene: false-free overall 0.9 → 0.7 %, the person's cells)."""
-        moments = self._window_moments(0, normalised, modelled)
-        with np.errstate(invalid="ignore"):
-            zncc = moments.covariance / np.sqrt(
-                np.maximum(moments.var_background * moments.var_now, np.float32(1e-6))
-            )
-            gone = (moments.var_background >= np.float32(BACKGROUND_TEXTURE_GRAY**2)) & (
-                zncc < COVERED_ZNCC
-            )
-        return self._upsampled(gone | (moments.share < MODELLED_WINDOW_SHARE))
+    def _texture_checks(
+        self, normalised: list[F32], alike: list[Mask], modelled: Mask
+    ) -> tuple[Mask, Mask]:
+        """Whether both cameras' images still show their background's texture, and where the
+        left one's is gone, from windowed moments on every other pixel of each axis (a window's
+        statistics hardly change from one pixel to the next).
+
+        *Kept*: the slope of the image regressed on the background over a window of the pixels
+        whose grey matches it (``alike``: an object's own pixels beside the floor do not count)
+        is about 1 on the floor and about 0 on a plain surface whose grey lies within the
+        background's tolerance (a plain orange forklift over grey concrete: the same luma).
+        Where the background has no texture (a plain floor), there is nothing to check.
+
+        *Gone*: the windowed correlation of image and background over the modelled pixels is
+        under COVERED_ZNCC where the background has texture. A shadow scales the floor's texture
+        and keeps it; something standing over the floor hides it. Where under
+        MODELLED_WINDOW_SHARE of the window is modelled, something that was never floor stands
+        within it (an object beside the pixel): a floor reading there is no more believed
+        (offline, default scene: false-free overall 0.9 → 0.7 %, the person's cells)."""
+        step = TEXTURE_SAMPLE_STEP
+        grid = modelled[::step, ::step]
+        planes = np.empty((TEXTURE_TERMS.max() + 1, *grid.shape), np.float32)
+        for side in (0, 1):
+            planes[_MEAN_PLANES[side]] = self.mean[side, ::step, ::step]
+            planes[_IMAGE_PLANES[side]] = normalised[side][::step, ::step]
+        weights = (alike[0], alike[1], modelled)
+        for window, side in enumerate(TEXTURE_WINDOW_SIDES):
+            weight, background, now = _window_planes(window)
+            planes[weight] = weights[window][::step, ::step]
+            np.multiply(planes[_MEAN_PLANES[side]], planes[weight], out=planes[background])
+            np.multiply(planes[_IMAGE_PLANES[side]], planes[weight], out=planes[now])
+        means = window_means(planes, TEXTURE_TERMS, BACKGROUND_TEXTURE_WINDOW_PX // step)
+        kept, gone = np.empty(grid.shape, np.bool_), np.empty(grid.shape, np.bool_)
+        _texture_verdicts(means, kept, gone)
+        return self._upsampled(kept), self._upsampled(gone)
 
     def _in_band(self, height_m: F32) -> Mask:
         """Heights in the obstacle band (NaN: not). Above it is no surface to fill or bridge with:
@@ -1361,41 +1430,6 @@ class FloorModel:
         target = holes.copy()
         target[holes] = fill[labels[holes]]  # labels elsewhere are 0, never filled
         measured[target] = self.geometry.disparity_px(region_height[labels[target]], target)
-
-    def _texture_kept(self, side: int, normalised: F32, alike: Mask) -> Mask:
-        """Where the background has texture, whether the image still shows it: the slope of the
-        image regressed on the background over a window of the pixels whose grey matches it
-        (``alike``: an object's own pixels beside the floor do not count) is about 1 on the
-        floor and about 0 on a plain surface whose grey lies within the background's tolerance
-        (a plain orange forklift over grey concrete: the same luma). Where the background has
-        no texture (a plain floor), there is nothing to check."""
-        moments = self._window_moments(side, normalised, alike)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            slope = moments.covariance / moments.var_background
-        plain = ~(moments.var_background >= np.float32(BACKGROUND_TEXTURE_GRAY**2))  # NaN: none
-        return self._upsampled(plain | (slope >= TEXTURE_KEPT))
-
-    def _window_moments(self, side: int, normalised: F32, weight_mask: Mask) -> WindowMoments:
-        """Means, variances and covariance of background and image over a window of the pixels
-        of ``weight_mask``, on every other pixel of each axis (a window's statistics hardly
-        change from one pixel to the next); NaN where the window holds none."""
-        step = TEXTURE_SAMPLE_STEP
-        sampled = weight_mask[::step, ::step]
-        planes = np.empty((len(MOMENT_PLANES), *sampled.shape), np.float32)
-        planes[_WEIGHT] = sampled
-        planes[_MEAN] = self.mean[side, ::step, ::step]
-        planes[_IMAGE] = normalised[::step, ::step]
-        np.multiply(planes[_MEAN], planes[_WEIGHT], out=planes[_BACKGROUND])
-        np.multiply(planes[_IMAGE], planes[_WEIGHT], out=planes[_NOW])
-        share, *weighted = window_means(planes, MOMENT_TERMS, BACKGROUND_TEXTURE_WINDOW_PX // step)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean_bg, mean_now, bg_bg, now_now, now_bg = (mean / share for mean in weighted)
-        return WindowMoments(
-            var_background=bg_bg - mean_bg * mean_bg,
-            var_now=now_now - mean_now * mean_now,
-            covariance=now_bg - mean_now * mean_bg,
-            share=share,
-        )
 
     def _upsampled(self, sampled: Mask) -> Mask:
         """A mask of the sampled grid back at every pixel."""
