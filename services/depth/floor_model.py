@@ -1045,6 +1045,35 @@ def _gather(
         out[pixel] = values[index[pixel]] if index[pixel] >= 0 else outside
 
 
+WindowT = TypeVar("WindowT", np.int32, np.float32)
+
+
+def _window_max_at(values: npt.NDArray[WindowT], half_px: int, at: Mask) -> npt.NDArray[WindowT]:
+    """The maximum of ``values`` over the (2·half_px + 1)² square about each pixel of ``at``,
+    in order, pixels beyond the image not counted: ``cv2.dilate``'s figures at a few pixels,
+    without dilating the whole image."""
+    maxima = np.empty(np.count_nonzero(at), values.dtype)
+    _window_max(values, half_px, at, maxima)
+    return maxima
+
+
+@compiled
+def _window_max(values: npt.NDArray[Any], half_px: int, at: Mask, maxima: npt.NDArray[Any]) -> None:
+    """:func:`_window_max_at`'s loop."""
+    rows, cols = values.shape
+    found = 0
+    for row in range(rows):
+        for col in range(cols):
+            if not at[row, col]:
+                continue
+            top = values[row, col]
+            for near_row in range(max(row - half_px, 0), min(row + half_px + 1, rows)):
+                for near_col in range(max(col - half_px, 0), min(col + half_px + 1, cols)):
+                    top = max(top, values[near_row, near_col])
+            maxima[found] = top
+            found += 1
+
+
 def _blur(image: U8 | F32, sigma_px: float) -> F32:
     blurred: F32 = np.asarray(
         cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma_px), dtype=np.float32
@@ -1140,6 +1169,8 @@ class FloorModel:
         _texture_verdicts(np.zeros((len(TEXTURE_TERMS), 8, 8), np.float32), none, none.copy())
         _probed(tiny, np.zeros(tiny.shape, np.int64), np.float32(0.0))
         _probed(none, np.zeros(tiny.shape, np.int64), np.False_)
+        _window_max_at(tiny, 1, none)
+        _window_max_at(np.zeros((8, 8), np.int32), 1, none)
 
     # -- geometry -------------------------------------------------------------------------------
 
@@ -1416,11 +1447,9 @@ class FloorModel:
         closed = cv2.morphologyEx(band.view(np.uint8), cv2.MORPH_CLOSE, self._gap_kernel) > 0
         gap = closed & ~band & np.isfinite(height)
         if gap.any():
-            top: F32 = np.asarray(
-                cv2.dilate(np.where(band, height, np.float32(-np.inf)), self._gap_kernel),
-                np.float32,
-            )
-            evidence[gap] = self.geometry.disparity_px(top[gap], gap)
+            band_height = np.where(band, height, np.float32(-np.inf))
+            top = _window_max_at(band_height, len(self._gap_kernel) // 2, gap)
+            evidence[gap] = self.geometry.disparity_px(top, gap)
 
     def _paint(self, matches: Mask, test: FloorTest, empty: Mask) -> Mask:
         """Rule 11: pixels of ``empty`` (no evidence) never modelled whose texture runs along the
@@ -1446,13 +1475,14 @@ class FloorModel:
         count, labels = cv2.connectedComponents(holes.view(np.uint8), connectivity=8)
         if count <= 1:
             return
-        region_near = cv2.dilate(
-            labels.astype(np.float32), np.ones((REGION_EDGE_PX,) * 2, np.uint8)
-        ).astype(np.int32)
-        near = region_near > 0
+        near = cv2.dilate(holes.view(np.uint8), np.ones((REGION_EDGE_PX,) * 2, np.uint8)) > 0
         height = self.geometry.height_m(measured[near], near)
-        edge = np.isfinite(height)
-        region, edge_height = region_near[near][edge], height[edge]
+        measured_near = np.isfinite(height)
+        edge = near.copy()
+        edge[near] = measured_near
+        # The region beside each edge pixel (the highest label where two meet).
+        region = _window_max_at(np.asarray(labels, np.int32), REGION_EDGE_PX // 2, edge)
+        edge_height = height[measured_near]
         raised = self._in_band(edge_height)
         raised_count = np.bincount(region[raised], minlength=count)
         fill = raised_count >= REGION_MIN_RAISED
