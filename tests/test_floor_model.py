@@ -105,6 +105,22 @@ def test_window_means_are_cv2_blurs_of_the_terms_to_the_bit(
     assert np.array_equal(means[1], cv2.blur(planes[0] * planes[1], window))
 
 
+@pytest.mark.parametrize("half_px", [1, 2, 4])
+def test_window_maxima_at_a_few_pixels_are_cv2_dilates_there(half_px: int) -> None:
+    """Borders included: the pixels beyond the image do not count, as in cv2.dilate."""
+    rng = np.random.default_rng(1)
+    values = rng.normal(0.0, 1.0, (40, 50)).astype(np.float32)
+    values[rng.random(values.shape) < 0.3] = -np.inf
+    at = rng.random(values.shape) < 0.2
+    at[0, 0] = at[-1, -1] = True
+    kernel = np.ones((2 * half_px + 1,) * 2, np.uint8)
+    maxima = floor_model._window_max_at(values, half_px, at)
+    assert np.array_equal(maxima, cv2.dilate(values, kernel)[at])
+    labels = rng.integers(0, 1000, values.shape).astype(np.int32)
+    dilated = cv2.dilate(labels.astype(np.float32), kernel).astype(np.int32)
+    assert np.array_equal(floor_model._window_max_at(labels, half_px, at), dilated[at])
+
+
 def test_floor_test_flags_a_raised_textured_patch_and_not_the_floor() -> None:
     """A rendered speckle floor (realistic cameras, published calibration), with a patch of its own
     texture pasted 2 px of disparity above the floor (≈ 0.5 m) into both rectified images."""
