@@ -950,6 +950,7 @@ def _window_planes(window: int) -> tuple[int, int, int]:
     return first, first + 1, first + 2
 
 
+TEXTURE_PLANE_COUNT = _window_planes(len(TEXTURE_WINDOW_SIDES))[0]
 TEXTURE_TERMS = np.array(
     [
         term
@@ -1415,7 +1416,7 @@ class FloorModel:
         (offline, default scene: false-free overall 0.9 → 0.7 %, the person's cells)."""
         step = TEXTURE_SAMPLE_STEP
         grid = modelled[::step, ::step]
-        planes = np.empty((TEXTURE_TERMS.max() + 1, *grid.shape), np.float32)
+        planes = np.empty((TEXTURE_PLANE_COUNT, *grid.shape), np.float32)
         for side in (0, 1):
             planes[_MEAN_PLANES[side]] = self.mean[side, ::step, ::step]
             planes[_IMAGE_PLANES[side]] = normalised[side][::step, ::step]
