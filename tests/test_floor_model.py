@@ -90,6 +90,37 @@ def _eroded(mask: np.ndarray, px: int = 4) -> np.ndarray:
     return cv2.erode(mask.astype(np.uint8), np.ones((2 * px + 1, 2 * px + 1), np.uint8)) > 0
 
 
+@pytest.mark.parametrize("window_px", [3, 5, 7])
+@pytest.mark.parametrize("shape", [(240, 320), (3, 4)])
+def test_window_means_are_cv2_blurs_of_the_terms_to_the_bit(
+    window_px: int, shape: tuple[int, int]
+) -> None:
+    """One plane and the product of two, the borders included (a 3 × 4 image reflects past its
+    far side as well)."""
+    planes = np.random.default_rng(0).normal(100.0, 40.0, (2, *shape)).astype(np.float32)
+    terms = np.array([(0, floor_model.NO_PLANE), (0, 1)], np.int64)
+    means = floor_model.window_means(planes, terms, window_px)
+    window = (window_px, window_px)
+    assert np.array_equal(means[0], cv2.blur(planes[0], window))
+    assert np.array_equal(means[1], cv2.blur(planes[0] * planes[1], window))
+
+
+@pytest.mark.parametrize("half_px", [1, 2, 4])
+def test_window_maxima_at_a_few_pixels_are_cv2_dilates_there(half_px: int) -> None:
+    """Borders included: the pixels beyond the image do not count, as in cv2.dilate."""
+    rng = np.random.default_rng(1)
+    values = rng.normal(0.0, 1.0, (40, 50)).astype(np.float32)
+    values[rng.random(values.shape) < 0.3] = -np.inf
+    at = rng.random(values.shape) < 0.2
+    at[0, 0] = at[-1, -1] = True
+    kernel = np.ones((2 * half_px + 1,) * 2, np.uint8)
+    maxima = floor_model._window_max_at(values, half_px, at)
+    assert np.array_equal(maxima, cv2.dilate(values, kernel)[at])
+    labels = rng.integers(0, 1000, values.shape).astype(np.int32)
+    dilated = cv2.dilate(labels.astype(np.float32), kernel).astype(np.int32)
+    assert np.array_equal(floor_model._window_max_at(labels, half_px, at), dilated[at])
+
+
 def test_floor_test_flags_a_raised_textured_patch_and_not_the_floor() -> None:
     """A rendered speckle floor (realistic cameras, published calibration), with a patch of its own
     texture pasted 2 px of disparity above the floor (≈ 0.5 m) into both rectified images."""
@@ -931,6 +962,6 @@ def test_a_floor_reading_beside_what_was_never_floor_is_not_believed_where_the_i
     model.mean[0] = floor
     modelled = np.ones((height, width), np.bool_)
     modelled[100:140, 100:140] = False  # an object standing since start-up
-    gone = model._texture_gone(floor, modelled)
+    _, gone = model._texture_checks([floor, floor], [modelled, modelled], modelled)
     assert gone[120, 96:100].all() and gone[96:100, 120].all()  # within 4 px of it
     assert not gone[120, 60:80].any() and not gone[20:60, 120].any()  # away from it

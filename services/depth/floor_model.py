@@ -110,7 +110,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 import cv2
 import numpy as np
@@ -335,18 +335,24 @@ class FloorGeometry:
             floor_px_per_m=rectifier.focal_px / height_m,
         )
 
-    def height_m(self, disparity_px: F32) -> F32:
+    def height_m(self, disparity_px: F32, at: Mask | None = None) -> F32:
+        """The height of the surface at ``disparity_px`` at every pixel, or with ``at`` at those
+        pixels only (``disparity_px`` holds their values, in order): the same figures, without the
+        passes over the rest of the image."""
+        ray_down = self.ray_down if at is None else self.ray_down[at]
         with np.errstate(divide="ignore", invalid="ignore"):
             depth = np.float32(self.focal_baseline_px_m) / disparity_px
-        height: F32 = (np.float32(self.camera_height_m) - depth * self.ray_down).astype(np.float32)
+        height: F32 = (np.float32(self.camera_height_m) - depth * ray_down).astype(np.float32)
         return height
 
-    def disparity_px(self, height_m: F32) -> F32:
-        """The disparity of a surface at ``height_m`` at every pixel (inverse of :meth:`height_m`)."""
+    def disparity_px(self, height_m: F32, at: Mask | None = None) -> F32:
+        """The disparity of a surface at ``height_m`` at every pixel (inverse of :meth:`height_m`),
+        or with ``at`` at those pixels only (``height_m`` holds their values, in order)."""
+        ray_down = self.ray_down if at is None else self.ray_down[at]
         with np.errstate(divide="ignore", invalid="ignore"):
             disparity: F32 = (
                 np.float32(self.focal_baseline_px_m)
-                * self.ray_down
+                * ray_down
                 / (np.float32(self.camera_height_m) - height_m)
             ).astype(np.float32)
         return disparity
@@ -374,6 +380,224 @@ class FloorTest:
     contradict: Mask
 
 
+class FloorTestThresholds(NamedTuple):
+    """The floor test's thresholds in float32, as numpy compares a float32 image with a number."""
+
+    texture_var: np.float32
+    agree_zncc: np.float32
+    contradict_zncc: np.float32
+    measure_zncc: np.float32
+    measure_energy: np.float32
+    max_shift_px: np.float32
+    floor_shift_px: np.float32
+    raised_shift_px: np.float32
+
+    @staticmethod
+    def of(config: FloorModelConfig) -> FloorTestThresholds:
+        return FloorTestThresholds(
+            *(
+                np.float32(value)
+                for value in (
+                    config.texture_gray**2,
+                    config.agree_zncc,
+                    config.contradict_zncc,
+                    config.measure_zncc,
+                    config.measure_energy,
+                    config.max_shift_px,
+                    config.floor_shift_px,
+                    config.raised_shift_px,
+                )
+            )
+        )
+
+
+@compiled
+def _floor_decisions(
+    means: F32,
+    inside: Mask,
+    limits: FloorTestThresholds,
+    textured: Mask,
+    x_textured: Mask,
+    along_baseline: Mask,
+    matchable: Mask,
+    shift_px: F32,
+    agree: Mask,
+    contradict: Mask,
+) -> None:
+    """The floor test's verdicts at each pixel from its window means (``FLOOR_TEST_TERMS``'
+    order), in float32 as the numpy expressions they replace: a few dozen whole-image passes
+    cost more than the window sums."""
+    x_energy_min, x_energy_share = np.float32(X_ENERGY_MIN), np.float32(X_ENERGY_SHARE)
+    tiny, nan = np.float32(1e-6), np.float32(np.nan)
+    rows, cols = inside.shape
+    for row in range(rows):
+        for col in range(cols):  # & and | rather than and, or: fewer branches
+            mean_l, mean_r, mean_g = means[0, row, col], means[1, row, col], means[2, row, col]
+            mean_across, mean_lx, mean_ly = (
+                means[3, row, col],
+                means[4, row, col],
+                means[5, row, col],
+            )
+            var_l = means[6, row, col] - mean_l * mean_l
+            var_r = means[7, row, col] - mean_r * mean_r
+            covariance = means[8, row, col] - mean_l * mean_r
+            energy = means[9, row, col] - mean_g * mean_g
+            along = means[10, row, col] - (mean_r - mean_l) * mean_g
+            energy_across = means[11, row, col] - mean_across * mean_across
+            left_energy_x = means[12, row, col] - mean_lx * mean_lx
+            left_energy_y = means[13, row, col] - mean_ly * mean_ly
+            left_textured = var_l > limits.texture_var
+            is_textured = left_textured & (var_r > limits.texture_var) & inside[row, col]
+            zncc = covariance / np.sqrt(max(var_l * var_r, tiny))
+            shift = along / max(energy, tiny)
+            size = abs(shift)
+            # Texture along x, against an absolute floor and against the texture across it: grain
+            # or board gaps along the baseline have gradients, but none along x to match on.
+            is_along = is_textured & (energy < energy_across * x_energy_share)
+            is_x_textured = is_textured & (energy > x_energy_min) & (is_along ^ True)
+            strong = is_x_textured & (energy >= limits.measure_energy)
+            measured = strong & (zncc >= limits.measure_zncc) & (size < limits.max_shift_px)
+            # A shift too large for the linearisation to measure is still no floor.
+            strong &= size >= limits.max_shift_px
+            textured[row, col] = is_textured
+            x_textured[row, col] = is_x_textured
+            along_baseline[row, col] = is_along
+            matchable[row, col] = (
+                left_textured
+                & (left_energy_x > x_energy_min)
+                & (left_energy_x >= left_energy_y * x_energy_share)
+            )
+            shift_px[row, col] = shift if measured else nan
+            agree[row, col] = (
+                measured & (zncc >= limits.agree_zncc) & (size <= limits.floor_shift_px)
+            )
+            contradict[row, col] = is_textured & (
+                (zncc < limits.contradict_zncc)
+                | strong
+                | (measured & (size >= limits.raised_shift_px))
+            )
+
+
+NO_PLANE = -1
+"""A term of :func:`window_means` that is one plane, not a product of two."""
+
+
+def window_means(planes: F32, terms: npt.NDArray[np.int64], window_px: int) -> F32:
+    """The mean over a ``window_px`` square about every pixel of each term, a row of ``terms``:
+    ``planes[i]``, or the float32 product ``planes[i] * planes[j]``, (i, j) or (i, NO_PLANE). Equal
+    to ``cv2.blur`` of each term to the bit (sums in float64 in its order, borders reflected
+    without the edge pixel), in one pass without the products' images: a dozen blurs and their
+    products as numpy passes were the floor test's main cost."""
+    if window_px % 2 != 1:
+        raise ValueError(f"window_means needs an odd window, not {window_px}")
+    means = np.empty((len(terms), *planes.shape[1:]), np.float32)
+    _window_means(np.ascontiguousarray(planes, np.float32), terms, window_px // 2, means)
+    return means
+
+
+@compiled
+def _reflected(index: int, length: int) -> int:
+    """``index`` reflected into [0, length) without repeating the edge (cv2.BORDER_REFLECT_101)."""
+    if length == 1:
+        return 0
+    while index < 0 or index >= length:
+        index = -index if index < 0 else 2 * length - 2 - index
+    return index
+
+
+@compiled
+def _window_means(planes: F32, terms: npt.NDArray[np.int64], half_px: int, means: F32) -> None:
+    """cv2.blur's box filter for float32, term by term: each row's sums along x (left to right),
+    then a running sum of the last rows' sums down each column, scaled once."""
+    _, rows, cols = planes.shape
+    size = 2 * half_px + 1
+    scale = 1.0 / (size * size)
+    padded = np.empty(cols + 2 * half_px, np.float64)
+    row_sums = np.empty((size, cols), np.float64)  # the last ``size`` rows' sums, a ring
+    column = np.empty(cols, np.float64)
+    for term in range(terms.shape[0]):
+        first, product = planes[terms[term, 0]], terms[term, 1] != NO_PLANE
+        second = planes[max(terms[term, 1], 0)]
+        column[:] = 0.0
+        for step in range(rows + 2 * half_px):  # the window's rows from its top, reflected
+            row = _reflected(step - half_px, rows)
+            # Loops over rows' views (not 2-D indexing): so they vectorise.
+            values, first_row, second_row = (
+                padded[half_px : half_px + cols],
+                first[row],
+                second[row],
+            )
+            if product:
+                for col in range(cols):
+                    values[col] = first_row[col] * second_row[col]
+            else:
+                for col in range(cols):
+                    values[col] = first_row[col]
+            for k in range(half_px):
+                padded[half_px - 1 - k] = padded[half_px + _reflected(-1 - k, cols)]
+                padded[half_px + cols + k] = padded[half_px + _reflected(cols + k, cols)]
+            sums = row_sums[step % size]
+            if size == 5:  # the windows this module uses: unrolled, the loop vectorises
+                for col in range(cols):
+                    sums[col] = (
+                        padded[col]
+                        + padded[col + 1]
+                        + padded[col + 2]
+                        + padded[col + 3]
+                        + padded[col + 4]
+                    )
+            else:
+                sums[:] = padded[:cols]
+                for k in range(1, size):
+                    shifted = padded[k : k + cols]
+                    for col in range(cols):
+                        sums[col] += shifted[col]
+            if step < size - 1:
+                for col in range(cols):
+                    column[col] += sums[col]
+                continue
+            out, oldest = means[term, step - size + 1], row_sums[(step + 1) % size]
+            for col in range(cols):
+                total = column[col] + sums[col]
+                out[col] = np.float32(total * scale)
+                column[col] = total - oldest[col]
+
+
+def _gradient(image: F32, dx: int, dy: int, out: F32 | None = None) -> F32:
+    """Sobel derivative along x (dx) or y (dy), in gray levels per pixel of a smoothed image
+    (into ``out`` if given)."""
+    gradient: F32 = np.asarray(
+        cv2.Sobel(image, cv2.CV_32F, dx, dy, dst=out, ksize=3, scale=1.0 / 16.0), np.float32
+    )
+    return gradient
+
+
+FLOOR_TEST_PLANES = ("left", "warped", "gradient", "across", "left_x", "left_y", "error")
+"""The floor test's planes: both images (the right one floor-warped, at the left one's gain), the
+x- and y-gradients of their sum and of the left image, and the right minus the left."""
+_LEFT, _WARPED, _GRADIENT, _ACROSS, _LEFT_X, _LEFT_Y, _ERROR = range(len(FLOOR_TEST_PLANES))
+# The terms whose window means it takes (:func:`_floor_decisions` reads them in this order).
+FLOOR_TEST_TERMS = np.array(
+    [
+        (_LEFT, NO_PLANE),
+        (_WARPED, NO_PLANE),
+        (_GRADIENT, NO_PLANE),
+        (_ACROSS, NO_PLANE),
+        (_LEFT_X, NO_PLANE),
+        (_LEFT_Y, NO_PLANE),
+        (_LEFT, _LEFT),
+        (_WARPED, _WARPED),
+        (_LEFT, _WARPED),
+        (_GRADIENT, _GRADIENT),
+        (_ERROR, _GRADIENT),
+        (_ACROSS, _ACROSS),
+        (_LEFT_X, _LEFT_X),
+        (_LEFT_Y, _LEFT_Y),
+    ],
+    np.int64,
+)
+
+
 def floor_test(left: F32, warped: F32, inside: Mask, config: FloorModelConfig) -> FloorTest:
     """Zero-mean normalised cross-correlation of ``left`` and ``warped`` (the right image remapped
     at the floor's disparity) over a small window, and the residual shift between them.
@@ -382,50 +606,43 @@ def floor_test(left: F32, warped: F32, inside: Mask, config: FloorModelConfig) -
     left(u) = warped(u − δ) ≈ warped(u) − δ·∂warped/∂u, so δ = ⟨(warped − left)·g⟩ / ⟨g²⟩ over the
     window with g the x-gradient, means removed, after one global gain between the cameras.
     """
-    k = (config.window_px, config.window_px)
     step = GAIN_SAMPLE_STEP
     left_sample, right_sample = left[::step, ::step], warped[::step, ::step]
     seen = right_sample >= 0
     ratio = float(left_sample[seen].mean()) / max(float(right_sample[seen].mean()), 1.0)
-    warped = warped * np.float32(ratio)
-    gradient = cv2.Sobel(left + warped, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 16.0)
-    mean_l, mean_r, mean_g = cv2.blur(left, k), cv2.blur(warped, k), cv2.blur(gradient, k)
-    var_l = cv2.blur(left * left, k) - mean_l * mean_l
-    var_r = cv2.blur(warped * warped, k) - mean_r * mean_r
-    texture = np.float32(config.texture_gray**2)
-    textured: Mask = (var_l > texture) & (var_r > texture) & inside
-    covariance = cv2.blur(left * warped, k) - mean_l * mean_r
-    zncc = covariance / np.sqrt(np.maximum(var_l * var_r, np.float32(1e-6)))
-    energy = cv2.blur(gradient * gradient, k) - mean_g * mean_g
-    along = cv2.blur((warped - left) * gradient, k) - (mean_r - mean_l) * mean_g
-    shift = along / np.maximum(energy, np.float32(1e-6))
-    size = np.abs(shift)
-    # Texture along x, against an absolute floor and against the texture across it: grain or
-    # board gaps along the baseline have gradients, but none along x to match on.
-    across = cv2.Sobel(left + warped, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 16.0)
-    mean_across = cv2.blur(across, k)
-    energy_across = cv2.blur(across * across, k) - mean_across * mean_across
-    along_baseline: Mask = textured & (energy < energy_across * X_ENERGY_SHARE)
-    x_textured: Mask = textured & (energy > X_ENERGY_MIN) & ~along_baseline
-    left_x = cv2.Sobel(left, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 16.0)
-    left_y = cv2.Sobel(left, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 16.0)
-    left_energy_x = cv2.blur(left_x * left_x, k) - cv2.blur(left_x, k) ** 2
-    left_energy_y = cv2.blur(left_y * left_y, k) - cv2.blur(left_y, k) ** 2
-    matchable: Mask = (
-        (var_l > texture)
-        & (left_energy_x > X_ENERGY_MIN)
-        & (left_energy_x >= left_energy_y * X_ENERGY_SHARE)
+    planes = np.empty((len(FLOOR_TEST_PLANES), *left.shape), np.float32)
+    np.copyto(planes[_LEFT], left)
+    warped = np.multiply(warped, np.float32(ratio), out=planes[_WARPED])
+    both = left + warped
+    _gradient(both, 1, 0, out=planes[_GRADIENT])
+    _gradient(both, 0, 1, out=planes[_ACROSS])
+    _gradient(left, 1, 0, out=planes[_LEFT_X])
+    _gradient(left, 0, 1, out=planes[_LEFT_Y])
+    np.subtract(warped, left, out=planes[_ERROR])
+    means = window_means(planes, FLOOR_TEST_TERMS, config.window_px)
+    shape = left.shape
+    test = FloorTest(
+        textured=np.empty(shape, np.bool_),
+        x_textured=np.empty(shape, np.bool_),
+        along_baseline=np.empty(shape, np.bool_),
+        matchable=np.empty(shape, np.bool_),
+        shift_px=np.empty(shape, np.float32),
+        agree=np.empty(shape, np.bool_),
+        contradict=np.empty(shape, np.bool_),
     )
-    measured = x_textured & (zncc >= config.measure_zncc) & (energy >= config.measure_energy)
-    measured &= size < config.max_shift_px
-    shift_px: F32 = np.where(measured, shift, np.float32(np.nan))
-    agree: Mask = measured & (zncc >= config.agree_zncc) & (size <= config.floor_shift_px)
-    # A shift too large for the linearisation to measure is still no floor.
-    strong = x_textured & (energy >= config.measure_energy) & (size >= config.max_shift_px)
-    contradict: Mask = textured & (
-        (zncc < config.contradict_zncc) | strong | (measured & (size >= config.raised_shift_px))
+    _floor_decisions(
+        means,
+        inside,
+        FloorTestThresholds.of(config),
+        test.textured,
+        test.x_textured,
+        test.along_baseline,
+        test.matchable,
+        test.shift_px,
+        test.agree,
+        test.contradict,
     )
-    return FloorTest(textured, x_textured, along_baseline, matchable, shift_px, agree, contradict)
+    return test
 
 
 def floor_shift_2d(left: F32, warped: F32, config: FloorModelConfig) -> tuple[F32, F32]:
@@ -452,6 +669,16 @@ def floor_shift_2d(left: F32, warped: F32, config: FloorModelConfig) -> tuple[F3
     return shift_x, shift_y
 
 
+def _median(values: npt.NDArray[np.floating[Any]]) -> float:
+    """``np.median`` of finite values (the middle one, or the float32 mean of the middle two),
+    without its general machinery: on the few thousand values of a block or a gain sample that
+    was most of its cost."""
+    middle = values.size // 2
+    if values.size % 2:
+        return float(np.partition(values, middle)[middle])
+    return float(np.mean(np.partition(values, (middle - 1, middle))[middle - 1 : middle + 1]))
+
+
 def robust_affine_fit(basis: npt.NDArray[np.float32], values: F32) -> npt.NDArray[np.float64]:
     """a + b·u' + c·v' by least squares with Cauchy weights (scale ``RESIDUAL_SCALE_PX``), the
     slopes held toward zero (ridge): the floor's residual is a fraction of a pixel, pixels on low
@@ -462,8 +689,9 @@ def robust_affine_fit(basis: npt.NDArray[np.float32], values: F32) -> npt.NDArra
     coef: npt.NDArray[np.float64] = np.zeros(basis.shape[1], np.float64)
     for _ in range(3):
         ridge = np.diag([0.0] + [RESIDUAL_RIDGE * float(weights.sum())] * (basis.shape[1] - 1))
-        normal = (a * weights[:, None]).T @ a + ridge
-        coef = np.asarray(np.linalg.solve(normal, (a * weights[:, None]).T @ values), np.float64)
+        weighted = (a * weights[:, None]).T
+        normal = weighted @ a + ridge
+        coef = np.asarray(np.linalg.solve(normal, weighted @ values), np.float64)
         weights = 1.0 / (1.0 + ((values - a @ coef) / RESIDUAL_SCALE_PX) ** 2)
     clipped: npt.NDArray[np.float64] = np.clip(coef, -MAX_RESIDUAL_PX, MAX_RESIDUAL_PX)
     return clipped
@@ -517,12 +745,16 @@ def coarse_floor_offset(
             values = offset_px[block][chosen]
             if values.size < MIN_FIT_PIXELS // 4:
                 continue
-            histogram, _ = np.histogram(values, edges)
+            # np.histogram's counts (edges[k] <= value < edges[k + 1]; every value lies within them)
+            # without its sort.
+            histogram = np.bincount(
+                np.searchsorted(edges, values, side="right") - 1, minlength=edges.size - 1
+            )
             smooth = np.convolve(histogram, np.ones(3), mode="same")
             peak = int(np.argmax(smooth))
             centre = (edges[peak] + edges[peak + 1]) / 2
             around = np.abs(values - centre) <= 2 * OFFSET_BIN_PX
-            modes.append(float(np.median(values[around])))
+            modes.append(_median(values[around]))
             where.append(basis[:, block[0], block[1]][:, chosen][:, around].mean(axis=1))
     if len(modes) < 3:
         return None
@@ -701,19 +933,41 @@ def _paint_gaps(floor: Mask, candidates: Mask, gap_px: F32, paint: Mask) -> None
             last = row
 
 
-@dataclass(frozen=True)
-class WindowMoments:
-    """Windowed second moments of a background and an image (:meth:`FloorModel._window_moments`)."""
-
-    var_background: F32
-    var_now: F32
-    covariance: F32
-    share: F32
-    """Share of the window's pixels that are weighted."""
-
-
 BACKGROUND_TEXTURE_WINDOW_PX = 10
 TEXTURE_SAMPLE_STEP = 2
+TEXTURE_WINDOW_SIDES = (0, 1, 0)
+"""The texture checks' weighted windows (:meth:`FloorModel._texture_checks`), by camera: the
+background's texture kept in either camera (over its pixels alike their background), and gone in
+the left one (over the modelled pixels)."""
+_MEAN_PLANES, _IMAGE_PLANES = (0, 1), (2, 3)
+"""The texture checks' planes on the sampled grid: each camera's background mean and image; then,
+per window, its weight and the background and image where weighted (zero elsewhere)."""
+
+
+def _window_planes(window: int) -> tuple[int, int, int]:
+    """The weight, weighted background and weighted image planes of a texture window."""
+    first = len(_MEAN_PLANES) + len(_IMAGE_PLANES) + 3 * window
+    return first, first + 1, first + 2
+
+
+TEXTURE_PLANE_COUNT = _window_planes(len(TEXTURE_WINDOW_SIDES))[0]
+TEXTURE_TERMS = np.array(
+    [
+        term
+        for window, side in enumerate(TEXTURE_WINDOW_SIDES)
+        for weight, background, now in (_window_planes(window),)
+        for term in (
+            (weight, NO_PLANE),
+            (background, NO_PLANE),
+            (now, NO_PLANE),
+            (background, _MEAN_PLANES[side]),
+            (now, _IMAGE_PLANES[side]),
+            (now, _MEAN_PLANES[side]),
+        )
+    ],
+    np.int64,
+)
+"""Six window means per texture window (:func:`_window_moments` reads them in this order)."""
 BACKGROUND_TEXTURE_GRAY = 1.5
 """Local standard deviation (gray levels) of a background below which it has no texture to check."""
 COVERED_ZNCC = 0.3
@@ -723,6 +977,102 @@ MODELLED_WINDOW_SHARE = 0.95
 """A window less modelled than this holds something that was never floor: its texture check fails."""
 TEXTURE_KEPT = 0.5
 """Share of the background's texture (regression slope) a pixel must still show to match it."""
+
+
+@compiled
+def _window_moments(
+    means: F32, window: int, row: int, col: int
+) -> tuple[np.float32, np.float32, np.float32, np.float32]:
+    """A texture window's weighted share, background and image variances and their covariance at
+    one pixel of the sampled grid, in float32 as numpy computes them; NaN where the window holds
+    no weighted pixel."""
+    first = 6 * window
+    share = means[first, row, col]
+    if share == 0:  # every weighted sum is 0 too: numpy's 0 / 0
+        nan = np.float32(np.nan)
+        return share, nan, nan, nan
+    mean_bg = means[first + 1, row, col] / share
+    mean_now = means[first + 2, row, col] / share
+    var_bg = means[first + 3, row, col] / share - mean_bg * mean_bg
+    var_now = means[first + 4, row, col] / share - mean_now * mean_now
+    covariance = means[first + 5, row, col] / share - mean_now * mean_bg
+    return share, var_bg, var_now, covariance
+
+
+@compiled
+def _texture_verdicts(means: F32, kept: Mask, gone: Mask) -> None:
+    """Per pixel of the sampled grid, from the windows' means (``TEXTURE_TERMS``): both cameras'
+    background texture kept, and the left one's gone (:meth:`FloorModel._texture_checks`)."""
+    textured_var = np.float32(BACKGROUND_TEXTURE_GRAY**2)
+    kept_slope, covered_zncc = np.float32(TEXTURE_KEPT), np.float32(COVERED_ZNCC)
+    modelled_share, tiny = np.float32(MODELLED_WINDOW_SHARE), np.float32(1e-6)
+    rows, cols = kept.shape
+    for row in range(rows):
+        for col in range(cols):
+            both_kept = True
+            for window in range(2):  # a plain background (or none: NaN) has nothing to check
+                _, var_bg, _, covariance = _window_moments(means, window, row, col)
+                if var_bg >= textured_var and not covariance / var_bg >= kept_slope:
+                    both_kept = False
+            kept[row, col] = both_kept
+            share, var_bg, var_now, covariance = _window_moments(means, 2, row, col)
+            is_gone = share < modelled_share
+            if var_bg >= textured_var:
+                zncc = covariance / np.sqrt(max(var_bg * var_now, tiny))
+                is_gone |= zncc < covered_zncc
+            gone[row, col] = is_gone
+
+
+ProbedT = TypeVar("ProbedT", np.bool_, np.float32)
+
+
+def _probed(
+    image: npt.NDArray[ProbedT], probe: npt.NDArray[np.int64], outside: ProbedT
+) -> npt.NDArray[ProbedT]:
+    """``image`` at each pixel's probe (:meth:`FloorModel.__init__`), ``outside`` beyond the
+    image: cv2.remap's nearest neighbour without its per-call map decoding (a third of a
+    millisecond each)."""
+    picked = np.empty_like(image)
+    _gather(image.ravel(), probe.ravel(), outside, picked.ravel())
+    return picked
+
+
+@compiled
+def _gather(
+    values: npt.NDArray[Any], index: npt.NDArray[np.int64], outside: Any, out: npt.NDArray[Any]
+) -> None:
+    """``out[i] = values[index[i]]``, ``outside`` where the index is negative."""
+    for pixel in range(index.size):
+        out[pixel] = values[index[pixel]] if index[pixel] >= 0 else outside
+
+
+WindowT = TypeVar("WindowT", np.int32, np.float32)
+
+
+def _window_max_at(values: npt.NDArray[WindowT], half_px: int, at: Mask) -> npt.NDArray[WindowT]:
+    """The maximum of ``values`` over the (2·half_px + 1)² square about each pixel of ``at``,
+    in order, pixels beyond the image not counted: ``cv2.dilate``'s figures at a few pixels,
+    without dilating the whole image."""
+    maxima = np.empty(np.count_nonzero(at), values.dtype)
+    _window_max(values, half_px, at, maxima)
+    return maxima
+
+
+@compiled
+def _window_max(values: npt.NDArray[Any], half_px: int, at: Mask, maxima: npt.NDArray[Any]) -> None:
+    """:func:`_window_max_at`'s loop."""
+    rows, cols = values.shape
+    found = 0
+    for row in range(rows):
+        for col in range(cols):
+            if not at[row, col]:
+                continue
+            top = values[row, col]
+            for near_row in range(max(row - half_px, 0), min(row + half_px + 1, rows)):
+                for near_col in range(max(col - half_px, 0), min(col + half_px + 1, cols)):
+                    top = max(top, values[near_row, near_col])
+            maxima[found] = top
+            found += 1
 
 
 def _blur(image: U8 | F32, sigma_px: float) -> F32:
@@ -775,13 +1125,25 @@ class FloorModel:
         radius = np.maximum(np.hypot(u - nx, v - ny), 1e-3)
         out_x, out_y = (u - nx) / radius, (v - ny) / radius
 
-        def probe(step_px: float, across_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-            maps: tuple[np.ndarray, np.ndarray] = cv2.convertMaps(
+        def probe(step_px: float, across_px: float = 0.0) -> npt.NDArray[np.int64]:
+            """Per pixel, the index (row-major) of the pixel ``step_px`` outward of it and
+            ``across_px`` across the ray, as cv2.remap's nearest neighbour picks it (found by
+            remapping the indices themselves); -1 beyond the image."""
+            map_xy, map_fraction = cv2.convertMaps(
                 u + step_px * out_x - across_px * out_y,
                 v + step_px * out_y + across_px * out_x,
                 cv2.CV_16SC2,
             )
-            return maps
+            indices = np.arange(height * width, dtype=np.float64).reshape(height, width)
+            picked = cv2.remap(
+                indices,
+                map_xy,
+                map_fraction,
+                cv2.INTER_NEAREST,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=-1,
+            )
+            return np.asarray(picked, np.int64)
 
         self._outward_probe = probe(SEED_PROBE_PX)
         self._inward_probe = probe(-SEED_PROBE_PX)
@@ -798,11 +1160,18 @@ class FloorModel:
         depth there (f/z; foreshortening off the nadir makes it up to a fifth wider in metres)."""
         gap_px = min(GAP_CLOSED_M * geometry.floor_px_per_m, GAP_KERNEL_MAX_PX)
         self._gap_kernel = np.ones((2 * math.ceil(gap_px / 2) + 1,) * 2, np.uint8)
-        # Compile the row scan (or load it from numba's cache) now, not in the first frame.
+        # Compile the kernels (or load them from numba's cache) now, not in the first frame.
         row_support(np.zeros((1, 1), np.float32), np.zeros((1, 1), np.bool_), 1, ROW_TOLERANCE_M)
         no_runs = np.zeros((1, 1), np.uint8)
         _top_runs(no_runs, no_runs, 1, 1, no_runs)
         _march_outward(no_runs.view(np.bool_), no_runs.view(np.bool_), (0.0, 0.0), 1, 1, no_runs)
+        tiny, none = np.zeros((8, 8), np.float32), np.zeros((8, 8), np.bool_)
+        floor_test(tiny, tiny, none, self.config)
+        _texture_verdicts(np.zeros((len(TEXTURE_TERMS), 8, 8), np.float32), none, none.copy())
+        _probed(tiny, np.zeros(tiny.shape, np.int64), np.float32(0.0))
+        _probed(none, np.zeros(tiny.shape, np.int64), np.False_)
+        _window_max_at(tiny, 1, none)
+        _window_max_at(np.zeros((8, 8), np.int32), 1, none)
 
     # -- geometry -------------------------------------------------------------------------------
 
@@ -969,7 +1338,7 @@ class FloorModel:
         vouched = np.where(support.anchored, support.consistent, matches & low)
         measured[carried | (interpolated & ~vouched & ~observed)] = np.nan
         bridged = ~np.isfinite(measured) & ~observed & self._in_band(support.bridge_m)
-        measured[bridged] = self.geometry.disparity_px(support.bridge_m)[bridged]  # rule 7
+        measured[bridged] = self.geometry.disparity_px(support.bridge_m[bridged], bridged)  # 7
         # Rule 4: where the image departs from the floor's background, the matcher's filling at
         # the floor (a plain top takes the floor's disparity in from around) is no floor evidence,
         # nor a floor reading where the floor's texture is gone (a dark body's lower rim).
@@ -1003,45 +1372,64 @@ class FloorModel:
         for side, image in ((0, left), (1, warped)):
             background = self.mean[side, ::step, ::step][sample]
             ratio = image[::step, ::step][sample] / np.maximum(background, 1.0)
-            gains.append(float(np.median(ratio)))
+            gains.append(_median(ratio))
         return gains[0], gains[1]
 
     def _match(self, left: F32, warped: F32, inside: Mask) -> tuple[Mask, float, Mask]:
-        """Whether both cameras match their backgrounds at each pixel after gain normalisation;
-        the share of modelled pixels that departs (for the re-learn decision); and where the
-        left background's texture is gone (:meth:`_texture_gone`)."""
+        """Whether both cameras match their backgrounds at each pixel after gain normalisation
+        (their grey and texture: :meth:`_texture_checks`); the share of modelled pixels that
+        departs (for the re-learn decision); and where the left background's texture is gone."""
         modelled = self._modelled & inside
         self._gain = self._gains(left, warped, modelled)
         normalised = [
             image * np.float32(1.0 / max(gain, 1e-3))
             for image, gain in zip((left, warped), self._gain, strict=True)
         ]
-        both = modelled.copy()
-        textured_alike = np.ones(self.shape, np.bool_)
-        for side in (0, 1):
-            alike = modelled & (np.abs(normalised[side] - self.mean[side]) <= self.tolerance[side])
-            both &= alike
-            textured_alike &= self._texture_kept(side, normalised[side], alike)
+        alike = [
+            modelled & (np.abs(normalised[side] - self.mean[side]) <= self.tolerance[side])
+            for side in (0, 1)
+        ]
+        both = alike[0] & alike[1]
+        kept, gone = self._texture_checks(normalised, alike, modelled)
         count = int(np.count_nonzero(modelled))
         departed = 0.0 if count < MIN_FIT_PIXELS else 1.0 - float(np.count_nonzero(both)) / count
-        return both & textured_alike, departed, self._texture_gone(normalised[0], modelled)
+        return both & kept, departed, gone
 
-    def _texture_gone(self, normalised: F32, modelled: Mask) -> Mask:
-        """Where the left background has texture and the image no longer shows it: the windowed
-        correlation of image and background over the modelled pixels is under COVERED_ZNCC. A
-        shadow scales the floor's texture and keeps it; something standing over the floor hides
-        it. Where under MODELLED_WINDOW_SHARE of the window is modelled, something that was never
-        floor stands within it (an object beside the pixel): a floor reading there is no more
-        believed (offline, default scene: false-free overall 0.9 → 0.7 %, the person's cells)."""
-        moments = self._window_moments(0, normalised, modelled)
-        with np.errstate(invalid="ignore"):
-            zncc = moments.covariance / np.sqrt(
-                np.maximum(moments.var_background * moments.var_now, np.float32(1e-6))
-            )
-            gone = (moments.var_background >= np.float32(BACKGROUND_TEXTURE_GRAY**2)) & (
-                zncc < COVERED_ZNCC
-            )
-        return self._upsampled(gone | (moments.share < MODELLED_WINDOW_SHARE))
+    def _texture_checks(
+        self, normalised: list[F32], alike: list[Mask], modelled: Mask
+    ) -> tuple[Mask, Mask]:
+        """Whether both cameras' images still show their background's texture, and where the
+        left one's is gone, from windowed moments on every other pixel of each axis (a window's
+        statistics hardly change from one pixel to the next).
+
+        *Kept*: the slope of the image regressed on the background over a window of the pixels
+        whose grey matches it (``alike``: an object's own pixels beside the floor do not count)
+        is about 1 on the floor and about 0 on a plain surface whose grey lies within the
+        background's tolerance (a plain orange forklift over grey concrete: the same luma).
+        Where the background has no texture (a plain floor), there is nothing to check.
+
+        *Gone*: the windowed correlation of image and background over the modelled pixels is
+        under COVERED_ZNCC where the background has texture. A shadow scales the floor's texture
+        and keeps it; something standing over the floor hides it. Where under
+        MODELLED_WINDOW_SHARE of the window is modelled, something that was never floor stands
+        within it (an object beside the pixel): a floor reading there is no more believed
+        (offline, default scene: false-free overall 0.9 → 0.7 %, the person's cells)."""
+        step = TEXTURE_SAMPLE_STEP
+        grid = modelled[::step, ::step]
+        planes = np.empty((TEXTURE_PLANE_COUNT, *grid.shape), np.float32)
+        for side in (0, 1):
+            planes[_MEAN_PLANES[side]] = self.mean[side, ::step, ::step]
+            planes[_IMAGE_PLANES[side]] = normalised[side][::step, ::step]
+        weights = (alike[0], alike[1], modelled)
+        for window, side in enumerate(TEXTURE_WINDOW_SIDES):
+            weight, background, now = _window_planes(window)
+            planes[weight] = weights[window][::step, ::step]
+            np.multiply(planes[_MEAN_PLANES[side]], planes[weight], out=planes[background])
+            np.multiply(planes[_IMAGE_PLANES[side]], planes[weight], out=planes[now])
+        means = window_means(planes, TEXTURE_TERMS, BACKGROUND_TEXTURE_WINDOW_PX // step)
+        kept, gone = np.empty(grid.shape, np.bool_), np.empty(grid.shape, np.bool_)
+        _texture_verdicts(means, kept, gone)
+        return self._upsampled(kept), self._upsampled(gone)
 
     def _in_band(self, height_m: F32) -> Mask:
         """Heights in the obstacle band (NaN: not). Above it is no surface to fill or bridge with:
@@ -1060,11 +1448,9 @@ class FloorModel:
         closed = cv2.morphologyEx(band.view(np.uint8), cv2.MORPH_CLOSE, self._gap_kernel) > 0
         gap = closed & ~band & np.isfinite(height)
         if gap.any():
-            top: F32 = np.asarray(
-                cv2.dilate(np.where(band, height, -np.inf).astype(np.float32), self._gap_kernel),
-                np.float32,
-            )
-            evidence[gap] = self.geometry.disparity_px(top)[gap]
+            band_height = np.where(band, height, np.float32(-np.inf))
+            top = _window_max_at(band_height, len(self._gap_kernel) // 2, gap)
+            evidence[gap] = self.geometry.disparity_px(top, gap)
 
     def _paint(self, matches: Mask, test: FloorTest, empty: Mask) -> Mask:
         """Rule 11: pixels of ``empty`` (no evidence) never modelled whose texture runs along the
@@ -1090,12 +1476,14 @@ class FloorModel:
         count, labels = cv2.connectedComponents(holes.view(np.uint8), connectivity=8)
         if count <= 1:
             return
-        region_near = cv2.dilate(
-            labels.astype(np.float32), np.ones((REGION_EDGE_PX,) * 2, np.uint8)
-        ).astype(np.int32)
-        height = self.geometry.height_m(measured)
-        edge = np.isfinite(height) & (region_near > 0)
-        region, edge_height = region_near[edge], height[edge]
+        near = cv2.dilate(holes.view(np.uint8), np.ones((REGION_EDGE_PX,) * 2, np.uint8)) > 0
+        height = self.geometry.height_m(measured[near], near)
+        measured_near = np.isfinite(height)
+        edge = near.copy()
+        edge[near] = measured_near
+        # The region beside each edge pixel (the highest label where two meet).
+        region = _window_max_at(np.asarray(labels, np.int32), REGION_EDGE_PX // 2, edge)
+        edge_height = height[measured_near]
         raised = self._in_band(edge_height)
         raised_count = np.bincount(region[raised], minlength=count)
         fill = raised_count >= REGION_MIN_RAISED
@@ -1110,46 +1498,9 @@ class FloorModel:
         upper = starts + (raised_count * REGION_TOP_QUANTILE).astype(np.int64)
         region_height = np.full(count, np.nan, np.float32)
         region_height[fill] = sorted_height[upper[fill]]
-        target = holes & fill[labels]
-        fill_height = region_height[labels]
-        measured[target] = self.geometry.disparity_px(fill_height)[target]
-
-    def _texture_kept(self, side: int, normalised: F32, alike: Mask) -> Mask:
-        """Where the background has texture, whether the image still shows it: the slope of the
-        image regressed on the background over a window of the pixels whose grey matches it
-        (``alike``: an object's own pixels beside the floor do not count) is about 1 on the
-        floor and about 0 on a plain surface whose grey lies within the background's tolerance
-        (a plain orange forklift over grey concrete: the same luma). Where the background has
-        no texture (a plain floor), there is nothing to check."""
-        moments = self._window_moments(side, normalised, alike)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            slope = moments.covariance / moments.var_background
-        plain = ~(moments.var_background >= np.float32(BACKGROUND_TEXTURE_GRAY**2))  # NaN: none
-        return self._upsampled(plain | (slope >= TEXTURE_KEPT))
-
-    def _window_moments(self, side: int, normalised: F32, weight_mask: Mask) -> WindowMoments:
-        """Means, variances and covariance of background and image over a window of the pixels
-        of ``weight_mask``, on every other pixel of each axis (a window's statistics hardly
-        change from one pixel to the next); NaN where the window holds none."""
-        step = TEXTURE_SAMPLE_STEP
-        k = (BACKGROUND_TEXTURE_WINDOW_PX // step, BACKGROUND_TEXTURE_WINDOW_PX // step)
-        weight = weight_mask[::step, ::step].astype(np.float32)
-        mean = self.mean[side, ::step, ::step]
-        image = normalised[::step, ::step]
-        background, now = mean * weight, image * weight
-        count = cv2.blur(weight, k)
-
-        def averaged(values: F32) -> F32:
-            with np.errstate(invalid="ignore", divide="ignore"):
-                return np.asarray(cv2.blur(values, k) / count, np.float32)
-
-        mean_bg, mean_now = averaged(background), averaged(now)
-        return WindowMoments(
-            var_background=averaged(background * mean) - mean_bg * mean_bg,
-            var_now=averaged(now * image) - mean_now * mean_now,
-            covariance=averaged(now * mean) - mean_now * mean_bg,
-            share=np.asarray(count, np.float32),
-        )
+        target = holes.copy()
+        target[holes] = fill[labels[holes]]  # labels elsewhere are 0, never filled
+        measured[target] = self.geometry.disparity_px(region_height[labels[target]], target)
 
     def _upsampled(self, sampled: Mask) -> Mask:
         """A mask of the sampled grid back at every pixel."""
@@ -1181,12 +1532,11 @@ class FloorModel:
         # Seeds sit on floor-level edges, next to the smooth floor rather than inside it. An edge
         # at floor level vouches only for its side toward the nadir: there lies the floor, while on
         # the other side of a box's base rises its face (a marking has floor on both sides).
-        seeds_u8 = seeds.view(np.uint8)
-        touching = cv2.remap(seeds_u8, *self._outward_probe, cv2.INTER_NEAREST) > 0
+        touching = _probed(seeds, self._outward_probe, np.False_)
         # A line at floor level (a marking) vouches for both sides: inward of it as well, where
         # the floor beyond it looks the same as here (a box's base has its face beyond).
-        seed_inward = cv2.remap(seeds_u8, *self._inward_probe, cv2.INTER_NEAREST) > 0
-        across = cv2.remap(left, *self._beyond_probe, cv2.INTER_NEAREST)
+        seed_inward = _probed(seeds, self._inward_probe, np.False_)
+        across = _probed(left, self._beyond_probe, np.float32(0.0))
         touching |= seed_inward & (np.abs(across - left) < 2 * cfg.texture_gray)
         seeded = np.bincount(labels[touching & smooth], minlength=count)
         enough = (seeded >= cfg.min_seeds) & (seeded >= cfg.seed_share * sizes)
@@ -1238,16 +1588,14 @@ class FloorModel:
         is the rule's cost in unknown floor."""
         band = np.where(obstacle, height, np.nan).astype(np.float32)
         strip = obstacle.copy()
-        for maps in self._thin_probes:
-            beside = cv2.remap(
-                band, *maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan
-            )
+        for probe in self._thin_probes:
+            beside = _probed(band, probe, np.float32(np.nan))
             with np.errstate(invalid="ignore"):
                 strip &= ~(beside > height - np.float32(SAME_SURFACE_M))
         # … that runs on across the ray on both sides (its ends have the floor beside the top).
-        near = cv2.dilate(obstacle.view(np.uint8), self._window)
-        for maps in self._across_probes:
-            strip &= cv2.remap(near, *maps, cv2.INTER_NEAREST) > 0
+        near = cv2.dilate(obstacle.view(np.uint8), self._window) > 0
+        for probe in self._across_probes:
+            strip &= _probed(near, probe, np.False_)
         # … and a run of it, not a few pixels (an object's corner, a person's shoulder).
         _, labels, stats, _ = cv2.connectedComponentsWithStats(strip.view(np.uint8))
         strip &= (stats[:, cv2.CC_STAT_AREA] >= MIN_STRIP_PX)[labels]
