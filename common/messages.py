@@ -192,6 +192,10 @@ class DetectionRecord(Footprint):
     top_m: float
     points: int = Field(ge=0, description="world points the object was measured from")
     partial: bool = Field(description="reaches the edge of what the pair can match")
+    low: bool = Field(
+        default=False,
+        description="all top (a pallet): its sides stand within a few centimetres either way",
+    )
     outline_m: tuple[tuple[float, float], ...] = Field(
         default=(),
         max_length=64,

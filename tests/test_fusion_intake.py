@@ -149,11 +149,10 @@ def test_a_tile_beyond_the_site_is_rejected_at_the_edge() -> None:
         ("outline_m", [(0.01 * k, 0.0) for k in range(65)]),  # more vertices than allowed
         ("round", "banana"),  # not a flag
         ("round", [True]),
+        ("low", "banana"),
     ],
 )
-def test_detections_with_a_bad_outline_or_round_flag_are_rejected(
-    field: str, value: object
-) -> None:
+def test_detections_with_a_bad_outline_or_flag_are_rejected(field: str, value: object) -> None:
     good = DetectionsHeader(
         pair="p0",
         seq=1,

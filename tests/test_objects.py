@@ -69,7 +69,13 @@ def test_size_of_a_rotated_box_from_its_points_is_below_the_cell_size(yaw: float
     points, pixels = _scene_points((5.0, 4.0), size, yaw, 1.1, rng)
     pixel_angle = PITCH_M / (CAMERA_HEIGHT_M - 1.1)  # one pixel spans PITCH_M at the top
     found = detect_objects(
-        points, pixels, CAMERA_HEIGHT_M, pixel_angle, LEFT_MARGIN_PX, SensorModelParams()
+        points,
+        pixels,
+        CAMERA_HEIGHT_M,
+        pixel_angle,
+        LEFT_MARGIN_PX,
+        SensorModelParams(),
+        baseline_yaw_rad=0.0,
     )
     assert len(found) == 1
     d = found[0]
@@ -84,11 +90,15 @@ def test_size_of_a_rotated_box_from_its_points_is_below_the_cell_size(yaw: float
     assert not d.partial and not d.low
 
 
-@pytest.mark.parametrize("yaw", [0.0, 0.4])
-def test_a_low_objects_size_ignores_the_fringe_of_floor_read_at_its_height(yaw: float) -> None:
+@pytest.mark.parametrize(("yaw", "baseline_yaw"), [(0.0, 0.0), (0.4, 0.0), (0.4, math.pi / 2)])
+def test_a_low_objects_size_ignores_the_fringe_and_the_fattening_along_the_baseline(
+    yaw: float, baseline_yaw: float
+) -> None:
     """A pallet (14 cm) is half a pixel of disparity above the floor: beside a strong edge a
-    quarter of the floor pixels in a 12 cm strip read its height. Its sides lie where its
-    points' density halves, not at the fringe's outer points (12 cm too wide)."""
+    quarter of the floor pixels in a 12 cm strip read its height, and along the baseline the
+    matcher's window carries its height a pixel over the floor at both ends. Its sides lie where
+    its points' density halves, less that pixel along the baseline: not at the fringe's outer
+    points (12 cm too wide), nor a pixel out at either end."""
     rng = np.random.default_rng(4)
     size, center = (1.2, 0.8), (5.0, 4.0)
     points, pixels = _scene_points(center, size, yaw, 0.144, rng)
@@ -100,15 +110,35 @@ def test_a_low_objects_size_ignores_the_fringe_of_floor_read_at_its_height(yaw: 
     )
     lifted = fringe & (rng.random(fringe.shape) < 0.25)
     points.height_m[lifted] = 0.125
+    on_top = (np.abs(along) <= size[0] / 2) & (np.abs(across) <= size[1] / 2)
+    bx, by = math.cos(baseline_yaw), math.sin(baseline_yaw)
+    for step in (-1, 1):  # a pixel of the top's height past either end along the baseline
+        shifted = _inside_box(dx - step * PITCH_M * bx, dy - step * PITCH_M * by, size, yaw)
+        points.height_m[shifted & ~on_top] = 0.144
     pixel_angle = PITCH_M / (CAMERA_HEIGHT_M - 0.144)
     found = detect_objects(
-        points, pixels, CAMERA_HEIGHT_M, pixel_angle, LEFT_MARGIN_PX, SensorModelParams()
+        points,
+        pixels,
+        CAMERA_HEIGHT_M,
+        pixel_angle,
+        LEFT_MARGIN_PX,
+        SensorModelParams(),
+        baseline_yaw_rad=baseline_yaw,
     )
     assert len(found) == 1
     d = found[0]
     assert d.low
-    assert abs(d.length_m - size[0]) < 0.02 and abs(d.width_m - size[1]) < 0.02
+    assert abs(d.length_m - size[0]) < 0.015 and abs(d.width_m - size[1]) < 0.015
     assert math.hypot(d.center_xy_m[0] - center[0], d.center_xy_m[1] - center[1]) < 0.015
+
+
+def _inside_box(
+    dx: np.ndarray, dy: np.ndarray, size: tuple[float, float], yaw: float
+) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    along, across = c * dx + s * dy, -s * dx + c * dy
+    inside: np.ndarray = (np.abs(along) <= size[0] / 2) & (np.abs(across) <= size[1] / 2)
+    return inside
 
 
 @pytest.mark.parametrize("values", [[0.3] * 5, [1.0], [0.0, 0.001], list(np.arange(81) * 0.01)])
@@ -132,7 +162,13 @@ def test_an_object_cut_by_the_image_border_is_partial() -> None:
     cols = pixels.cols[keep]  # the image ends there
     cut_pixels = PixelGrid(pixels.rows[keep], cols, (pixels.shape[0], int(cols.max()) + 1))
     found = detect_objects(
-        cut, cut_pixels, CAMERA_HEIGHT_M, 0.004, LEFT_MARGIN_PX, SensorModelParams()
+        cut,
+        cut_pixels,
+        CAMERA_HEIGHT_M,
+        0.004,
+        LEFT_MARGIN_PX,
+        SensorModelParams(),
+        baseline_yaw_rad=0.0,
     )
     assert len(found) == 1 and found[0].partial
 
@@ -147,7 +183,15 @@ def _view_of(
         *(getattr(points, f)[keep] for f in ("x_m", "y_m", "height_m", "height_sigma_m"))
     )
     view = PixelGrid(rows, cols, (int(rows.max()) + 1, int(cols.max()) + 1))
-    found = detect_objects(seen, view, CAMERA_HEIGHT_M, 0.004, LEFT_MARGIN_PX, SensorModelParams())
+    found = detect_objects(
+        seen,
+        view,
+        CAMERA_HEIGHT_M,
+        0.004,
+        LEFT_MARGIN_PX,
+        SensorModelParams(),
+        baseline_yaw_rad=0.0,
+    )
     (record,) = detections_header(found, pair, 0, T0_NS).detections
     return pair, record
 
@@ -254,6 +298,7 @@ def _record(
     top: float = 1.0,
     points: int = 500,
     round_: bool = False,
+    low: bool = False,
 ) -> DetectionRecord:
     return DetectionRecord(
         center_m=center,
@@ -263,6 +308,7 @@ def _record(
         points=points,
         partial=partial,
         round=round_,
+        low=low,
     )
 
 
@@ -927,3 +973,24 @@ def test_a_track_turns_at_most_two_frames_in_a_row() -> None:
             assert math.dist(mover.center_m, centre) < 0.1
     assert math.dist(mover.center_m, path[-2]) < 0.1  # not the third turn
     assert any(math.dist(t.center_m, path[-1]) < 0.1 for t in tracker.tracks if t is not mover)
+
+
+@pytest.mark.parametrize("low", [True, False])
+def test_a_low_tracks_outline_is_grown_by_its_sides_uncertainty(low: bool) -> None:
+    """A pallet's sides are measured to a few centimetres either way: its outline, the cells fusion
+    serves occupied where the frames agree, is its footprint grown by ``low_margin_m``, so a rim
+    cell whose centre lies just outside the measured side is not left to the frames' free
+    readings. A box's outline is its footprint."""
+    tracker = ObjectTracker()
+    margin = tracker.config.low_margin_m
+    for k in range(9):  # 4 s at 2 Hz: static
+        view = _record((2.03, 2.0), (1.18, 0.78), top=0.15, low=low)
+        tracker.add("p0", T0_NS + k * FRAME_NS, [view], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+    ((window, outline),) = tracker.outlines(0.05)
+    x, y = window.cell_centers(0.05)
+    half = np.array([0.59, 0.39]) + (margin if low else 0.0)
+    inside = (np.abs(x - 2.03) <= half[0]) & (np.abs(y - 2.0) <= half[1])
+    assert np.array_equal(outline, inside)
+    # x 2.625: 0.5 cm past the measured end (2.62), inside the true pallet's (2.63)
+    assert bool(inside[np.argmin(np.abs(y[:, 0] - 2.0)), np.argmin(np.abs(x[0] - 2.625))]) is low
