@@ -15,6 +15,7 @@ from common.occupancy_map import OCCUPIED
 from common.sensor_model import SensorModelParams
 from services.camera_sim.scene import generate_scene
 from services.depth.objects import (
+    Detection,
     PixelGrid,
     detect_objects,
     detections_header,
@@ -62,21 +63,32 @@ def _scene_points(
     return points, PixelGrid.from_valid(np.ones((n, n), np.bool_))
 
 
+def _detect(
+    points: WorldPoints,
+    pixels: PixelGrid,
+    pixel_angle_rad: float,
+    baseline_yaw_rad: float = 0.0,
+) -> list[Detection]:
+    """The detections of a synthetic pair at ``CAMERA_HEIGHT_M`` whose rows run along
+    ``baseline_yaw_rad`` on the floor."""
+    return detect_objects(
+        points,
+        pixels,
+        CAMERA_HEIGHT_M,
+        pixel_angle_rad,
+        LEFT_MARGIN_PX,
+        SensorModelParams(),
+        baseline_yaw_rad=baseline_yaw_rad,
+    )
+
+
 @pytest.mark.parametrize("yaw", [0.0, 0.03, 0.5, math.pi / 2])
 def test_size_of_a_rotated_box_from_its_points_is_below_the_cell_size(yaw: float) -> None:
     rng = np.random.default_rng(1)
     size = (0.83, 0.47)
     points, pixels = _scene_points((5.0, 4.0), size, yaw, 1.1, rng)
     pixel_angle = PITCH_M / (CAMERA_HEIGHT_M - 1.1)  # one pixel spans PITCH_M at the top
-    found = detect_objects(
-        points,
-        pixels,
-        CAMERA_HEIGHT_M,
-        pixel_angle,
-        LEFT_MARGIN_PX,
-        SensorModelParams(),
-        baseline_yaw_rad=0.0,
-    )
+    found = _detect(points, pixels, pixel_angle)
     assert len(found) == 1
     d = found[0]
     # Within the lattice sampling of the edges (under a pixel): a third of a 5 cm cell.
@@ -116,15 +128,7 @@ def test_a_low_objects_size_ignores_the_fringe_and_the_fattening_along_the_basel
         shifted = _inside_box(dx - step * PITCH_M * bx, dy - step * PITCH_M * by, size, yaw)
         points.height_m[shifted & ~on_top] = 0.144
     pixel_angle = PITCH_M / (CAMERA_HEIGHT_M - 0.144)
-    found = detect_objects(
-        points,
-        pixels,
-        CAMERA_HEIGHT_M,
-        pixel_angle,
-        LEFT_MARGIN_PX,
-        SensorModelParams(),
-        baseline_yaw_rad=baseline_yaw,
-    )
+    found = _detect(points, pixels, pixel_angle, baseline_yaw)
     assert len(found) == 1
     d = found[0]
     assert d.low
@@ -161,15 +165,7 @@ def test_an_object_cut_by_the_image_border_is_partial() -> None:
     )
     cols = pixels.cols[keep]  # the image ends there
     cut_pixels = PixelGrid(pixels.rows[keep], cols, (pixels.shape[0], int(cols.max()) + 1))
-    found = detect_objects(
-        cut,
-        cut_pixels,
-        CAMERA_HEIGHT_M,
-        0.004,
-        LEFT_MARGIN_PX,
-        SensorModelParams(),
-        baseline_yaw_rad=0.0,
-    )
+    found = _detect(cut, cut_pixels, 0.004)
     assert len(found) == 1 and found[0].partial
 
 
