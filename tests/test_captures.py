@@ -1,5 +1,7 @@
 import time
 
+import pytest
+
 from common.lattice import Window
 from services.fusion.captures import CaptureGroups
 from services.fusion.grid import FusedGrid, GridParams
@@ -58,6 +60,49 @@ def test_a_late_message_of_a_released_capture_is_released_at_once() -> None:
     assert groups.ready(0.1, LIVE) == [(T0_NS, [("p1", "old")])]
 
 
+def test_a_late_message_a_few_ms_off_a_released_capture_is_late_too() -> None:
+    """Pairs whose clocks differ by a few ms: p1's tile of a capture released without it (the
+    wait ran out) is released at once, and does not make p1 waited for again."""
+    groups: CaptureGroups[str] = CaptureGroups(wait_s=1.0)
+    groups.add("p0", T0_NS, ["a"], now_s=0.0)
+    assert _stamps(groups.ready(1.0, LIVE)) == [T0_NS]  # p1 missed it: lagging
+    groups.add("p1", T0_NS + 10_000_000, ["late"], now_s=1.2)
+    assert groups.ready(1.2, LIVE) == [(T0_NS + 10_000_000, [("p1", "late")])]
+    assert groups.lagging == {"p1"}
+
+
+def test_a_pair_always_later_than_the_wait_holds_no_capture_back() -> None:
+    """p1's tiles come 1.2 s after p0's: once it lags, each capture is released as p0 delivers
+    it, not after waiting out the second again and again."""
+    groups: CaptureGroups[str] = CaptureGroups(wait_s=1.0)
+    held_s = []
+    for k in range(6):
+        now_s = 0.5 * k
+        groups.add("p0", T0_NS + k * FRAME_NS, ["a"], now_s)
+        if k >= 3:  # p1's tile of the capture three frames back
+            groups.add("p1", T0_NS + (k - 3) * FRAME_NS, ["b"], now_s)
+        for step in range(11):
+            if groups.ready(now_s + 0.1 * step, LIVE) and groups.pending == {}:
+                held_s.append(round(0.1 * step, 1))
+                break
+    # The first capture waits once; then p1 lags, and its late tiles do not undo that.
+    assert held_s == [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+
+
+def test_with_no_wait_nothing_is_held_and_no_pair_lags() -> None:
+    groups: CaptureGroups[str] = CaptureGroups(wait_s=0.0)
+    groups.add("p0", T0_NS, ["a"], now_s=0.0)
+    assert _stamps(groups.ready(0.0, LIVE)) == [T0_NS]
+    assert groups.lagging == set()
+
+
+def test_a_pair_that_leaves_no_longer_holds_a_capture() -> None:
+    groups: CaptureGroups[str] = CaptureGroups()
+    groups.add("p0", T0_NS, ["a"], now_s=0.0)
+    assert groups.ready(0.1, LIVE) == []
+    assert _stamps(groups.ready(0.2, {"p0"})) == [T0_NS]  # p1's liveliness token went
+
+
 def test_everything_releases_what_is_held() -> None:
     groups: CaptureGroups[str] = CaptureGroups()
     groups.add("p0", T0_NS, ["a"], now_s=0.0)
@@ -95,5 +140,23 @@ def test_with_no_capture_wait_each_tile_is_fused_as_it_comes() -> None:
     _deliver_tile(state, "p0", Window(0, 0, 8, 8), now)
     state.fuse_captures()
     assert state.grid.stamp_ns == now and dict(state.accepted) == {"p0": 1}
-    state.update_view()  # p1 did not deliver within the wait: health says it is not waited for
-    assert health_of(state.view, None, {})["pairs"]["p1"]["lagging"] is True
+    state.update_view()  # with no wait, no pair is waited for, so none lags
+    assert health_of(state.view, None, {})["pairs"]["p1"]["lagging"] is False
+    assert state.tracker.captures.wait_s == 0.0  # the tracker takes its detections alike
+
+
+def test_a_capture_wait_longer_than_a_tile_may_be_old_is_refused() -> None:
+    with pytest.raises(ValueError, match="capture_wait_s"):
+        FusionSettings(capture_wait_s=3.0, max_tile_age_s=2.0)
+
+
+def test_a_held_tile_the_map_cannot_take_is_counted_by_its_reason() -> None:
+    """The map's growth is checked when a capture is fused: a tile that would grow it past its
+    cell limit is refused then, counted as ``growth``, and the capture's other tile is taken."""
+    grid = FusedGrid(GridParams(max_cells=128 * 128))
+    state = FusionState(FusionSettings(), grid)
+    now = time.time_ns()
+    _deliver_tile(state, "p0", Window(0, 0, 8, 8), now)
+    _deliver_tile(state, "p1", Window(1000, 1000, 8, 8), now)
+    state.fuse_captures()
+    assert dict(state.rejected) == {"growth": 1} and dict(state.accepted) == {"p0": 1}

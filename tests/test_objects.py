@@ -990,3 +990,16 @@ def test_a_low_tracks_outline_is_grown_by_its_sides_uncertainty(low: bool) -> No
     assert np.array_equal(outline, inside)
     # x 2.625: 0.5 cm past the measured end (2.62), inside the true pallet's (2.63)
     assert bool(inside[np.argmin(np.abs(y[:, 0] - 2.0)), np.argmin(np.abs(x[0] - 2.625))]) is low
+
+
+def test_a_track_is_low_where_most_of_its_views_are() -> None:
+    """Two low views of four (a pallet's deck once taken with a box on it) make no low track;
+    three of four do."""
+    for lows, expected in ((2, False), (3, True)):
+        tracker = ObjectTracker()
+        for k in range(4):
+            view = _record((2.0, 2.0), (1.2, 0.8), top=0.15, low=k < lows)
+            tracker.add("p0", T0_NS + k * FRAME_NS, [view], now_s=0.0)
+            tracker.flush(now_s=0.0, live_pairs={"p0"})
+        (track,) = tracker.tracks
+        assert track.low is expected

@@ -171,7 +171,7 @@ floor (measured: concrete and speckle 0.87–1.0 of the modelled pixels, a plain
 class FloorModelConfig:
     enabled: bool = True
     window_px: int = 5
-    """Side of the floor test's correlation window (processing pixels)."""
+    """Side of the floor test's correlation window (processing pixels; odd: centred on its pixel)."""
     blur_sigma_px: float = 1.0
     """Gaussian blur before every comparison: sensor noise and JPEG blocks matter less."""
     texture_gray: float = 1.0
@@ -454,7 +454,7 @@ def _floor_decisions(
             # Texture along x, against an absolute floor and against the texture across it: grain
             # or board gaps along the baseline have gradients, but none along x to match on.
             is_along = is_textured & (energy < energy_across * x_energy_share)
-            is_x_textured = is_textured & (energy > x_energy_min) & (is_along ^ True)
+            is_x_textured = is_textured & (energy > x_energy_min) & (not is_along)
             strong = is_x_textured & (energy >= limits.measure_energy)
             measured = strong & (zncc >= limits.measure_zncc) & (size < limits.max_shift_px)
             # A shift too large for the linearisation to measure is still no floor.
@@ -1032,6 +1032,8 @@ def _probed(
     """``image`` at each pixel's probe (:meth:`FloorModel.__init__`), ``outside`` beyond the
     image: cv2.remap's nearest neighbour without its per-call map decoding (a third of a
     millisecond each)."""
+    if image.shape != probe.shape:  # the kernel reads wherever an index points
+        raise ValueError(f"probe of shape {probe.shape} for an image of {image.shape}")
     picked = np.empty_like(image)
     _gather(image.ravel(), probe.ravel(), outside, picked.ravel())
     return picked

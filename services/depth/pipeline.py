@@ -10,7 +10,6 @@ observations where stereo has none, see :mod:`services.depth.floor_model`), ``pr
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -223,7 +222,7 @@ class DepthPipeline:
             pixel_angle_rad=1.0 / rectifier.focal_px,
             left_margin_px=self.min_disparity + self.num_disparities,
             params=self.config.model,
-            baseline_yaw_rad=math.atan2(rectifier.R_world_rect[1, 0], rectifier.R_world_rect[0, 0]),
+            baseline_yaw_rad=rectifier.baseline_yaw_rad,
         )
         return refine_on_edges(found, result.left_rect, self.image_view)
 

@@ -137,6 +137,12 @@ class Rectifier:
         maps = cv2.convertMaps(moved_x, moved_y, cv2.CV_16SC2)
         return dataclasses.replace(self, _maps_right=maps)
 
+    @property
+    def baseline_yaw_rad(self) -> float:
+        """The direction on the floor (world yaw) of the rectified rows: the cameras lie apart
+        along it, and the matcher's windows run along it."""
+        return math.atan2(float(self.R_world_rect[1, 0]), float(self.R_world_rect[0, 0]))
+
     def rectify(self, left: U8, right: U8) -> tuple[U8, U8]:
         width, height = self.size
         return self.rectify_region(left, right, (0, 0, width, height))

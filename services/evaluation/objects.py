@@ -108,9 +108,10 @@ def size_errors(
 ) -> dict[str, float]:
     """The headline size figures over the objects found: mean and max of their length and width
     errors (%), over all of them, over those measured with confidence (``_complete``: seen
-    whole, by views that agree; neither ``partial`` nor ``size_unsure``), and over those whose top
-    lies wholly in the cameras' view (``_in_view``, names from :func:`seen_whole`: the others no
-    camera can measure whole, whatever the tracker says of them), and how many those are."""
+    whole, by views that agree; neither ``partial`` nor ``size_unsure``), and over those found
+    whose top lies wholly in the cameras' views (``_in_view``, names from :func:`seen_whole`: the
+    others no camera can measure whole, whatever the tracker says of them), and how many those
+    are."""
     found = [m for m in matches if m.tracks >= 1]
     errors = [e for m in found for e in m.errors_pct]
     sure = [m for m in found if not (m.partial or m.unsure)]
@@ -118,7 +119,7 @@ def size_errors(
     viewed = [e for m in found if m.name in in_view for e in m.errors_pct]
     return {
         "objects_measured_sure": len(sure),
-        "objects_in_view": sum(1 for m in matches if m.name in in_view),
+        "objects_in_view": sum(1 for m in found if m.name in in_view),
         "length_error_mean_pct": float(np.mean(errors)) if errors else math.nan,
         "length_error_max_pct": max(errors, default=math.nan),
         "length_error_mean_pct_complete": float(np.mean(complete)) if complete else math.nan,
@@ -131,11 +132,11 @@ def size_errors(
 def seen_whole(
     objects: Sequence[TruthObject], seen: Mask, window: Window, resolution_m: float
 ) -> set[str]:
-    """Names of the objects every cell of whose footprint is ``seen`` (at its top's height, by
-    some pair: :func:`metrics.seen_by_cameras`): the ones whose size the cameras can measure."""
-    return {
-        obj.name for obj in objects if not (footprint_mask(obj, window, resolution_m) & ~seen).any()
-    }
+    """Names of the objects every cell of whose footprint is ``seen`` (at its top's height:
+    :func:`metrics.seen_by_cameras`, the union of the pairs' views, since fusion joins the parts
+    that pairs see of one object): the ones whose size the cameras can measure whole."""
+    masks = {obj.name: footprint_mask(obj, window, resolution_m) for obj in objects}
+    return {name for name, mask in masks.items() if mask.any() and not (mask & ~seen).any()}
 
 
 def _in_polygon(polygon: np.ndarray, xy_m: tuple[float, float]) -> bool:

@@ -21,8 +21,9 @@ class CaptureGroups(Generic[Item]):
     """Items (tiles, detections) of each pair, grouped by capture stamp, released in stamp order
     once complete: every live pair delivered the capture (or a later one is complete: the missing
     pairs skipped it), or ``wait_s`` passed. A pair missing from a capture released by waiting is
-    *lagging*: no capture waits for it again until it delivers (a pair alive whose messages are
-    refused must not hold the map back by ``wait_s`` for good)."""
+    *lagging*: no capture waits for it again until it delivers one in time (a pair alive whose
+    messages are refused, or that is always later than ``wait_s``, must not hold every capture
+    back by ``wait_s``). With no wait, nothing is held and no pair is lagging."""
 
     window_s: float = 0.03
     """Stamps of different pairs this close together are one capture."""
@@ -32,18 +33,25 @@ class CaptureGroups(Generic[Item]):
     """Capture stamp → (pair, item) in arrival order."""
     pairs: dict[int, set[str]] = field(default_factory=dict)
     since_s: dict[int, float] = field(default_factory=dict)
-    released_ns: int = -1
-    """The newest capture released: a later message of an older capture is released at once."""
+    released_ns: int = -(2**62)
+    """The newest capture released: a later message of it or an older one is released at once."""
     lagging: set[str] = field(default_factory=set)
 
     def add(self, pair: str, stamp_ns: int, items: list[Item], now_s: float) -> None:
-        """One pair's items of one capture (an empty list still says the pair delivered it)."""
+        """One pair's items of one capture (an empty list still says the pair delivered it).
+        ``now_s``: a monotonic clock's time, as :meth:`ready` is given."""
         window_ns = self.window_s * 1e9
         group = next((g for g in self.pending if abs(g - stamp_ns) <= window_ns), stamp_ns)
         self.pending.setdefault(group, []).extend((pair, item) for item in items)
         self.pairs.setdefault(group, set()).add(pair)
         self.since_s.setdefault(group, now_s)
-        self.lagging.discard(pair)
+        if not self._late(group):  # in time for a capture: waited for again
+            self.lagging.discard(pair)
+
+    def _late(self, group: int) -> bool:
+        """A capture released already (its stamp, or one within the window of it: a pair's
+        clock a few ms off the others')."""
+        return group <= self.released_ns + self.window_s * 1e9
 
     def ready(
         self, now_s: float, live_pairs: set[str], everything: bool = False
@@ -55,10 +63,9 @@ class CaptureGroups(Generic[Item]):
         out = []
         for k, group in enumerate(groups):
             waited = now_s - self.since_s[group] >= self.wait_s
-            late = group <= self.released_ns
-            if not (everything or late or any(complete[k:]) or waited):
+            if not (everything or self._late(group) or any(complete[k:]) or waited):
                 break  # captures are taken in order
-            if waited and not any(complete[k:]):
+            if waited and self.wait_s > 0 and not any(complete[k:]):
                 self.lagging |= expected - self.pairs[group]
             out.append((group, self.pending.pop(group)))
             del self.pairs[group], self.since_s[group]

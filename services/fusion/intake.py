@@ -166,7 +166,8 @@ class TileGate:
         )
 
     def accepted(self, tile: AcceptedTile) -> None:
-        """Record the stamp of a tile taken (held for its capture; a refused one does not count)."""
+        """Record the stamp of a tile taken, as it is held for its capture: a tile the map then
+        refuses (``growth``, ``outside_*``) still counts, so its pair's next tile must be newer."""
         self.newest_stamp_ns[tile.header.pair] = tile.header.stamp_ns
 
 

@@ -333,7 +333,8 @@ class Track:
     static: bool = False
     moving: bool = False
     low_views: int = 0
-    """Views that saw it all top (a pallet): its sides stand within ``low_margin_m`` either way."""
+    """Views (partial ones too) that saw it all top (a pallet): a track is low where they are
+    most of its detections; its sides stand within ``low_margin_m`` either way."""
     _size: tuple[TrackerConfig, TrackSize] | None = field(default=None, repr=False)
     """The size of the views as they are (:meth:`size`): asked for several times a capture."""
 

@@ -126,7 +126,7 @@ class FusionState:
             wait_s=settings.capture_wait_s
         )
         """Admitted tiles (with their keys) waiting for the rest of their capture."""
-        self.tracker = ObjectTracker()
+        self.tracker = ObjectTracker(captures=CaptureGroups(wait_s=settings.capture_wait_s))
         self.objects_header = ObjectsHeader(version=0, stamp_ns=0, objects=[])
         self.outlined: CellMasks = []
         """The static objects' footprints the map agrees with, as of the newest capture."""
@@ -171,11 +171,11 @@ class FusionState:
         self.gate.accepted(tile)
         pair = tile.header.pair
         self.last_tile_s[pair] = time.time()
-        self.tiles.add(pair, tile.header.stamp_ns, [(delivery.key, tile)], time.time())
+        self.tiles.add(pair, tile.header.stamp_ns, [(delivery.key, tile)], time.monotonic())
 
     def fuse_captures(self, everything: bool = False) -> None:
         """Fuse the tiles of every complete capture (``everything``: all held, at shutdown)."""
-        for _, tiles in self.tiles.ready(time.time(), self.alive, everything):
+        for _, tiles in self.tiles.ready(time.monotonic(), self.alive, everything):
             for pair, (key, tile) in tiles:
                 try:
                     self.grid.integrate_tile(tile, tile.header.stamp_ns)
@@ -192,7 +192,7 @@ class FusionState:
     def _detections(self, delivery: Delivery) -> None:
         """One pair's objects of one frame: held until the rest of the capture arrives."""
         h = decode_detections(delivery.payload, delivery.key, delivery.arrival_ns, self.gate)
-        self.tracker.add(h.pair, h.stamp_ns, list(h.detections), delivery.arrival_ns / 1e9)
+        self.tracker.add(h.pair, h.stamp_ns, list(h.detections), time.monotonic())
 
     def _presence(self, delivery: Delivery) -> None:
         presence = decode_presence(delivery.key, delivery.alive)
@@ -222,7 +222,7 @@ class FusionState:
         changed."""
         now_ns = time.time_ns()
         resolution_m = self.grid.params.resolution_m
-        changed = self.tracker.flush(now_ns / 1e9, self.alive)
+        changed = self.tracker.flush(time.monotonic(), self.alive)
         check = MapCheck()
         if changed:
             self.grid.forget_occupied(*self.tracker.wake(resolution_m))

@@ -81,6 +81,15 @@ class FusionParams(OvergridParams):
         return bounds
 
     @model_validator(mode="after")
+    def _wait_within_tile_age(self) -> FusionParams:
+        if self.capture_wait_s > self.max_tile_age_s:
+            raise ValueError(
+                f"capture_wait_s {self.capture_wait_s:g} s must not exceed max_tile_age_s "
+                f"{self.max_tile_age_s:g} s: a tile held longer would be older than tiles refused"
+            )
+        return self
+
+    @model_validator(mode="after")
     def _bounds_within_cell_limit(self) -> FusionParams:
         if not self.bounds:
             return self
