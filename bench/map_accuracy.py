@@ -116,14 +116,14 @@ def run(
             tracker.add(pair, stamp_ns, list(found), k / rate_hz)
         if tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures}):
             grid.forget_occupied(*tracker.wake(r))  # as the fusion service does
+        contested = tracker.movers_now(r)  # as the fusion service does
         if outline_static:
-            outlined, contested = grid.by_agreement(
-                tracker.outlines(r)
-            )  # as the fusion service does
+            outlined, disagreed = grid.by_agreement(tracker.outlines(r))
             grid.set_predicted(outlined)
             check = tracker.check_against(grid)
-            grid.set_contested(contested + check.enclosures)
+            contested += disagreed + check.enclosures
             grid.set_fringe(check.fringes)
+        grid.set_contested(contested)
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time
         if k == frames - 1 or (k >= frames // 3 and (frames - 1 - k) % every == 0):
             objects = scene.truth_objects(stamp_ns / 1e9)

@@ -1003,3 +1003,24 @@ def test_a_track_is_low_where_most_of_its_views_are() -> None:
             tracker.flush(now_s=0.0, live_pairs={"p0"})
         (track,) = tracker.tracks
         assert track.low is expected
+
+
+def test_free_cells_under_a_mover_now_are_served_unknown() -> None:
+    """A forklift (1.2 × 0.8 m) moving at 1 m/s over floor the frames still call free (the floor before it came,
+    or a plain side the floor model took for floor): the cells of its footprint at the newest
+    capture are served unknown, the floor around it stays free, and a standing box's cells are
+    not touched."""
+    resolution = 0.05
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
+    _measure(grid, Window(0, 0, 200, 100), -2.0)  # the floor: free
+    tracker = ObjectTracker()
+    _run_mover(tracker, (1.0, 2.0), (1.0, 0.0), 8, np.random.default_rng(3))
+    (mover,) = [t for t in tracker.objects() if t.object_class == "moving"]
+    grid.set_contested(tracker.movers_now(resolution))
+    served = grid.served_occupancy()
+    x, y = mover.center_m
+    at = (round(y / resolution - 0.5), round(x / resolution - 0.5))
+    assert served[at] == -1
+    assert served[at[0], at[1] + 11] == -1  # 0.55 m ahead of its centre: its front edge's cells
+    assert 0 <= served[at[0], at[1] + 20] <= 25  # 1 m ahead: floor
+    assert 0 <= served[at[0] + 20, at[1]] <= 25  # 1 m beside it

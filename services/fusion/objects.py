@@ -796,6 +796,15 @@ class ObjectTracker:
             out.append(polygon_cells(convex_hull(np.vstack([a, b])), resolution_m))
         return out
 
+    def movers_now(self, resolution_m: float) -> list[tuple[Window, npt.NDArray[np.bool_]]]:
+        """The cells of each moving track's footprint at the newest capture (a track missed by
+        it, where it is predicted then; none for a track missed longer: :meth:`sweep`). Fusion
+        serves those the frames do not call occupied unknown (the contested layer): something
+        stands there now, and a free reading there is the floor before it came, or a plain side
+        of the floor's grey that the floor model took for floor (offline, ``--floor plain``: the
+        person's cells 23 % free)."""
+        return self.sweep(resolution_m, self.stamp_ns, self.stamp_ns)
+
     def wake(self, resolution_m: float) -> tuple[list[tuple[Window, npt.NDArray[np.bool_]]], float]:
         """The cells of the movers' wakes over the last ``wake_s``, and the observation time
         before which an occupied one is forgotten (``FusedGrid.forget_occupied``): a hit a mover

@@ -216,10 +216,10 @@ class FusionState:
 
     def refresh_objects(self) -> ObjectsHeader | None:
         """Merge and track the captures that are complete; the predicted layer holds the static
-        objects' footprints the frames agree with (the contested layer the others, the fringe layer
-        the occupied cells just outside whole ones) and the moving tracks' paths up to one frame
-        interval past now (the map's visible time); returns the new object list if the tracks
-        changed."""
+        objects' footprints the frames agree with (the contested layer the others, and the moving
+        tracks' footprints now; the fringe layer the occupied cells just outside whole static
+        ones) and, with ``predict_movers``, the moving tracks' paths up to one frame interval past
+        now (the map's visible time); returns the new object list if the tracks changed."""
         now_ns = time.time_ns()
         resolution_m = self.grid.params.resolution_m
         changed = self.tracker.flush(time.monotonic(), self.alive)
@@ -227,12 +227,14 @@ class FusionState:
         if changed:
             self.grid.forget_occupied(*self.tracker.wake(resolution_m))
             check = self.tracker.check_against(self.grid)
+            contested = self.tracker.movers_now(resolution_m)
             if self.settings.outline_static:  # once a capture: tracks and evidence both moved
-                self.outlined, contested = self.grid.by_agreement(
+                self.outlined, disagreed = self.grid.by_agreement(
                     self.tracker.outlines(resolution_m)
                 )
-                self.grid.set_contested(contested + check.enclosures)
+                contested += disagreed + check.enclosures
                 self.grid.set_fringe(check.fringes)
+            self.grid.set_contested(contested)
         if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
             swept = self.tracker.sweep(resolution_m, self.grid.stamp_ns, until_ns)
