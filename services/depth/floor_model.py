@@ -939,6 +939,8 @@ TEXTURE_WINDOW_SIDES = (0, 1, 0)
 """The texture checks' weighted windows (:meth:`FloorModel._texture_checks`), by camera: the
 background's texture kept in either camera (over its pixels alike their background), and gone in
 the left one (over the modelled pixels)."""
+_KEPT_WINDOWS, _GONE_WINDOW = (0, 1), 2
+"""Which of those windows each check reads (:func:`_texture_verdicts`)."""
 _MEAN_PLANES, _IMAGE_PLANES = (0, 1), (2, 3)
 """The texture checks' planes on the sampled grid: each camera's background mean and image; then,
 per window, its weight and the background and image where weighted (zero elsewhere)."""
@@ -950,24 +952,31 @@ def _window_planes(window: int) -> tuple[int, int, int]:
     return first, first + 1, first + 2
 
 
+def _window_terms(window: int, side: int) -> tuple[tuple[int, int], ...]:
+    """A texture window's terms: its weight, weighted background and image, and their products
+    with the camera's background and image (:func:`_window_moments` reads them in this order)."""
+    weight, background, now = _window_planes(window)
+    return (
+        (weight, NO_PLANE),
+        (background, NO_PLANE),
+        (now, NO_PLANE),
+        (background, _MEAN_PLANES[side]),
+        (now, _IMAGE_PLANES[side]),
+        (now, _MEAN_PLANES[side]),
+    )
+
+
+TERMS_PER_TEXTURE_WINDOW = len(_window_terms(0, 0))
 TEXTURE_PLANE_COUNT = _window_planes(len(TEXTURE_WINDOW_SIDES))[0]
 TEXTURE_TERMS = np.array(
     [
         term
         for window, side in enumerate(TEXTURE_WINDOW_SIDES)
-        for weight, background, now in (_window_planes(window),)
-        for term in (
-            (weight, NO_PLANE),
-            (background, NO_PLANE),
-            (now, NO_PLANE),
-            (background, _MEAN_PLANES[side]),
-            (now, _IMAGE_PLANES[side]),
-            (now, _MEAN_PLANES[side]),
-        )
+        for term in _window_terms(window, side)
     ],
     np.int64,
 )
-"""Six window means per texture window (:func:`_window_moments` reads them in this order)."""
+"""Every texture window's terms, window after window."""
 BACKGROUND_TEXTURE_GRAY = 1.5
 """Local standard deviation (gray levels) of a background below which it has no texture to check."""
 COVERED_ZNCC = 0.3
@@ -986,7 +995,7 @@ def _window_moments(
     """A texture window's weighted share, background and image variances and their covariance at
     one pixel of the sampled grid, in float32 as numpy computes them; NaN where the window holds
     no weighted pixel."""
-    first = 6 * window
+    first = TERMS_PER_TEXTURE_WINDOW * window
     share = means[first, row, col]
     if share == 0:  # every weighted sum is 0 too: numpy's 0 / 0
         nan = np.float32(np.nan)
@@ -1010,12 +1019,12 @@ def _texture_verdicts(means: F32, kept: Mask, gone: Mask) -> None:
     for row in range(rows):
         for col in range(cols):
             both_kept = True
-            for window in range(2):  # a plain background (or none: NaN) has nothing to check
+            for window in _KEPT_WINDOWS:  # a plain background (or none: NaN): nothing to check
                 _, var_bg, _, covariance = _window_moments(means, window, row, col)
                 if var_bg >= textured_var and not covariance / var_bg >= kept_slope:
                     both_kept = False
             kept[row, col] = both_kept
-            share, var_bg, var_now, covariance = _window_moments(means, 2, row, col)
+            share, var_bg, var_now, covariance = _window_moments(means, _GONE_WINDOW, row, col)
             is_gone = share < modelled_share
             if var_bg >= textured_var:
                 zncc = covariance / np.sqrt(max(var_bg * var_now, tiny))
