@@ -44,6 +44,7 @@ from services.evaluation import metrics
 from services.evaluation import objects as object_scores
 from services.evaluation.metrics import OBSTACLE_BAND_M
 from services.fusion.grid import FusedGrid
+from services.fusion.object_layers import serve_tracks
 from services.fusion.objects import ObjectTracker
 from services.fusion.params import GridParams
 from services.fusion.settings import FusionParams
@@ -115,15 +116,8 @@ def run(
             found = detections_header(pipeline.detect_objects(result), pair, k, stamp_ns).detections
             tracker.add(pair, stamp_ns, list(found), k / rate_hz)
         if tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures}):
-            grid.forget_occupied(*tracker.wake(r))  # as the fusion service does
-        contested = tracker.movers_now(r)  # as the fusion service does
-        if outline_static:
-            outlined, disagreed = grid.by_agreement(tracker.outlines(r))
+            outlined, _ = serve_tracks(grid, tracker, outline_static)  # as the fusion service does
             grid.set_predicted(outlined)
-            check = tracker.check_against(grid)
-            contested += disagreed + check.enclosures
-            grid.set_fringe(check.fringes)
-        grid.set_contested(contested)
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time
         if k == frames - 1 or (k >= frames // 3 and (frames - 1 - k) % every == 0):
             objects = scene.truth_objects(stamp_ns / 1e9)

@@ -55,6 +55,7 @@ from services.fusion.intake import (
     decode_detections,
     decode_presence,
 )
+from services.fusion.object_layers import serve_tracks
 from services.fusion.objects import MapCheck, ObjectTracker
 from services.fusion.persistence import StateWriter, load_grid
 from services.fusion.settings import FusionSettings
@@ -224,17 +225,10 @@ class FusionState:
         resolution_m = self.grid.params.resolution_m
         changed = self.tracker.flush(time.monotonic(), self.alive)
         check = MapCheck()
-        if changed:
-            self.grid.forget_occupied(*self.tracker.wake(resolution_m))
-            check = self.tracker.check_against(self.grid)
-            contested = self.tracker.movers_now(resolution_m)
-            if self.settings.outline_static:  # once a capture: tracks and evidence both moved
-                self.outlined, disagreed = self.grid.by_agreement(
-                    self.tracker.outlines(resolution_m)
-                )
-                contested += disagreed + check.enclosures
-                self.grid.set_fringe(check.fringes)
-            self.grid.set_contested(contested)
+        if changed:  # once a capture: tracks and evidence both moved
+            self.outlined, check = serve_tracks(
+                self.grid, self.tracker, self.settings.outline_static
+            )
         if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
             swept = self.tracker.sweep(resolution_m, self.grid.stamp_ns, until_ns)

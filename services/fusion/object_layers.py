@@ -1,0 +1,28 @@
+"""What a capture's tracks change in the map (DESIGN.md, Objects): the one sequence the fusion
+service runs at every new capture and ``bench/map_accuracy.py`` runs offline, so the two cannot
+drift apart. Pure: a grid and a tracker in, layers set."""
+
+from __future__ import annotations
+
+from services.fusion.grid import CellMasks, FusedGrid
+from services.fusion.objects import MapCheck, ObjectTracker
+
+
+def serve_tracks(
+    grid: FusedGrid, tracker: ObjectTracker, outline_static: bool
+) -> tuple[CellMasks, MapCheck]:
+    """Forget the movers' wakes, and set the contested layer (moving tracks' footprints now, and
+    with ``outline_static`` the static footprints the frames disagree with and the rims' enclosures)
+    and the fringe layer; returns the static footprints the frames agree with (for the predicted
+    layer) and the map check (whose pieces the object list reports)."""
+    resolution_m = grid.params.resolution_m
+    grid.forget_occupied(*tracker.wake(resolution_m))
+    check = tracker.check_against(grid)
+    contested = tracker.movers_now(resolution_m)
+    outlined: CellMasks = []
+    if outline_static:
+        outlined, disagreed = grid.by_agreement(tracker.outlines(resolution_m))
+        contested += disagreed + check.enclosures
+        grid.set_fringe(check.fringes)
+    grid.set_contested(contested)
+    return outlined, check
