@@ -309,7 +309,8 @@ def _blocked_on_synthetic_floor(
     test = floor_model.FloorTest(
         textured, textured, no, textured, np.full(textured.shape, np.nan, np.float32), no, no
     )
-    return model._blocked(test, measured, np.ones(textured.shape, np.bool_))
+    inside = np.ones(textured.shape, np.bool_)
+    return model._blocked(test, measured, inside, model._plain_floor_seen(test, inside))
 
 
 @pytest.mark.parametrize("floor_textured", [True, False])
@@ -965,3 +966,30 @@ def test_a_floor_reading_beside_what_was_never_floor_is_not_believed_where_the_i
     _, gone = model._texture_checks([floor, floor], [modelled, modelled], modelled)
     assert gone[120, 96:100].all() and gone[96:100, 120].all()  # within 4 px of it
     assert not gone[120, 60:80].any() and not gone[20:60, 120].any()  # away from it
+
+
+def test_on_a_plain_floor_a_floor_reading_never_modelled_needs_the_floor_test() -> None:
+    """``--floor plain --plain-objects``' box_3 (0.6 m, near the nadir of the pair over it): the
+    matcher gives its dark near face and the top beside it the floor's disparity (the floor around
+    has nothing to say otherwise), and those readings fell inside its footprint as free cells,
+    frame after frame. Those pixels were never modelled (the box stood there from the start), so
+    on a plain floor only the floor test's agreement makes their floor reading evidence."""
+    scene = generate_scene(0, floor="plain", plain_objects=True)
+    box = next(o for o in scene.objects if o.name == "box_3")
+    scene = scene.model_copy(update={"objects": [box], "movers": []})
+    pair = Pair(scene, calibration=layout_pairs(RigSpec(), scene.floor_size_m)[2])
+    pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
+    truth = next(o for o in scene.truth_objects(0) if o.name == box.name)
+    free_cells, free_floor = [], []
+    for _ in range(24):
+        tile = pipeline.process(*pair.next()).tile
+        inside = _eroded(footprint_mask(truth, tile.window, tile.resolution_m), 1)
+        free = (tile.count > 0) & (tile.logodds < 0)
+        free_cells.append(int((free & inside).sum()))
+        free_floor.append(int(free.sum()))
+    pair.close()
+    assert pipeline.floor_model is not None and pipeline.floor_model.plain_floor
+    assert inside.sum() > 40
+    assert max(free_cells[8:]) == 0, free_cells
+    # The floor around it is still free.
+    assert min(free_floor[8:]) > 0.9 * max(free_floor[8:]) > 2000, free_floor

@@ -36,6 +36,10 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
    in (no texture along x) or where the image no longer shows the background's texture: the lower
    rim of a dark body reads at the floor's height and its points fall inside its footprint (a
    person's cells 45 % free on the default scene), while a shadow keeps the floor's texture.
+   On a plain floor, a pixel never modelled has no background to vouch for a floor reading: there
+   the matcher's floor reading is evidence only where the floor test agrees (the dark near face of
+   a plain box standing since start-up, and its top beside it, take the floor's disparity from
+   around; offline, ``--floor plain --plain-objects``: static false-free 0.42 → 0.07 %).
 5. Shadows lie on the floor: on texture stereo still measures the floor (rule 0 where the matcher
    has nothing), on a plain floor a shadow is a departure (rule 4: unknown), never an obstacle.
 6. Along the baseline, the matcher fills an untextured run of a row from the measurements that bound
@@ -1128,6 +1132,9 @@ class FloorModel:
         self._modelled = np.zeros((height, width), np.bool_)
         self.hidden = np.zeros((height, width), np.bool_)
         """Rule 10, of the last frame: pixels whose floor is hidden by something standing there."""
+        self.plain_floor = False
+        """The floor seen is plain (TEXTURED_FLOOR_SHARE, decided in each learning frame): rule 4's
+        never-modelled pixels."""
         self.confirmed = np.zeros((height, width), np.uint8)
         self.frames = 0
         self.relearned = 0
@@ -1355,6 +1362,8 @@ class FloorModel:
         # nor a floor reading where the floor's texture is gone (a dark body's lower rim).
         departs = self._modelled & inside & ~both_match
         measured[departs & (interpolated | covered) & low] = np.nan
+        if self.plain_floor:
+            measured[~self._modelled & ~test.agree & ~observed & low] = np.nan
         self._fill_departed_regions(measured, ~np.isfinite(measured) & ~observed & departs)  # 8
         observed |= self._paint(matches, test, inside & ~np.isfinite(measured))  # rule 11
         # Floor observations sit at height 0 (measurements are corrected to the calibration's floor).
@@ -1555,14 +1564,29 @@ class FloorModel:
         grown: Mask = enough[labels]
         return grown
 
-    def _blocked(self, test: FloorTest, measured: F32, inside: Mask) -> tuple[Mask, Mask]:
+    def _plain_floor_seen(self, test: FloorTest, inside: Mask) -> bool | None:
+        """Whether the floor is plain (less than TEXTURED_FLOOR_SHARE of it textured for the floor
+        test), over what is modelled, or all that is seen before that; None: too little floor seen
+        to tell."""
+        floor = self.modelled & inside
+        if np.count_nonzero(floor) < MIN_FIT_PIXELS:
+            floor = inside
+        count = np.count_nonzero(floor)
+        if count < MIN_FIT_PIXELS:
+            return None
+        return bool(np.count_nonzero(test.textured & floor) < TEXTURED_FLOOR_SHARE * count)
+
+    def _blocked(
+        self, test: FloorTest, measured: F32, inside: Mask, plain: bool | None
+    ) -> tuple[Mask, Mask]:
         """Pixels no learning frame may take for floor: under the columns of this frame's measured
         obstacle points (line of sight), and on a textured floor the plain runs outward of them
         that end within reach (a plain top: its edge was measured, the top beyond has nothing to
         measure, and where it meets a floor of its grey with hardly an edge the model grew over
         it; offline, ``--seed 2``: a light crate on concrete, 50 of its cells free). On a plain
         floor, the plain runs outward of a plain top's edge (:meth:`_plain_tops`), which are
-        returned apart as well: they lose a confirmation."""
+        returned apart as well: they lose a confirmation. ``plain``: :meth:`_plain_floor_seen`
+        (None: neither rule)."""
         height = self.geometry.height_m(measured)
         with np.errstate(invalid="ignore"):
             obstacle = test.textured & (height >= self.obstacle_min_m)
@@ -1571,16 +1595,10 @@ class FloorModel:
             obstacle, radius * (1.0 - height / np.float32(self.geometry.camera_height_m)), np.inf
         ).astype(np.float32)
         blocked = self.line_of_sight.blocked(feet)
-        # The floor's texture: over what is modelled, or all that is seen before that.
-        floor = self.modelled & inside
-        if np.count_nonzero(floor) < MIN_FIT_PIXELS:
-            floor = inside
-        count = np.count_nonzero(floor)
-        textured = np.count_nonzero(test.textured & floor)
         reach_px = TOP_REACH_M * self.geometry.floor_px_per_m
-        if count < MIN_FIT_PIXELS:  # too little floor seen to tell its texture
+        if plain is None:
             return blocked, np.zeros_like(blocked)
-        if textured >= TEXTURED_FLOOR_SHARE * count:
+        if not plain:
             tops = self.line_of_sight.top_runs(
                 obstacle, ~test.textured, reach_px, self.config.window_px
             )
@@ -1637,7 +1655,10 @@ class FloorModel:
         cfg = self.config
         seeds = self._seeds(test, at_floor, inside)
         confirmed = (seeds | self._grown(left, seeds, test.contradict)) & inside
-        blocked, tops = self._blocked(test, measured, inside)
+        plain = self._plain_floor_seen(test, inside)
+        if plain is not None:
+            self.plain_floor = plain
+        blocked, tops = self._blocked(test, measured, inside, plain)
         confirmed &= ~blocked
         modelled = self.modelled & inside
         if relearn:
