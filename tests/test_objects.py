@@ -718,13 +718,14 @@ def test_the_cells_a_plain_tops_measured_rim_encloses_are_not_served_free() -> N
     assert all(0 <= served(*cell) <= free_max for cell in floor)
 
 
-def test_the_cells_just_outside_a_whole_static_objects_footprint_are_its_fringe() -> None:
+def test_the_cells_just_outside_a_static_objects_footprint_are_its_fringe() -> None:
     """The frames call a cell occupied all round each of three boxes (side faces, fattening):
     a box measured whole, a small box standing against its side (touching, it is a piece of what
-    the map shows: ``partial``), and a box every view of which is cut by the image border (its
-    size a lower bound). The whole box's ring is its fringe, served unknown, less the small box's
-    cells; the partial boxes keep their rings; the floor two cells out stays free and the boxes'
-    own cells stay occupied."""
+    the map shows: ``partial``), and a box every view of which is cut by the image border at its
+    right side (its size a lower bound), which the map shows going on past that side. The whole
+    box's ring is its fringe, served unknown, less the small box's cells; the cut box's ring is
+    its fringe only where free floor lies beyond it, not past its cut side; the small box keeps
+    its ring; the floor two cells out stays free and the boxes' own cells stay occupied."""
     resolution = 0.05
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
 
@@ -735,6 +736,7 @@ def test_the_cells_just_outside_a_whole_static_objects_footprint_are_its_fringe(
     measure(Window(19, 23, 14, 10), 4.0)  # whole box x 1.0–1.6, y 1.2–1.6, and a cell round it
     measure(Window(31, 25, 6, 6), 4.0)  # a small box against it: x 1.6–1.8, y 1.3–1.5, and ring
     measure(Window(99, 23, 14, 10), 4.0)  # partial box x 5.0–5.6, y 1.2–1.6, and a cell round it
+    measure(Window(113, 24, 3, 8), 4.0)  # … going on past its cut side to x = 5.8
     tracker = ObjectTracker()
     views = [
         _record((1.3, 1.4), (0.6, 0.4)),
@@ -749,7 +751,8 @@ def test_the_cells_just_outside_a_whole_static_objects_footprint_are_its_fringe(
         return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
 
     fringe = [(0.975, 1.4), (1.3, 1.175), (1.3, 1.625), (0.975, 1.175), (1.625, 1.225)]
-    partial_ring = [(4.975, 1.4), (5.3, 1.625), (1.825, 1.4)]  # (1.825, 1.4): the small box's
+    fringe += [(4.975, 1.4), (5.3, 1.625), (4.975, 1.175)]  # the cut box's, free floor beyond
+    partial_ring = [(5.625, 1.4), (1.825, 1.4)]  # past the cut side; the small box's
     tops = [(1.3, 1.4), (1.625, 1.4), (1.7, 1.4), (5.3, 1.4)]  # (1.625, 1.4): the small box's
     floor = [(0.925, 1.4), (1.3, 1.675)]
     assert all(served(*cell) >= OCCUPIED_MIN for cell in fringe)  # the frames' verdict

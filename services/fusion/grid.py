@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from common.lattice import Window
-from common.mapfiles import OCCUPIED_MIN
+from common.mapfiles import FREE_MAX, OCCUPIED_MIN
 from common.occupancy_map import UNKNOWN, occupancy_from_logodds
 from services.fusion import rules
 from services.fusion.params import GridParams as GridParams  # declared there, with its settings
@@ -547,6 +547,12 @@ class FusedGrid:
         """Cells the frames' evidence calls occupied (not the served layers), over a window."""
         occupied: npt.NDArray[np.bool_] = self.window_of("occupancy", window) >= OCCUPIED_MIN
         return occupied
+
+    def free_in(self, window: Window) -> npt.NDArray[np.bool_]:
+        """Cells the frames' evidence calls free (not the served layers), over a window."""
+        occupancy = self.window_of("occupancy", window)
+        free: npt.NDArray[np.bool_] = (occupancy >= 0) & (occupancy <= FREE_MAX)
+        return free
 
     def layer(self, name: str) -> npt.NDArray[Any]:
         """One layer over the whole map (a copy: for tools and tests; the service uses snapshots)."""

@@ -30,8 +30,9 @@ Rules that shape the tracks:
   object they show larger than measured says ``partial``, and where its footprint is such a
   piece or a plain top (the frames' evidence does not agree with it), the
   rectangle its connected cells span is handed to the grid as contested (:meth:`check_against`);
-  around a whole static object the frames agree with, its connected cells 1–10 cm outside its
-  footprint (less every track's footprint) are handed over as its fringe;
+  around a static object the frames agree with, its connected cells 1–10 cm outside its
+  footprint (less every track's footprint) are handed over as its fringe (of a ``partial`` one,
+  those with free floor beyond them; of a ``size_unsure`` one, none);
 - a size is the median of the views seen whole; fewer than four of them, or views that disagree,
   make it ``size_unsure`` (:func:`_views_unsure`).
 """
@@ -75,6 +76,8 @@ class OccupiedCells(Protocol):
     def resolution_m(self) -> float: ...
 
     def occupied_in(self, window: Window) -> Mask: ...
+
+    def free_in(self, window: Window) -> Mask: ...
 
     def agrees(self, window: Window, mask: Mask) -> bool: ...
 
@@ -161,11 +164,13 @@ class TrackerConfig:
     """… those cells are looked for this far around the footprint."""
     fringe_margin_m: float = 0.01
     fringe_reach_m: float = 0.1
-    """A whole static object's connected cells whose centres lie more than ``fringe_margin_m`` and
-    at most ``fringe_reach_m`` outside its footprint are its fringe
-    (:meth:`ConnectedCells.fringe`): the cells its side faces and the matcher's fattening make
-    occupied, that its footprint, measured to a centimetre or two, does not hold. Offline, nine scenes (20 s), served unknown: IoU
-    +0.007 to +0.025 on eight, false-free unchanged (README, "How good is the map")."""
+    """A static object's connected cells whose centres lie more than ``fringe_margin_m`` and at
+    most ``fringe_reach_m`` outside its footprint are its fringe (:meth:`ConnectedCells.fringe`):
+    the cells its side faces and the matcher's fattening make occupied, that its footprint,
+    measured to a centimetre or two, does not hold. Offline, nine scenes (20 s), served unknown:
+    IoU +0.007 to +0.025 on eight, false-free unchanged (README, "How good is the map"). A
+    ``partial`` object's (its size a lower bound) only where free floor lies beyond it; a
+    ``size_unsure`` one has none."""
     default_frame_interval_s: float = 0.5
     wake_s: float = 3.0
     """Where a moving track was seen in the last this-many seconds, and is not now, is its
@@ -873,9 +878,10 @@ class ObjectTracker:
         Fusion serves the enclosures' cells the frames do not call occupied unknown (the
         contested layer), not free: the rest of a plain top of the floor's grey, which the floor
         model may have taken for floor. Two objects that touch are one part of the map: both are
-        pieces of it, and both enclose the pair. A whole static track the frames agree with hands
-        over its fringe instead (:meth:`ConnectedCells.fringe`, less every track's footprint),
-        which fusion serves unknown (the fringe layer)."""
+        pieces of it, and both enclose the pair. A static track the frames agree with hands over
+        its fringe instead (:meth:`ConnectedCells.fringe`, less every track's footprint; of a
+        partial one, only where free floor lies beyond; an unsure one hands over none), which
+        fusion serves unknown (the fringe layer)."""
         config, resolution_m = self.config, cells.resolution_m
         pieces, enclosures, fringes = set(), [], []
         for track in self.tracks:
@@ -892,9 +898,14 @@ class ObjectTracker:
                 pieces.add(track.id)
             if track.static and (piece or not cells.agrees(*connected.footprint_cells)):
                 enclosures.append(connected.enclosure(footprint, resolution_m))
-            elif track.static and not (partial or unsure):
+            elif track.static and not unsure:
                 fringes.append(
-                    connected.fringe(footprint, config.fringe_margin_m, config.fringe_reach_m)
+                    connected.fringe(
+                        footprint,
+                        config.fringe_margin_m,
+                        config.fringe_reach_m,
+                        bounded=not partial,
+                    )
                 )
         return MapCheck(frozenset(pieces), enclosures, self._outside_tracks(fringes, resolution_m))
 
@@ -946,6 +957,8 @@ class ConnectedCells:
     """Every cell's centre along the footprint's yaw and across it, from its centre."""
     footprint_cells: tuple[Window, Mask]
     """The cells whose centres the footprint holds (``polygon_cells``)."""
+    free: Mask
+    """The cells the frames' evidence calls free, over the window."""
     round: bool = False
     """The footprint is the circle inscribed in its rectangle."""
 
@@ -971,13 +984,21 @@ class ConnectedCells:
             int(np.count_nonzero(self.footprint_cells[1])), 1
         )
 
-    def fringe(self, footprint: Rectangle, margin_m: float, reach_m: float) -> tuple[Window, Mask]:
+    def fringe(
+        self, footprint: Rectangle, margin_m: float, reach_m: float, bounded: bool = True
+    ) -> tuple[Window, Mask]:
         """The connected cells whose centres lie more than ``margin_m`` and at most ``reach_m``
         outside the footprint. A cell is the object's by its centre; the frames make one occupied
         by a share of its pixels, which its side faces (tens of points on one line) and a pixel
-        or two of fattening reach from beside it."""
+        or two of fattening reach from beside it. Not ``bounded`` (a footprint that is a lower
+        bound): only the cells with free floor beyond them, outward through other such cells;
+        where the object goes on past its footprint (a side cut by the image's border, the rest
+        of it seen by another pair) the cells beyond are occupied or unknown."""
         outside_m = self.outside_m(footprint)
-        return self.window, self.connected & (outside_m > margin_m) & (outside_m <= reach_m)
+        fringe = self.connected & (outside_m > margin_m) & (outside_m <= reach_m)
+        if not bounded:
+            fringe &= _open_outward(self.free, fringe, outside_m)
+        return self.window, fringe
 
     def enclosure(self, footprint: Rectangle, resolution_m: float) -> tuple[Window, Mask]:
         """The cells of the rectangle, along the footprint's yaw, through the footprint and the
@@ -993,6 +1014,28 @@ class ConnectedCells:
             y + middle_along * s + middle_across * c,
         )
         return polygon_cells(corners(center, (a1 - a0, b1 - b0), yaw), resolution_m)
+
+
+def _open_outward(free: Mask, candidates: Mask, outside_m: F64) -> Mask:
+    """The ``candidates`` from which a chain of candidates, each farther out (``outside_m``) than
+    the one before and 8-connected to it, reaches a ``free`` cell."""
+    rows, cols = free.shape
+    padded_out = np.pad(outside_m, 1, constant_values=-np.inf)
+    offsets = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
+    farther = [
+        padded_out[1 + dy : 1 + dy + rows, 1 + dx : 1 + dx + cols] > outside_m for dy, dx in offsets
+    ]
+    reached, open_ = free.copy(), np.zeros_like(free)
+    while True:
+        padded = np.pad(reached, 1)
+        step = np.zeros_like(free)
+        for (dy, dx), out in zip(offsets, farther, strict=True):
+            step |= padded[1 + dy : 1 + dy + rows, 1 + dx : 1 + dx + cols] & out
+        grown = candidates & ~open_ & step
+        if not grown.any():
+            return open_
+        open_ |= grown
+        reached |= grown
 
 
 def connected_cells(
@@ -1024,5 +1067,6 @@ def connected_cells(
         along_m=(x_m - x) * c + (y_m - y) * s,
         across_m=(y_m - y) * c - (x_m - x) * s,
         footprint_cells=(inner_window, inner),
+        free=cells.free_in(window),
         round=round_,
     )
