@@ -1027,3 +1027,33 @@ def test_free_cells_under_a_mover_now_are_served_unknown() -> None:
     assert served[at[0], at[1] + 11] == -1  # 0.55 m ahead of its centre: its front edge's cells
     assert 0 <= served[at[0], at[1] + 20] <= 25  # 1 m ahead: floor
     assert 0 <= served[at[0] + 20, at[1]] <= 25  # 1 m beside it
+
+
+def test_free_cells_under_a_track_starting_off_are_served_unknown() -> None:
+    """A person (0.5 × 0.4 m) that has just turned or started: seen three times 0.6 m apart,
+    too few to call it moving, over floor the frames call free (``--floor plain``: its blue side
+    has the floor's grey). Its newest view's cells are served unknown; where it was before, a box
+    seen three times in one place (standing) and a 3 m view (several objects merged in one
+    detection) keep the frames' verdict."""
+    resolution = 0.05
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
+    _measure(grid, Window(0, 0, 200, 100), -2.0)  # the floor: free
+    tracker = ObjectTracker()
+    for k in range(3):
+        views = [
+            _record((2.0 + 0.6 * k, 2.0), (0.5, 0.4)),
+            _record((6.0, 2.0), (0.5, 0.4)),
+            _record((8.0 + 0.6 * k, 3.5), (3.0, 0.6)),
+        ]
+        tracker.add("p0", T0_NS + k * FRAME_NS, views, now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+    assert len(tracker.tracks) == 3 and not any(t.moving for t in tracker.tracks)
+    grid.set_contested(tracker.movers_now(resolution))
+    served = grid.served_occupancy()
+
+    def at(x: float, y: float) -> int:
+        return int(served[int(y / resolution), int(x / resolution)])
+
+    assert [at(3.2, 2.0), at(3.4, 2.15), at(3.0, 1.85)] == [-1, -1, -1]  # its newest view
+    for x, y in ((2.0, 2.0), (2.6, 2.0), (6.0, 2.0), (9.2, 3.5)):
+        assert 0 <= at(x, y) <= 25, (x, y)

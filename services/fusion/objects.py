@@ -191,6 +191,10 @@ class TrackerConfig:
     5 --pairs 6`` 0.42 → 0.63 % without the margin)."""
     max_size_m: float = 10.0
     """A footprint longer than this is a broken detection: it makes no wake and no outline."""
+    young_max_size_m: float = 2.0
+    """A track neither moving nor standing yet whose newest view is longer than this is no mover
+    starting off but several objects and a mover merged in one detection (offline, ``--seed 5
+    --pairs 6``: views 3–5 m long, their footprints 2–6 m² of floor served unknown)."""
 
 
 @dataclass(frozen=True)
@@ -803,12 +807,27 @@ class ObjectTracker:
 
     def movers_now(self, resolution_m: float) -> list[tuple[Window, npt.NDArray[np.bool_]]]:
         """The cells of each moving track's footprint at the newest capture (a track missed by
-        it, where it is predicted then; none for a track missed longer: :meth:`sweep`). Fusion
-        serves those the frames do not call occupied unknown (the contested layer): something
-        stands there now, and a free reading there is the floor before it came, or a plain side
-        of the floor's grey that the floor model took for floor (offline, ``--floor plain``: the
-        person's cells 23 % free)."""
-        return self.sweep(resolution_m, self.stamp_ns, self.stamp_ns)
+        it, where it is predicted then; none for a track missed longer: :meth:`sweep`), and of
+        each track the newest capture saw that is neither moving nor static yet, where it saw it
+        (a mover that has just turned or started, whose track begins again). Fusion serves those
+        the frames do not call occupied unknown (the contested layer): something stands there
+        now, and a free reading there is the floor before it came, or a plain side of the floor's
+        grey that the floor model took for floor (offline, ``--floor plain``: the person's cells
+        23 % free)."""
+        young = []
+        for t in self.tracks:
+            if t.moving or t.standing or t.stamp_ns != self.stamp_ns:
+                continue
+            if t.detections < self.config.confirm_detections:
+                continue
+            # Its newest view, not its size: a young track's views may be a broken detection's.
+            length, width, yaw, *_ = max(
+                (views[-1] for views in (t.sizes, t.partial_sizes) if views), key=lambda v: v[5]
+            )
+            if max(length, width) <= self.config.young_max_size_m:
+                polygon = footprint_polygon(t.center_m, (length, width), yaw, False)
+                young.append(polygon_cells(polygon, resolution_m))
+        return self.sweep(resolution_m, self.stamp_ns, self.stamp_ns) + young
 
     def wake(self, resolution_m: float) -> tuple[list[tuple[Window, npt.NDArray[np.bool_]]], float]:
         """The cells of the movers' wakes over the last ``wake_s``, and the observation time
