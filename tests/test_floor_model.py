@@ -13,6 +13,7 @@ import pytest
 
 from common.camera import PinholeCamera, StereoCalibration
 from common.mapfiles import read_map_server
+from common.messages import TruthObject
 from services.camera_sim.calibration_error import CalibrationError, rotation_from_vector
 from services.camera_sim.capture import CameraModel, StereoCapture
 from services.camera_sim.render import SceneRenderer
@@ -246,6 +247,17 @@ def test_a_plain_crate_of_the_floors_grey_on_concrete_is_never_learned_as_floor(
     assert pipeline.floor_model.modelled_share() > 0.6  # the floor around it was learned
 
 
+def _plain_object_alone(name: str, pair_index: int) -> tuple[Pair, DepthPipeline, TruthObject]:
+    """``--floor plain --plain-objects``' object ``name`` alone on its floor, seen by the pair of
+    that index, with a depth pipeline for the pair and the object's truth."""
+    scene = generate_scene(0, floor="plain", plain_objects=True)
+    obj = next(o for o in scene.objects if o.name == name)
+    scene = scene.model_copy(update={"objects": [obj], "movers": []})
+    pair = Pair(scene, calibration=layout_pairs(RigSpec(), scene.floor_size_m)[pair_index])
+    pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
+    return pair, pipeline, next(o for o in scene.truth_objects(0) if o.name == name)
+
+
 def test_a_tall_plain_box_of_the_floors_grey_on_a_plain_floor_is_not_learned_as_floor() -> None:
     """``--floor plain --plain-objects``' box_2 (1.3 m, seen from beside the nadir of the pair
     over it): its top has the floor's grey and meets the floor beyond it with no edge; only a
@@ -254,12 +266,7 @@ def test_a_tall_plain_box_of_the_floors_grey_on_a_plain_floor_is_not_learned_as_
     Where the strip lies at a slant to the ray it is not thin along it, and the top beyond that
     part is still learned: its free cells are about halved, not gone (24–30 a frame before; live,
     fused with the other pairs and the contested footprint, 39 → 12 % of its cells free)."""
-    scene = generate_scene(0, floor="plain", plain_objects=True)
-    box = next(o for o in scene.objects if o.name == "box_2")
-    scene = scene.model_copy(update={"objects": [box], "movers": []})
-    pair = Pair(scene, calibration=layout_pairs(RigSpec(), scene.floor_size_m)[3])
-    pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
-    truth = next(o for o in scene.truth_objects(0) if o.name == box.name)
+    pair, pipeline, truth = _plain_object_alone("box_2", 3)
     free_cells = []
     for _ in range(32):
         tile = pipeline.process(*pair.next()).tile
@@ -974,12 +981,7 @@ def test_on_a_plain_floor_a_floor_reading_never_modelled_needs_the_floor_test() 
     has nothing to say otherwise), and those readings fell inside its footprint as free cells,
     frame after frame. Those pixels were never modelled (the box stood there from the start), so
     on a plain floor only the floor test's agreement makes their floor reading evidence."""
-    scene = generate_scene(0, floor="plain", plain_objects=True)
-    box = next(o for o in scene.objects if o.name == "box_3")
-    scene = scene.model_copy(update={"objects": [box], "movers": []})
-    pair = Pair(scene, calibration=layout_pairs(RigSpec(), scene.floor_size_m)[2])
-    pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
-    truth = next(o for o in scene.truth_objects(0) if o.name == box.name)
+    pair, pipeline, truth = _plain_object_alone("box_3", 2)
     free_cells, free_floor = [], []
     for _ in range(24):
         tile = pipeline.process(*pair.next()).tile
