@@ -29,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from common.lattice import reframe
-from common.mapfiles import FREE_MAX, OCCUPIED_MIN
+from common.mapfiles import OCCUPIED_MIN, free_cells
 from common.messages import TruthObject
 from common.occupancy_map import UNKNOWN
 from services.camera_sim import truth as scene_truth
@@ -194,11 +194,11 @@ def picture(
     """The map as map.png draws it (free white, occupied black, unknown grey), with its errors in
     colour over the seen cells; y up, 4 pixels a cell."""
     image = np.full((*occupancy.shape, 3), 180, np.uint8)
-    image[(occupancy >= 0) & (occupancy <= FREE_MAX)] = 255
+    image[free_cells(occupancy)] = 255
     occupied = occupancy >= OCCUPIED_MIN
     image[occupied] = 0
     image[occupied & ~truth & seen] = (0, 0, 230)  # BGR: false occupied, red
-    image[(occupancy >= 0) & (occupancy <= FREE_MAX) & truth & seen] = (230, 80, 0)
+    image[free_cells(occupancy) & truth & seen] = (230, 80, 0)
     image[(occupancy == UNKNOWN) & truth & seen] = (0, 200, 230)
     image[~seen & (image == 180).all(axis=2)] = 120
     big = cv2.resize(image[::-1], None, fx=4, fy=4, interpolation=cv2.INTER_NEAREST)

@@ -22,6 +22,13 @@ OCCUPIED_MIN = round(OCCUPIED_THRESH * 100)
 FREE_MAX = round(FREE_THRESH * 100)
 """The thresholds on nav_msgs occupancy (0..100): occupied from OCCUPIED_MIN, free up to FREE_MAX."""
 
+
+def free_cells(occupancy: npt.NDArray[np.int8]) -> npt.NDArray[np.bool_]:
+    """The cells a nav_msgs occupancy calls free (known, and at most FREE_MAX)."""
+    free: npt.NDArray[np.bool_] = (occupancy >= 0) & (occupancy <= FREE_MAX)
+    return free
+
+
 MAP_FILE_SUFFIXES = (".yaml", ".yml", ".pgm", ".png", ".npz")
 """What :func:`write_map` writes, by the file's suffix."""
 
@@ -37,7 +44,7 @@ PICTURE_COLORS = {
 def trinary(occupancy: npt.NDArray[np.int8]) -> npt.NDArray[np.uint8]:
     """map_server trinary values, rows as stored (origin row first)."""
     image = np.full(occupancy.shape, PGM_UNKNOWN, np.uint8)
-    image[(occupancy >= 0) & (occupancy <= FREE_MAX)] = PGM_FREE
+    image[free_cells(occupancy)] = PGM_FREE
     image[occupancy >= OCCUPIED_MIN] = PGM_OCCUPIED
     return image
 
@@ -101,7 +108,7 @@ def picture(
     occ = occupancy_map.occupancy
     rgb = np.empty((*occ.shape, 3), np.uint8)
     rgb[:] = PICTURE_COLORS["unknown"]
-    rgb[(occ >= 0) & (occ <= FREE_MAX)] = PICTURE_COLORS["free"]
+    rgb[free_cells(occ)] = PICTURE_COLORS["free"]
     between = (occ > FREE_MAX) & (occ < OCCUPIED_MIN)
     rgb[between] = (150, 150, 150)
     rgb[occ >= OCCUPIED_MIN] = PICTURE_COLORS["occupied"]

@@ -36,10 +36,12 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
    in (no texture along x) or where the image no longer shows the background's texture: the lower
    rim of a dark body reads at the floor's height and its points fall inside its footprint (a
    person's cells 45 % free on the default scene), while a shadow keeps the floor's texture.
-   On a plain floor, a pixel never modelled has no background to vouch for a floor reading: there
-   the matcher's floor reading is evidence only where the floor test agrees (the dark near face of
-   a plain box standing since start-up, and its top beside it, take the floor's disparity from
-   around; offline, ``--floor plain --plain-objects``: static false-free 0.42 → 0.07 %).
+   On a plain floor, a pixel the model does not hold has no background to vouch for a floor
+   reading: there the matcher's floor reading is evidence only where the floor test agrees (the
+   dark near face of a plain box standing since start-up, and its top beside it, take the floor's
+   disparity from around; offline, ``--floor plain --plain-objects``: static false-free 0.42 →
+   0.07 %). So are the plain floor's own pixels until the model holds them: the first learning
+   frames map less of it.
 5. Shadows lie on the floor: on texture stereo still measures the floor (rule 0 where the matcher
    has nothing), on a plain floor a shadow is a departure (rule 4: unknown), never an obstacle.
 6. Along the baseline, the matcher fills an untextured run of a row from the measurements that bound
@@ -1133,8 +1135,9 @@ class FloorModel:
         self.hidden = np.zeros((height, width), np.bool_)
         """Rule 10, of the last frame: pixels whose floor is hidden by something standing there."""
         self.plain_floor = False
-        """The floor seen is plain (TEXTURED_FLOOR_SHARE, decided in each learning frame): rule 4's
-        never-modelled pixels."""
+        """The floor seen is plain (TEXTURED_FLOOR_SHARE): rule 4's pixels the model does not hold.
+        Decided in each learning frame that sees enough floor, after that frame's evidence: False
+        until then."""
         self.confirmed = np.zeros((height, width), np.uint8)
         self.frames = 0
         self.relearned = 0
@@ -1363,7 +1366,7 @@ class FloorModel:
         departs = self._modelled & inside & ~both_match
         measured[departs & (interpolated | covered) & low] = np.nan
         if self.plain_floor:
-            measured[~self._modelled & ~test.agree & ~observed & low] = np.nan
+            measured[~self._modelled & ~test.agree & low] = np.nan
         self._fill_departed_regions(measured, ~np.isfinite(measured) & ~observed & departs)  # 8
         observed |= self._paint(matches, test, inside & ~np.isfinite(measured))  # rule 11
         # Floor observations sit at height 0 (measurements are corrected to the calibration's floor).
@@ -1586,7 +1589,7 @@ class FloorModel:
         it; offline, ``--seed 2``: a light crate on concrete, 50 of its cells free). On a plain
         floor, the plain runs outward of a plain top's edge (:meth:`_plain_tops`), which are
         returned apart as well: they lose a confirmation. ``plain``: :meth:`_plain_floor_seen`
-        (None: neither rule)."""
+        (None: the line of sight only)."""
         height = self.geometry.height_m(measured)
         with np.errstate(invalid="ignore"):
             obstacle = test.textured & (height >= self.obstacle_min_m)

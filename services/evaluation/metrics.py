@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 from common.camera import StereoCalibration
 from common.lattice import Window, reframe
-from common.mapfiles import FREE_MAX, OCCUPIED_MIN
+from common.mapfiles import OCCUPIED_MIN, free_cells
 from common.messages import TruthObject
 from common.occupancy_map import UNKNOWN, OccupancyMap
 from common.sensor_model import SensorModelParams
@@ -157,7 +157,7 @@ def _ratio(numerator: int, denominator: int) -> float:
 def score_cells(occupancy: npt.NDArray[np.int8], truth: Mask, seen: Mask) -> CellScores:
     """Scores over the cells some camera sees; ``occupancy`` and ``truth`` share one window."""
     occupied = (occupancy >= OCCUPIED_MIN) & seen
-    free = (occupancy >= 0) & (occupancy <= FREE_MAX) & seen
+    free = free_cells(occupancy) & seen
     truth_seen = truth & seen
     hits = int(np.count_nonzero(occupied & truth_seen))
     union = int(np.count_nonzero(occupied | truth_seen))
@@ -184,7 +184,7 @@ def cell_shares(occupancy: npt.NDArray[np.int8], cells: Mask) -> dict[str, float
     values = occupancy[cells]
     return {
         "occupied": _ratio(int(np.count_nonzero(values >= OCCUPIED_MIN)), total),
-        "free": _ratio(int(np.count_nonzero((values >= 0) & (values <= FREE_MAX))), total),
+        "free": _ratio(int(np.count_nonzero(free_cells(values))), total),
         "unknown": _ratio(int(np.count_nonzero(values == UNKNOWN)), total),
         "cells": total,
     }

@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from common.lattice import Window
-from common.mapfiles import FREE_MAX, OCCUPIED_MIN
+from common.mapfiles import OCCUPIED_MIN, free_cells
 from common.occupancy_map import UNKNOWN, occupancy_from_logodds
 from services.fusion import rules
 from services.fusion.params import GridParams as GridParams  # declared there, with its settings
@@ -550,9 +550,7 @@ class FusedGrid:
 
     def free_in(self, window: Window) -> npt.NDArray[np.bool_]:
         """Cells the frames' evidence calls free (not the served layers), over a window."""
-        occupancy = self.window_of("occupancy", window)
-        free: npt.NDArray[np.bool_] = (occupancy >= 0) & (occupancy <= FREE_MAX)
-        return free
+        return free_cells(self.window_of("occupancy", window))
 
     def layer(self, name: str) -> npt.NDArray[Any]:
         """One layer over the whole map (a copy: for tools and tests; the service uses snapshots)."""

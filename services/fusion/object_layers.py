@@ -11,8 +11,9 @@ from services.fusion.objects import MapCheck, ObjectTracker
 def serve_tracks(
     grid: FusedGrid, tracker: ObjectTracker, outline_static: bool
 ) -> tuple[CellMasks, MapCheck]:
-    """Forget the movers' wakes, and set the contested layer (moving tracks' footprints now, and
-    with ``outline_static`` the static footprints the frames disagree with and the rims' enclosures)
+    """Forget the movers' wakes, and set the contested layer (moving and unsettled tracks'
+    footprints now: ``ObjectTracker.movers_now``; with ``outline_static`` also the static
+    footprints the frames disagree with and the rims' enclosures)
     and the fringe layer; returns the static footprints the frames agree with (for the predicted
     layer) and the map check (whose pieces the object list reports)."""
     resolution_m = grid.params.resolution_m

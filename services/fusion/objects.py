@@ -191,10 +191,10 @@ class TrackerConfig:
     5 --pairs 6`` 0.42 → 0.63 % without the margin)."""
     max_size_m: float = 10.0
     """A footprint longer than this is a broken detection: it makes no wake and no outline."""
-    young_max_size_m: float = 2.0
-    """A track neither moving nor standing yet whose newest view is longer than this is no mover
-    starting off but several objects and a mover merged in one detection (offline, ``--seed 5
-    --pairs 6``: views 3–5 m long, their footprints 2–6 m² of floor served unknown)."""
+    unsettled_max_size_m: float = 2.0
+    """A track neither moving nor standing whose newest view is longer than this is no mover
+    but several objects and a mover merged in one detection (offline, ``--seed 5 --pairs 6``:
+    views 3–5 m long, their footprints 2–6 m² of floor served unknown)."""
 
 
 @dataclass(frozen=True)
@@ -808,26 +808,29 @@ class ObjectTracker:
     def movers_now(self, resolution_m: float) -> list[tuple[Window, npt.NDArray[np.bool_]]]:
         """The cells of each moving track's footprint at the newest capture (a track missed by
         it, where it is predicted then; none for a track missed longer: :meth:`sweep`), and of
-        each track the newest capture saw that is neither moving nor static yet, where it saw it
-        (a mover that has just turned or started, whose track begins again). Fusion serves those
-        the frames do not call occupied unknown (the contested layer): something stands there
-        now, and a free reading there is the floor before it came, or a plain side of the floor's
-        grey that the floor model took for floor (offline, ``--floor plain``: the person's cells
-        23 % free)."""
-        young = []
+        each *unsettled* track's newest view, where the track is: one the newest capture saw,
+        seen twice or more, neither moving nor standing in one place (a mover whose track was
+        lost at a turn or has just started, or whose moving flag dropped at a curve). Fusion
+        serves those the frames do not call occupied unknown (the contested layer): something
+        stands there now, and a free reading there is the floor before it came, or a plain side
+        of the floor's grey that the floor model took for floor (offline, ``--floor plain``: the
+        person's cells 23 % free)."""
+        unsettled = []
         for t in self.tracks:
             if t.moving or t.standing or t.stamp_ns != self.stamp_ns:
                 continue
             if t.detections < self.config.confirm_detections:
                 continue
-            # Its newest view, not its size: a young track's views may be a broken detection's.
-            length, width, yaw, *_ = max(
-                (views[-1] for views in (t.sizes, t.partial_sizes) if views), key=lambda v: v[5]
+            # Its newest view (by capture time), not its size: an unsettled track's views may
+            # be a broken detection's.
+            length, width, yaw, _, _, _, round_ = max(
+                (views[-1] for views in (t.sizes, t.partial_sizes) if views),
+                key=lambda view: view[5],
             )
-            if max(length, width) <= self.config.young_max_size_m:
-                polygon = footprint_polygon(t.center_m, (length, width), yaw, False)
-                young.append(polygon_cells(polygon, resolution_m))
-        return self.sweep(resolution_m, self.stamp_ns, self.stamp_ns) + young
+            if max(length, width) <= self.config.unsettled_max_size_m:
+                polygon = footprint_polygon(t.center_m, (length, width), yaw, bool(round_))
+                unsettled.append(polygon_cells(polygon, resolution_m))
+        return self.sweep(resolution_m, self.stamp_ns, self.stamp_ns) + unsettled
 
     def wake(self, resolution_m: float) -> tuple[list[tuple[Window, npt.NDArray[np.bool_]]], float]:
         """The cells of the movers' wakes over the last ``wake_s``, and the observation time
@@ -923,7 +926,7 @@ class ObjectTracker:
                         footprint,
                         config.fringe_margin_m,
                         config.fringe_reach_m,
-                        bounded=not partial,
+                        free_beyond=cells.free_in(connected.window) if partial else None,
                     )
                 )
         return MapCheck(frozenset(pieces), enclosures, self._outside_tracks(fringes, resolution_m))
@@ -961,7 +964,8 @@ class MapCheck:
     enclosures: list[tuple[Window, Mask]] = field(default_factory=list)
     """Cells the static tracks' measured rims enclose, for the contested layer."""
     fringes: list[tuple[Window, Mask]] = field(default_factory=list)
-    """Occupied cells just outside whole static tracks' footprints, for the fringe layer."""
+    """Occupied cells just outside static tracks' footprints (a partial one's: with free floor
+    beyond), for the fringe layer."""
 
 
 @dataclass(frozen=True)
@@ -976,8 +980,6 @@ class ConnectedCells:
     """Every cell's centre along the footprint's yaw and across it, from its centre."""
     footprint_cells: tuple[Window, Mask]
     """The cells whose centres the footprint holds (``polygon_cells``)."""
-    free: Mask
-    """The cells the frames' evidence calls free, over the window."""
     round: bool = False
     """The footprint is the circle inscribed in its rectangle."""
 
@@ -1004,19 +1006,25 @@ class ConnectedCells:
         )
 
     def fringe(
-        self, footprint: Rectangle, margin_m: float, reach_m: float, bounded: bool = True
+        self,
+        footprint: Rectangle,
+        margin_m: float,
+        reach_m: float,
+        free_beyond: Mask | None = None,
     ) -> tuple[Window, Mask]:
         """The connected cells whose centres lie more than ``margin_m`` and at most ``reach_m``
         outside the footprint. A cell is the object's by its centre; the frames make one occupied
         by a share of its pixels, which its side faces (tens of points on one line) and a pixel
-        or two of fattening reach from beside it. Not ``bounded`` (a footprint that is a lower
-        bound): only the cells with free floor beyond them, outward through other such cells;
-        where the object goes on past its footprint (a side cut by the image's border, the rest
-        of it seen by another pair) the cells beyond are occupied or unknown."""
+        or two of fattening reach from beside it. Given ``free_beyond`` (the cells the frames
+        call free, over the window: for a footprint that is a lower bound), only the cells with
+        free floor beyond them, outward through other such cells: where the object goes on past
+        its footprint (a side cut by the image's border, the rest of it seen by another pair)
+        the cells beyond are occupied or unknown, but for the ring's cells at that side's ends,
+        which can reach free floor beside the part that goes on."""
         outside_m = self.outside_m(footprint)
         fringe = self.connected & (outside_m > margin_m) & (outside_m <= reach_m)
-        if not bounded:
-            fringe &= _open_outward(self.free, fringe, outside_m)
+        if free_beyond is not None:
+            fringe &= _open_outward(free_beyond, fringe, outside_m)
         return self.window, fringe
 
     def enclosure(self, footprint: Rectangle, resolution_m: float) -> tuple[Window, Mask]:
@@ -1086,6 +1094,5 @@ def connected_cells(
         along_m=(x_m - x) * c + (y_m - y) * s,
         across_m=(y_m - y) * c - (x_m - x) * s,
         footprint_cells=(inner_window, inner),
-        free=cells.free_in(window),
         round=round_,
     )
