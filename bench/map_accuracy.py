@@ -261,10 +261,10 @@ def main() -> None:
         f"found {result['static_found']}, "
         f"split {result['static_split']}, merged {result['static_merged']}"
     )
-    for name, (tl, tw, ml, mw, n, part, unsure, seen) in result["tracked_objects"].items():  # type: ignore[attr-defined]
+    for name, (tl, tw, ml, mw, n, part, unsure, in_view) in result["tracked_objects"].items():  # type: ignore[attr-defined]
         print(
             f"  {name:16s} true {tl:.3f}×{tw:.3f}  map {ml:.3f}×{mw:.3f}  tracks {n} partial {part}"
-            f" unsure {unsure} in view {seen}"
+            f" unsure {unsure} in view {in_view}"
         )
     print(json.dumps({"args": vars(args) | {"picture": str(args.picture)}, **result}))
     sys.stdout.flush()

@@ -13,9 +13,9 @@ def serve_tracks(
 ) -> tuple[CellMasks, MapCheck]:
     """Forget the movers' wakes, and set the contested layer (moving and unsettled tracks'
     footprints now: ``ObjectTracker.movers_now``; with ``outline_static`` also the static
-    footprints the frames disagree with and the rims' enclosures)
-    and the fringe layer; returns the static footprints the frames agree with (for the predicted
-    layer) and the map check (whose pieces the object list reports)."""
+    footprints the frames disagree with and the rims' enclosures) and the fringe layer; returns
+    the static footprints the frames agree with (for the predicted layer) and the map check
+    (whose pieces the object list reports)."""
     resolution_m = grid.params.resolution_m
     grid.forget_occupied(*tracker.wake(resolution_m))
     check = tracker.check_against(grid)
