@@ -12,8 +12,8 @@ the last map with its errors coloured (false-occupied red, false-free blue, miss
 The last line is a JSON object with the figures.
 
     .venv/bin/python bench/map_accuracy.py [--seed 0] [--pairs 4] [--floor concrete]
-        [--duration-s 20] [--rate-hz 2] [--ideal-cameras] [--plain-objects] [--no-outline]
-        [--picture out.png]
+        [--duration-s 20] [--rate-hz 2] [--start-s T] [--ideal-cameras] [--plain-objects]
+        [--no-outline] [--picture out.png]
 """
 
 from __future__ import annotations
@@ -50,7 +50,8 @@ from services.fusion.params import GridParams
 from services.fusion.settings import FusionParams
 
 START_S = 1_700_000_000.0
-"""Scene time of the first capture (movers' poses are a function of it)."""
+"""Scene time of the first capture by default (movers' poses and the light steps are functions of
+it): ``--start-s`` replays a live run's instants."""
 
 
 Arrays = tuple[npt.NDArray[np.int8], npt.NDArray[np.bool_], npt.NDArray[np.bool_]]
@@ -78,6 +79,7 @@ def run(
     duration_s: float,
     rate_hz: float,
     outline_static: bool = FusionParams().outline_static,
+    start_s: float = START_S,
 ) -> tuple[dict[str, object], Arrays]:
     """The figures (means over the scored snapshots), and (map occupancy, truth, seen) of the last
     snapshot on the truth's window."""
@@ -91,7 +93,7 @@ def run(
     tracker = ObjectTracker()
     window = scene.window(config.resolution_m)
     r = config.resolution_m
-    static = [o for o in scene.truth_objects(START_S) if not o.moving]
+    static = [o for o in scene.truth_objects(start_s) if not o.moving]
     seen = metrics.seen_by_cameras(
         [capture.calibration for capture in captures],
         window,
@@ -105,7 +107,7 @@ def run(
     snapshots: list[dict[str, float]] = []
     started = time.perf_counter()
     for k in range(frames):
-        stamp_ns = int((START_S + k / rate_hz) * 1e9)
+        stamp_ns = int((start_s + k / rate_hz) * 1e9)
         renderer.set_time(stamp_ns / 1e9)
         for capture, pipeline in zip(captures, pipelines, strict=True):
             result = pipeline.process(*capture.capture(stamp_ns))
@@ -218,6 +220,9 @@ def main() -> None:
     )
     parser.add_argument("--duration-s", type=float, default=20.0)
     parser.add_argument("--rate-hz", type=float, default=2.0)
+    parser.add_argument(
+        "--start-s", type=float, default=START_S, help="scene time of the first capture (epoch s)"
+    )
     parser.add_argument("--picture", type=Path, default=None)
     parser.add_argument(
         "--sim", type=json.loads, default={}, help="more camera-sim settings, as JSON"
@@ -237,7 +242,7 @@ def main() -> None:
     depth = DepthParams.model_validate({"floor_model": not args.no_floor_model} | args.depth)
     cv2.setNumThreads(1)
     result, (occupancy, truth, seen) = run(
-        sim, depth, args.duration_s, args.rate_hz, not args.no_outline
+        sim, depth, args.duration_s, args.rate_hz, not args.no_outline, args.start_s
     )
     if args.picture is not None:
         cv2.imwrite(str(args.picture), picture(occupancy, truth, seen))

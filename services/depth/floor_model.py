@@ -1386,9 +1386,15 @@ class FloorModel:
 
     def _gains(self, left: F32, warped: F32, modelled: Mask) -> tuple[float, float]:
         """Global gain of each camera against its background (median ratio over modelled pixels):
-        exposure, gain and a uniform lighting change scale every floor pixel alike."""
+        exposure, gain and a uniform lighting change scale every floor pixel alike. Before enough
+        pixels are modelled, over every pixel with a background: the first learning frames' means
+        are then on one scale even while auto-exposure still converges (on 1.0, a mean first
+        learnt in one frame and one first learnt in a brighter one stayed apart by the exposure's
+        change: modelled, the later ones departed for good, and rule 8 filled them as obstacles)."""
         step = GAIN_SAMPLE_STEP
         sample = modelled[::step, ::step]
+        if int(sample.sum()) < MIN_FIT_PIXELS // (step * step):
+            sample = (self.confirmed[::step, ::step] > 0) & (warped[::step, ::step] >= 0.0)
         if int(sample.sum()) < MIN_FIT_PIXELS // (step * step):
             return 1.0, 1.0
         gains = []
