@@ -10,7 +10,7 @@ import pytest
 from common.camera import StereoCalibration
 from services.camera_sim.calibration_error import CalibrationError, published_calibration
 from services.camera_sim.capture import CameraModel, StereoCapture
-from services.camera_sim.lighting import STEP_LEVEL, Lighting
+from services.camera_sim.lighting import STEP_LEVEL, Lighting, switched_share
 from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import SceneSpec
@@ -97,6 +97,28 @@ def test_a_lighting_step_darkens_frames_until_auto_exposure_catches_up() -> None
     renderer.close()
     assert means["just after"] < 0.7 * means["before"]
     assert means["later"] == pytest.approx(means["before"], rel=0.05)
+
+
+def test_a_step_switches_off_the_luminaires_over_one_half_of_the_hall() -> None:
+    floor_m = (12.0, 10.0)
+    dark, middle, lit = switched_share(np.array([[1.5, 5.0], [6.0, 5.0], [10.5, 5.0]]), floor_m)
+    assert dark < 0.35 < middle < 0.65 < lit
+    grid = np.stack(np.meshgrid(np.linspace(0, 12, 61), np.linspace(0, 10, 51)), axis=-1)
+    assert float(switched_share(grid, floor_m).mean()) == pytest.approx(STEP_LEVEL, abs=0.01)
+    # Rendered: across one pair's view (p0, over the dark half) the floor darkens by a factor
+    # that grows toward the lit half (image x runs along world x), not by one factor.
+    calib = layout_pairs(RigSpec(pair_count=4), floor_m)[0]
+    renderer = SceneRenderer(
+        SceneSpec(floor="concrete"), [calib], lighting=Lighting(step_period_s=20.0)
+    )
+    radiance = []
+    for t_s in (1005.0, 1015.0):  # all on, then the half off
+        renderer.set_time(t_s)
+        radiance.append(renderer.render_radiance("p0_left", 320, 240))
+    renderer.close()
+    ratio = radiance[1] / np.maximum(radiance[0], 1e-3)
+    far, near = float(np.median(ratio[:, 20:60])), float(np.median(ratio[:, -60:-20]))
+    assert 0.2 < far < 0.4 and near > 1.4 * far
 
 
 def test_published_calibration_is_off_by_the_seeded_error_and_exact_at_zero() -> None:

@@ -12,7 +12,7 @@ import numpy as np
 import numpy.typing as npt
 
 from common.camera import StereoCalibration
-from services.camera_sim.lighting import Lighting
+from services.camera_sim.lighting import Lighting, switched_share
 from services.camera_sim.rig import mujoco_camera_axes
 from services.camera_sim.scene import MarkingSpec, ObjectSpec, SceneSpec
 
@@ -444,6 +444,11 @@ class SceneRenderer:
             start = int(self.model.tex_adr[index])
             self.model.tex_data[start : start + texture.size] = texture.reshape(-1)
         self.data = mujoco.MjData(self.model)
+        self._cameras = {
+            f"{c.pair}_{side}": getattr(c, side) for c in calibrations for side in ("left", "right")
+        }
+        self._switched_shares: dict[tuple[str, int, int], npt.NDArray[np.float32]] = {}
+        self._switched_off = False
         self._base_diffuse = self.model.light_diffuse.copy()
         self._base_headlight = (
             self.model.vis.headlight.ambient.copy(),
@@ -464,13 +469,17 @@ class SceneRenderer:
         for index, mover in enumerate(self.scene.movers):
             (x, y), _ = mover.state_at(t_s)
             self.data.mocap_pos[index] = (x, y, mover.size_m[2] / 2)
-        level = self.lighting.level(t_s)
+        level = self.lighting.drift_level(t_s)
+        self._switched_off = self.lighting.switched_off(t_s)
         self.model.light_diffuse[:] = self._base_diffuse * level
         self.model.vis.headlight.ambient[:] = self._base_headlight[0] * level
         self.model.vis.headlight.diffuse[:] = self._base_headlight[1] * level
         mujoco.mj_forward(self.model, self.data)
 
     def render_gray(self, camera: str, width: int, height: int) -> npt.NDArray[np.uint8]:
+        if self._switched_off:
+            radiance = self.render_radiance(camera, width, height)
+            return np.asarray(np.clip(radiance * 255.0 + 0.5, 0, 255), np.uint8)
         renderer = self._renderer(width, height)
         renderer.update_scene(self.data, camera=camera)
         rgb = renderer.render()
@@ -486,7 +495,31 @@ class SceneRenderer:
         radiance: npt.NDArray[np.float32] = rgb @ np.array(
             [0.299 / 255, 0.587 / 255, 0.114 / 255], dtype=np.float32
         )
+        if self._switched_off:
+            radiance *= self._switched_share(camera, width, height)
         return radiance
+
+    def _switched_share(self, camera: str, width: int, height: int) -> npt.NDArray[np.float32]:
+        """:func:`switched_share` where each pixel's ray meets the floor, once per camera: the
+        light's ratio varies over metres, so an object a metre up takes its floor's (a point seen
+        by both cameras of a pair takes nearly the same: their rays meet the floor 0.1 m apart)."""
+        key = (camera, width, height)
+        if key not in self._switched_shares:
+            pinhole = self._cameras[camera]
+            u, v = np.meshgrid(
+                (np.arange(width) + 0.5) * pinhole.width / width - 0.5,
+                (np.arange(height) + 0.5) * pinhole.height / height - 0.5,
+            )
+            rays_cam = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(pinhole.K_array).T
+            pose = pinhole.T_world_cam_array
+            rays = rays_cam @ pose[:3, :3].T
+            center = pose[:3, 3]
+            down = np.minimum(rays[..., 2], -1e-6)  # a ray at or above the horizon: its nadir
+            floor_xy = center[:2] + rays[..., :2] * (-center[2] / down)[..., None]
+            floor_xy = np.where((rays[..., 2] < -1e-6)[..., None], floor_xy, center[:2])
+            share = switched_share(floor_xy, self.scene.floor_size_m)
+            self._switched_shares[key] = share.astype(np.float32)
+        return self._switched_shares[key]
 
     def render_rgb(self, camera: str, width: int, height: int) -> npt.NDArray[np.uint8]:
         renderer = self._renderer(width, height)
