@@ -236,6 +236,36 @@ def test_a_model_learnt_while_auto_exposure_converges_keeps_the_floor_through_li
     assert pipeline.floor_model.relearned == 0  # with one gain: at every step
 
 
+def test_a_frame_that_relearns_fills_no_departed_region_as_an_obstacle(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A lighting change the gain cannot take off (here: the field held to one gain, against a
+    circuit switched off over half the hall) makes most of the model depart, and the model
+    re-learns. That frame's departed regions are not objects: rule 8 fills none of them (it
+    filled 57 000 pixels, three quarters of the image, as obstacles)."""
+
+    def one_gain(ratios: list[np.ndarray], valid: np.ndarray, *_: object) -> list[np.ndarray]:
+        gains = [float(np.median(ratio[valid])) if valid.any() else 1.0 for ratio in ratios]
+        return [np.full((1, 1), gain, np.float32) for gain in gains]
+
+    monkeypatch.setattr(floor_model, "gain_fields", one_gain)
+    pair = Pair(
+        SceneSpec(floor="plain", markings=LANES, objects=[RAISED]),
+        lighting=Lighting(step_period_s=20.0),  # half off at 1010 s
+    )
+    pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
+    assert pipeline.floor_model is not None
+    obstacles = []
+    while pair.t_s < 1010.0:
+        result = pipeline.process(*pair.next())
+        with np.errstate(invalid="ignore"):
+            height = pipeline.floor_model.geometry.height_m(result.evidence_disparity_px)
+        obstacles.append(int(np.count_nonzero(height > 0.1)))
+    pair.close()
+    assert pipeline.floor_model.relearned == 1
+    assert obstacles[-1] < 1.2 * max(obstacles[-6:-1]), obstacles
+
+
 def test_the_gain_field_follows_a_smooth_light_and_not_what_stands_on_the_floor() -> None:
     rows, cols, step = 240, 320, floor_model.GAIN_SAMPLE_STEP
     v, u = np.mgrid[0:rows, 0:cols]

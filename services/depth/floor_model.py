@@ -156,6 +156,8 @@ GAIN_BLOCKS = 4
 """The gain field starts from the median ratio in each of this many × this many blocks …"""
 GAIN_BLOCK_MIN = 12
 """… holding at least this many sampled pixels (fewer than 6 such blocks: one overall median) …"""
+GAIN_RATIO_MAX = 64.0
+"""A ratio to the background beyond this is clipped to it (for the blocks' medians only)."""
 GAIN_OUTLIER = 0.1
 """… (all within half this share of the overall median: that one gain), and is fitted again to
 the sampled pixels within this share of the blocks' fit (a mover, an object put down on the
@@ -702,11 +704,12 @@ def gain_fields(ratios: list[F32], valid: Mask, step: int, shape: tuple[int, int
     (0.26–0.51 across one view in the simulation), which no single gain takes off: where the
     blocks' medians spread wider than ``GAIN_OUTLIER`` / 2 about the overall median, a quadratic
     surface in the pixel (to 2.5 % on that light), within a quarter past the medians' range;
-    else the overall median, one gain (exposure, a uniform change)."""
+    else the overall median, one gain (exposure, a uniform change), as a 1 × 1 field that
+    broadcasts."""
     rows, cols = shape
     v_s, u_s = np.nonzero(valid)
     if v_s.size < MIN_FIT_PIXELS // (step * step):
-        return [np.ones(shape, np.float32) for _ in ratios]
+        return [np.ones((1, 1), np.float32) for _ in ratios]
     u = (u_s * (2.0 * step / max(cols - 1, 1)) - 1.0).astype(np.float64)
     v = (v_s * (2.0 * step / max(rows - 1, 1)) - 1.0).astype(np.float64)
     band_v = np.minimum(v_s * GAIN_BLOCKS // valid.shape[0], GAIN_BLOCKS - 1)
@@ -716,15 +719,18 @@ def gain_fields(ratios: list[F32], valid: Mask, step: int, shape: tuple[int, int
     full = counts >= GAIN_BLOCK_MIN
     centre_u = (np.bincount(block, u, counts.size) / np.maximum(counts, 1))[full]
     centre_v = (np.bincount(block, v, counts.size) / np.maximum(counts, 1))[full]
-    order, bounds = np.argsort(block, kind="stable"), np.cumsum(counts)[:-1]
+    starts = np.cumsum(counts) - counts
+    middle = (starts + (counts - 1) // 2)[full], (starts + counts // 2)[full]
+    offsets = (np.flatnonzero(full) * GAIN_RATIO_MAX).astype(np.float64)
     fields = []
     for ratio in ratios:
         values: F64 = ratio[v_s, u_s].astype(np.float64)
         overall = _median(values)
-        by_block = np.split(values[order], bounds)
-        medians = np.array([_median(by_block[i]) for i in np.flatnonzero(full)])
+        # Every block's median from one sort: its values lie in [block, block + 1) × the limit.
+        keyed = np.sort(block * GAIN_RATIO_MAX + np.clip(values, 0.0, GAIN_RATIO_MAX * 0.999))
+        medians = (keyed[middle[0]] + keyed[middle[1]]) / 2.0 - offsets
         if medians.size < 6 or np.all(np.abs(medians / overall - 1.0) <= GAIN_OUTLIER / 2):
-            fields.append(np.full(shape, overall, np.float32))
+            fields.append(np.full((1, 1), overall, np.float32))
             continue
         coef = _gain_surface(centre_u, centre_v, medians, u, v, values)
         across, down = np.linspace(-1.0, 1.0, cols), np.linspace(-1.0, 1.0, rows)
@@ -1251,10 +1257,7 @@ class FloorModel:
         self._thin_probes = (probe(-THIN_TOP_PX), probe(THIN_TOP_PX))
         self._across_probes = (probe(0.0, -THIN_TOP_PX), probe(0.0, THIN_TOP_PX))
         self._beyond_probe = probe(-SEED_PROBE_PX - LINE_ACROSS_PX)
-        self._gain = (
-            np.ones(geometry.floor_disparity_px.shape, np.float32),
-            np.ones(geometry.floor_disparity_px.shape, np.float32),
-        )
+        self._gain = (np.ones((1, 1), np.float32), np.ones((1, 1), np.float32))
         self._set_floor(self.geometry.floor_disparity_px)
         focal_px = geometry.floor_px_per_m * geometry.camera_height_m
         self._paint_gap_px = (
@@ -1759,7 +1762,7 @@ class FloorModel:
             self.relearned += 1
             self.confirmed[~confirmed] = 0
             fresh = confirmed
-            gains = (np.ones_like(left), np.ones_like(left))
+            gains = (np.ones((1, 1), np.float32), np.ones((1, 1), np.float32))
         else:
             fresh = confirmed & (self.confirmed == 0)
             gains = self._gain
