@@ -112,7 +112,7 @@ class TruthHeader(_OnLattice):
     floor_size_m: tuple[float, float]
     objects: list[TruthObject]
     light_level: float = 1.0
-    """The site's light at ``stamp_ns``, relative to nominal."""
+    """The site's light at ``stamp_ns``, relative to nominal: its mean over the floor."""
     light_steps_ns: list[int] = Field(default_factory=list)
     """Lighting switch instants in the two minutes before ``stamp_ns`` (and just after it)."""
 

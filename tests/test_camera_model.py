@@ -12,7 +12,7 @@ from services.camera_sim.calibration_error import CalibrationError, published_ca
 from services.camera_sim.capture import CameraModel, StereoCapture
 from services.camera_sim.lighting import STEP_LEVEL, Lighting, switched_share
 from services.camera_sim.render import SceneRenderer
-from services.camera_sim.rig import RigSpec, layout_pairs
+from services.camera_sim.rig import RigSpec, floor_points_xy_m, layout_pairs
 from services.camera_sim.scene import SceneSpec
 from services.camera_sim.sensor import DN_MAX, CameraSensor, SensorParams, auto_exposure
 from services.camera_sim.service import frame_payload, jpeg_encoder
@@ -103,8 +103,13 @@ def test_a_step_switches_off_the_luminaires_over_one_half_of_the_hall() -> None:
     floor_m = (12.0, 10.0)
     dark, middle, lit = switched_share(np.array([[1.5, 5.0], [6.0, 5.0], [10.5, 5.0]]), floor_m)
     assert dark < 0.35 < middle < 0.65 < lit
-    grid = np.stack(np.meshgrid(np.linspace(0, 12, 61), np.linspace(0, 10, 51)), axis=-1)
-    assert float(switched_share(grid, floor_m).mean()) == pytest.approx(STEP_LEVEL, abs=0.01)
+    for size_m in (floor_m, (9.0, 7.0), (10.0, 10.0), (20.0, 15.0), (4.0, 4.0), (1.0, 1.0)):
+        grid = np.stack(
+            np.meshgrid(np.linspace(0, size_m[0], 61), np.linspace(0, size_m[1], 51)), axis=-1
+        )
+        share = switched_share(grid, size_m)
+        assert float(share.mean()) == pytest.approx(STEP_LEVEL, abs=0.01)  # half the light
+        assert np.all((share > 0.0) & (share < 1.0))
     # Rendered: across one pair's view (p0, over the dark half) the floor darkens by a factor
     # that grows toward the lit half (image x runs along world x), not by one factor.
     calib = layout_pairs(RigSpec(pair_count=4), floor_m)[0]
@@ -119,6 +124,16 @@ def test_a_step_switches_off_the_luminaires_over_one_half_of_the_hall() -> None:
     ratio = radiance[1] / np.maximum(radiance[0], 1e-3)
     far, near = float(np.median(ratio[:, 20:60])), float(np.median(ratio[:, -60:-20]))
     assert 0.2 < far < 0.4 and near > 1.4 * far
+
+
+def test_each_pixels_ray_meets_the_floor_where_the_camera_projects_that_point() -> None:
+    camera = layout_pairs(RigSpec(pair_count=4), (12.0, 10.0))[1].left
+    floor_xy_m = floor_points_xy_m(camera, 64, 48)
+    points = np.concatenate([floor_xy_m.reshape(-1, 2), np.zeros((64 * 48, 1))], axis=1)
+    pixels = camera.project(points)[:, :2].reshape(48, 64, 2)  # at the camera's resolution
+    v, u = np.mgrid[0:48, 0:64]
+    assert np.abs(pixels[..., 0] - ((u + 0.5) * camera.width / 64 - 0.5)).max() < 1e-6
+    assert np.abs(pixels[..., 1] - ((v + 0.5) * camera.height / 48 - 0.5)).max() < 1e-6
 
 
 def test_published_calibration_is_off_by_the_seeded_error_and_exact_at_zero() -> None:

@@ -18,9 +18,12 @@ STEP_LEVEL = 0.5
 """Half the luminaires off: the light's mean over the floor."""
 LUMINAIRE_HEIGHT_M = 7.5
 LUMINAIRE_SPACING_M = 3.0
-"""High-bay luminaires on a square grid this far apart, this high over the floor (above the
-cameras); a step switches off the circuit over one half of the hall (x below half the floor's
-length), so the light falls off across the floor rather than by one factor everywhere."""
+"""High-bay luminaires on a grid about this far apart, this high over the floor (above the
+cameras); a step switches off the circuit over one half of the hall (the rows below half the
+floor's length), so the light falls off across the floor rather than by one factor everywhere.
+Auto-exposure's lag (:meth:`Lighting.lag_ratio`) takes the hall's mean step, 0.5, for every
+camera: a camera over the dark half drops to about 0.38 just after it, one over the lit half to
+0.6."""
 
 
 @dataclass(frozen=True)
@@ -84,14 +87,18 @@ def switched_share(
     points_xy_m: npt.NDArray[np.float64], floor_size_m: tuple[float, float]
 ) -> npt.NDArray[np.float64]:
     """The light at floor points with one half's circuit off, over the light with all on: point
-    luminaires (illuminance h / d³, inverse square and cosine), 0.27–0.73 on the default floor,
-    0.5 on average."""
+    luminaires (illuminance h / d³, inverse square and cosine) in an even number of rows along
+    x, centred on the floor, the first half of them off; 0.27–0.73 on the default floor, 0.5 on
+    average on any floor (the rows are symmetric about its middle)."""
     length_m, width_m = floor_size_m
-    xs = np.arange(LUMINAIRE_SPACING_M / 2, length_m, LUMINAIRE_SPACING_M)
+    rows = max(2, 2 * round(length_m / (2 * LUMINAIRE_SPACING_M)))
+    xs = (np.arange(rows) + 0.5) * (length_m / rows)
     ys = np.arange(LUMINAIRE_SPACING_M / 2, width_m, LUMINAIRE_SPACING_M)
+    if ys.size == 0:  # a floor narrower than half the spacing: one luminaire across
+        ys = np.array([width_m / 2])
     on = np.zeros(points_xy_m.shape[:-1])
     every = np.zeros(points_xy_m.shape[:-1])
-    for x in xs:
+    for row, x in enumerate(xs):
         for y in ys:
             squared = (
                 (points_xy_m[..., 0] - x) ** 2
@@ -100,7 +107,7 @@ def switched_share(
             )
             light = LUMINAIRE_HEIGHT_M / squared**1.5
             every += light
-            if x >= length_m / 2:
+            if row >= rows // 2:
                 on += light
     share: npt.NDArray[np.float64] = on / every
     return share

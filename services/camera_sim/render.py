@@ -13,7 +13,7 @@ import numpy.typing as npt
 
 from common.camera import StereoCalibration
 from services.camera_sim.lighting import Lighting, switched_share
-from services.camera_sim.rig import mujoco_camera_axes
+from services.camera_sim.rig import floor_points_xy_m, mujoco_camera_axes
 from services.camera_sim.scene import MarkingSpec, ObjectSpec, SceneSpec
 
 TEXTURE_PX = 512
@@ -477,21 +477,18 @@ class SceneRenderer:
         mujoco.mj_forward(self.model, self.data)
 
     def render_gray(self, camera: str, width: int, height: int) -> npt.NDArray[np.uint8]:
-        if self._switched_off:
-            radiance = self.render_radiance(camera, width, height)
-            return np.asarray(np.clip(radiance * 255.0 + 0.5, 0, 255), np.uint8)
-        renderer = self._renderer(width, height)
-        renderer.update_scene(self.data, camera=camera)
-        rgb = renderer.render()
         # ITU-R BT.601 luma in integers: no OpenCV needed in the sim-only install.
         weights = np.array([77, 150, 29], dtype=np.uint16)
+        rgb = self._render_rgb(camera, width, height)
         gray: npt.NDArray[np.uint8] = ((rgb.astype(np.uint16) @ weights) >> 8).astype(np.uint8)
+        if self._switched_off:
+            gray = np.asarray(gray * self._switched_share(camera, width, height) + 0.5, np.uint8)
         return gray
 
     def render_radiance(self, camera: str, width: int, height: int) -> npt.NDArray[np.float32]:
         """Relative scene radiance (luma, 1.0 = white under nominal light): what a camera's
         :class:`~services.camera_sim.sensor.CameraSensor` turns into a frame."""
-        rgb = self.render_rgb(camera, width, height).astype(np.float32)
+        rgb = self._render_rgb(camera, width, height).astype(np.float32)
         radiance: npt.NDArray[np.float32] = rgb @ np.array(
             [0.299 / 255, 0.587 / 255, 0.114 / 255], dtype=np.float32
         )
@@ -499,32 +496,29 @@ class SceneRenderer:
             radiance *= self._switched_share(camera, width, height)
         return radiance
 
+    def render_rgb(self, camera: str, width: int, height: int) -> npt.NDArray[np.uint8]:
+        rgb = self._render_rgb(camera, width, height)
+        if not self._switched_off:
+            return rgb
+        share = self._switched_share(camera, width, height)[..., None]
+        return np.asarray(rgb * share + 0.5, np.uint8)
+
+    def _render_rgb(self, camera: str, width: int, height: int) -> npt.NDArray[np.uint8]:
+        """MuJoCo's render: every luminaire on (at the drift's level)."""
+        renderer = self._renderer(width, height)
+        renderer.update_scene(self.data, camera=camera)
+        return np.asarray(renderer.render())
+
     def _switched_share(self, camera: str, width: int, height: int) -> npt.NDArray[np.float32]:
         """:func:`switched_share` where each pixel's ray meets the floor, once per camera: the
         light's ratio varies over metres, so an object a metre up takes its floor's (a point seen
         by both cameras of a pair takes nearly the same: their rays meet the floor 0.1 m apart)."""
         key = (camera, width, height)
         if key not in self._switched_shares:
-            pinhole = self._cameras[camera]
-            u, v = np.meshgrid(
-                (np.arange(width) + 0.5) * pinhole.width / width - 0.5,
-                (np.arange(height) + 0.5) * pinhole.height / height - 0.5,
-            )
-            rays_cam = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(pinhole.K_array).T
-            pose = pinhole.T_world_cam_array
-            rays = rays_cam @ pose[:3, :3].T
-            center = pose[:3, 3]
-            down = np.minimum(rays[..., 2], -1e-6)  # a ray at or above the horizon: its nadir
-            floor_xy = center[:2] + rays[..., :2] * (-center[2] / down)[..., None]
-            floor_xy = np.where((rays[..., 2] < -1e-6)[..., None], floor_xy, center[:2])
-            share = switched_share(floor_xy, self.scene.floor_size_m)
+            floor_xy_m = floor_points_xy_m(self._cameras[camera], width, height)
+            share = switched_share(floor_xy_m, self.scene.floor_size_m)
             self._switched_shares[key] = share.astype(np.float32)
         return self._switched_shares[key]
-
-    def render_rgb(self, camera: str, width: int, height: int) -> npt.NDArray[np.uint8]:
-        renderer = self._renderer(width, height)
-        renderer.update_scene(self.data, camera=camera)
-        return np.asarray(renderer.render())
 
     def render_depth(self, camera: str, width: int, height: int) -> npt.NDArray[np.float32]:
         """Depth along the optical axis (OpenCV's z), metres."""

@@ -75,3 +75,20 @@ def mujoco_camera_axes(camera: PinholeCamera) -> tuple[np.ndarray, float]:
     xyaxes = np.concatenate([rotation[:, 0], -rotation[:, 1]])
     fovy_deg = math.degrees(2.0 * math.atan(camera.height / 2.0 / camera.K_array[1, 1]))
     return xyaxes, fovy_deg
+
+
+def floor_points_xy_m(camera: PinholeCamera, width: int, height: int) -> np.ndarray:
+    """Where each pixel's ray (of an image ``width`` × ``height``, the camera's scaled) meets the
+    floor z = 0, (…, 2) in metres; a ray at or above the horizon gives the camera's nadir."""
+    u, v = np.meshgrid(
+        (np.arange(width) + 0.5) * camera.width / width - 0.5,
+        (np.arange(height) + 0.5) * camera.height / height - 0.5,
+    )
+    rays_cam = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(camera.K_array).T
+    pose = camera.T_world_cam_array
+    rays_world = rays_cam @ pose[:3, :3].T
+    center_world_m = pose[:3, 3]
+    down = rays_world[..., 2] < -1e-6
+    reach = -center_world_m[2] / np.where(down, rays_world[..., 2], -1.0)
+    floor_xy_m = center_world_m[:2] + rays_world[..., :2] * reach[..., None]
+    return np.where(down[..., None], floor_xy_m, center_world_m[:2])

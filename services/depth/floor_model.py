@@ -151,17 +151,32 @@ X_ENERGY_MIN = 0.1
 X_ENERGY_SHARE = 0.06
 """… nor below this share of the y-gradient's (texture along the baseline: the aperture problem)."""
 GAIN_SAMPLE_STEP = 6
-"""Gains are taken from every this-many-th pixel in each direction: a smooth field."""
+"""Gains are taken from every this-many-th pixel in each direction (the gain field against the
+background; the floor test's one gain between the cameras)."""
 GAIN_BLOCKS = 4
 """The gain field starts from the median ratio in each of this many × this many blocks …"""
 GAIN_BLOCK_MIN = 12
-"""… holding at least this many sampled pixels (fewer than 6 such blocks: one overall median) …"""
-GAIN_RATIO_MAX = 64.0
-"""A ratio to the background beyond this is clipped to it (for the blocks' medians only)."""
+"""… holding at least this many sampled pixels …"""
+GAIN_AGREE = 0.05
+"""… and is one gain, their overall median, while every block's lies within this share of it;
+else a quadratic surface, fitted to the blocks less those it misses by more than this share (an
+object covers them; one at a time, the worst first) …"""
+GAIN_BLOCKS_KEPT = 8
+"""… keeping at least this many …"""
 GAIN_OUTLIER = 0.1
-"""… (all within half this share of the overall median: that one gain), and is fitted again to
-the sampled pixels within this share of the blocks' fit (a mover, an object put down on the
-floor: not the light)."""
+"""… then to the sampled pixels within this share of that fit (a mover: not the light) …"""
+GAIN_EXTRAPOLATION = 1.25
+"""… and held within this factor of the kept blocks' medians (beyond their centres the surface
+extrapolates)."""
+GAIN_MIN_SAMPLES = 6 * GAIN_BLOCK_MIN
+"""With fewer modelled samples than this the gain is fitted over every pixel with a background;
+with fewer of those, it is 1."""
+GAIN_RATIO_MAX = 64.0
+"""A ratio to the background beyond this is taken as this, for the blocks' medians only."""
+QUADRATIC_TERMS = 6
+UNIT_GAIN = np.ones((1, 1), np.float32)
+"""One gain of 1, as a field that broadcasts (read-only: shared)."""
+UNIT_GAIN.setflags(write=False)
 LINE_ACROSS_PX = 3.0
 """Beyond an inward seed, the floor this much further on is compared with the pixel."""
 LINE_OF_SIGHT_MARGIN_PX = 1.5
@@ -702,58 +717,70 @@ def gain_fields(ratios: list[F32], valid: Mask, step: int, shape: tuple[int, int
     ``ratios`` (image over background) at every ``step``-th pixel where ``valid``. A lighting
     circuit switched off over part of a hall darkens the floor by a factor that varies over metres
     (0.26–0.51 across one view in the simulation), which no single gain takes off: where the
-    blocks' medians spread wider than ``GAIN_OUTLIER`` / 2 about the overall median, a quadratic
-    surface in the pixel (to 2.5 % on that light), within a quarter past the medians' range;
-    else the overall median, one gain (exposure, a uniform change), as a 1 × 1 field that
-    broadcasts."""
+    blocks' medians spread wider than ``GAIN_AGREE`` about the overall median, a quadratic surface
+    in the pixel (to 2.5 % on that light, :func:`_gain_surface`); else the overall median, one
+    gain (exposure, a uniform change), as a 1 × 1 field that broadcasts."""
     rows, cols = shape
-    v_s, u_s = np.nonzero(valid)
-    if v_s.size < MIN_FIT_PIXELS // (step * step):
-        return [np.ones((1, 1), np.float32) for _ in ratios]
-    u = (u_s * (2.0 * step / max(cols - 1, 1)) - 1.0).astype(np.float64)
-    v = (v_s * (2.0 * step / max(rows - 1, 1)) - 1.0).astype(np.float64)
-    band_v = np.minimum(v_s * GAIN_BLOCKS // valid.shape[0], GAIN_BLOCKS - 1)
-    band_u = np.minimum(u_s * GAIN_BLOCKS // valid.shape[1], GAIN_BLOCKS - 1)
+    v_sample, u_sample = np.nonzero(valid)
+    if v_sample.size < GAIN_MIN_SAMPLES:
+        return [UNIT_GAIN for _ in ratios]
+    u_norm = (u_sample * (2.0 * step / max(cols - 1, 1)) - 1.0).astype(np.float64)
+    v_norm = (v_sample * (2.0 * step / max(rows - 1, 1)) - 1.0).astype(np.float64)
+    band_v = np.minimum(v_sample * GAIN_BLOCKS // valid.shape[0], GAIN_BLOCKS - 1)
+    band_u = np.minimum(u_sample * GAIN_BLOCKS // valid.shape[1], GAIN_BLOCKS - 1)
     block = band_v * GAIN_BLOCKS + band_u
     counts = np.bincount(block, minlength=GAIN_BLOCKS * GAIN_BLOCKS)
     full = counts >= GAIN_BLOCK_MIN
-    centre_u = (np.bincount(block, u, counts.size) / np.maximum(counts, 1))[full]
-    centre_v = (np.bincount(block, v, counts.size) / np.maximum(counts, 1))[full]
-    starts = np.cumsum(counts) - counts
-    middle = (starts + (counts - 1) // 2)[full], (starts + counts // 2)[full]
-    offsets = (np.flatnonzero(full) * GAIN_RATIO_MAX).astype(np.float64)
+    centre_u = (np.bincount(block, u_norm, counts.size) / np.maximum(counts, 1))[full]
+    centre_v = (np.bincount(block, v_norm, counts.size) / np.maximum(counts, 1))[full]
     fields = []
     for ratio in ratios:
-        values: F64 = ratio[v_s, u_s].astype(np.float64)
-        overall = _median(values)
-        # Every block's median from one sort: its values lie in [block, block + 1) × the limit.
-        keyed = np.sort(block * GAIN_RATIO_MAX + np.clip(values, 0.0, GAIN_RATIO_MAX * 0.999))
-        medians = (keyed[middle[0]] + keyed[middle[1]]) / 2.0 - offsets
-        if medians.size < 6 or np.all(np.abs(medians / overall - 1.0) <= GAIN_OUTLIER / 2):
+        values: F64 = ratio[v_sample, u_sample].astype(np.float64)
+        overall = max(_median(values), 1e-3)  # at least: a covered lens, the lights all out
+        medians = block_medians(values, block, counts)[full]
+        if medians.size < QUADRATIC_TERMS or np.all(np.abs(medians / overall - 1.0) <= GAIN_AGREE):
             fields.append(np.full((1, 1), overall, np.float32))
             continue
-        coef = _gain_surface(centre_u, centre_v, medians, u, v, values)
+        coef, kept = _gain_surface(centre_u, centre_v, medians, u_norm, v_norm, values)
         across, down = np.linspace(-1.0, 1.0, cols), np.linspace(-1.0, 1.0, rows)
         along_u = coef[0] + coef[1] * across + coef[3] * across * across
         along_v = coef[2] * down + coef[5] * down * down
         field = np.outer(coef[4] * down, across) + along_u[None, :] + along_v[:, None]
-        # Beyond the blocks' centres the surface extrapolates: a quarter past their range at most.
-        lowest, highest = float(medians.min()) / 1.25, float(medians.max()) * 1.25
+        lowest = float(medians[kept].min()) / GAIN_EXTRAPOLATION
+        highest = float(medians[kept].max()) * GAIN_EXTRAPOLATION
         fields.append(np.clip(field, lowest, highest).astype(np.float32))
     return fields
 
 
-def _gain_surface(centre_u: F64, centre_v: F64, medians: F64, u: F64, v: F64, values: F64) -> F64:
+def block_medians(values: F64, block: npt.NDArray[np.intp], counts: npt.NDArray[np.intp]) -> F64:
+    """The median of ``values`` in each block (``block`` is each value's, ``counts`` the blocks'
+    sizes; NaN for an empty block), from one sort: values clipped to [0, GAIN_RATIO_MAX) and
+    offset by their block's index times it sort by block, then by value."""
+    if values.size == 0:
+        return np.full(counts.size, np.nan)
+    keyed = np.sort(block * GAIN_RATIO_MAX + np.clip(values, 0.0, GAIN_RATIO_MAX * 0.999))
+    starts = np.cumsum(counts) - counts
+    middle_low = np.clip(starts + (counts - 1) // 2, 0, keyed.size - 1)
+    middle_high = np.clip(starts + counts // 2, 0, keyed.size - 1)
+    offsets = np.arange(counts.size) * GAIN_RATIO_MAX
+    medians: F64 = (keyed[middle_low] + keyed[middle_high]) / 2.0 - offsets
+    return np.where(counts > 0, medians, np.nan)
+
+
+def _gain_surface(
+    centre_u: F64, centre_v: F64, medians: F64, u_norm: F64, v_norm: F64, values: F64
+) -> tuple[F64, Mask]:
     """The quadratic a + b·u + c·v + d·u² + e·u·v + f·v² through the blocks' medians, less the
-    block it misses most while it misses one by over ``GAIN_OUTLIER`` / 2 (an object covers it; 8
-    kept), then through the sampled pixels within ``GAIN_OUTLIER`` of that (not a mover's)."""
+    block it misses most while it misses one by over ``GAIN_AGREE`` (``GAIN_BLOCKS_KEPT`` kept),
+    then through the sampled pixels within ``GAIN_OUTLIER`` of that; and the blocks kept."""
 
     def basis(u: F64, v: F64) -> F64:
         return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1).astype(np.float64)
 
     def fit(a: F64, y: F64) -> F64:
         # The normal equations: lstsq's SVD cost 2 ms a call on this machine, these 30 µs.
-        return np.linalg.solve(a.T @ a + 1e-9 * np.eye(6), a.T @ y).astype(np.float64)
+        normal = a.T @ a + 1e-9 * np.eye(QUADRATIC_TERMS)
+        return np.linalg.solve(normal, a.T @ y).astype(np.float64)
 
     at = basis(centre_u, centre_v)
     blocks = np.ones(medians.size, np.bool_)
@@ -761,14 +788,14 @@ def _gain_surface(centre_u: F64, centre_v: F64, medians: F64, u: F64, v: F64, va
         coef = fit(at[blocks], medians[blocks])
         missed = np.abs(medians / np.maximum(at @ coef, 1e-3) - 1.0)
         worst = int(np.argmax(np.where(blocks, missed, -1.0)))
-        if missed[worst] <= GAIN_OUTLIER / 2 or np.count_nonzero(blocks) <= 8:
+        if missed[worst] <= GAIN_AGREE or np.count_nonzero(blocks) <= GAIN_BLOCKS_KEPT:
             break
         blocks[worst] = False
-    pixels = basis(u, v)
-    kept = np.abs(values / np.maximum(pixels @ coef, 1e-3) - 1.0) <= GAIN_OUTLIER
-    if np.count_nonzero(kept) >= 6 * GAIN_BLOCK_MIN:
-        coef = fit(pixels[kept], values[kept])
-    return coef
+    pixels = basis(u_norm, v_norm)
+    near = np.abs(values / np.maximum(pixels @ coef, 1e-3) - 1.0) <= GAIN_OUTLIER
+    if np.count_nonzero(near) >= GAIN_MIN_SAMPLES:
+        coef = fit(pixels[near], values[near])
+    return coef, blocks
 
 
 def robust_affine_fit(basis: npt.NDArray[np.float32], values: F32) -> npt.NDArray[np.float64]:
@@ -1257,7 +1284,7 @@ class FloorModel:
         self._thin_probes = (probe(-THIN_TOP_PX), probe(THIN_TOP_PX))
         self._across_probes = (probe(0.0, -THIN_TOP_PX), probe(0.0, THIN_TOP_PX))
         self._beyond_probe = probe(-SEED_PROBE_PX - LINE_ACROSS_PX)
-        self._gain = (np.ones((1, 1), np.float32), np.ones((1, 1), np.float32))
+        self._gain = (UNIT_GAIN, UNIT_GAIN)
         self._set_floor(self.geometry.floor_disparity_px)
         focal_px = geometry.floor_px_per_m * geometry.camera_height_m
         self._paint_gap_px = (
@@ -1454,7 +1481,9 @@ class FloorModel:
         if self.plain_floor:
             measured[~self._modelled & ~test.agree & low] = np.nan
         relearn = departed > cfg.relearn_share
-        if not relearn:  # where the whole image departs, a departed region is no object's (8)
+        # Rule 8, not where the whole image departs: there a departed region tells no object (a
+        # plain top there goes unfilled, unknown, for the frame).
+        if not relearn:
             self._fill_departed_regions(measured, ~np.isfinite(measured) & ~observed & departs)
         observed |= self._paint(matches, test, inside & ~np.isfinite(measured))  # rule 11
         # Floor observations sit at height 0 (measurements are corrected to the calibration's floor).
@@ -1472,19 +1501,19 @@ class FloorModel:
         return out
 
     def _gains(self, left: F32, warped: F32, modelled: Mask) -> tuple[F32, F32]:
-        """The gain field of each camera against its background (:func:`gain_field` over modelled
-        pixels): exposure, gain and the lighting scale the floor smoothly over the image. Before
-        enough pixels are modelled, over every pixel with a background: the first learning frames'
-        means are then on one scale even while auto-exposure still converges (on 1.0, a mean first
-        learnt in one frame and one first learnt in a brighter one stayed apart by the exposure's
-        change: modelled, the later ones departed for good, and rule 8 filled them as obstacles)."""
+        """The gain field of each camera against its background (:func:`gain_fields`) over the
+        modelled pixels: exposure, gain and the lighting scale the floor smoothly over the image.
+        Before enough pixels are modelled, over every pixel with a background: the means of the
+        first learning frames, learnt while auto-exposure may still converge, are then on one
+        scale. (With a gain of 1 there, a pixel first learnt in a brighter frame kept a brighter
+        mean; once modelled, it departed for good, and rule 8 filled it as an obstacle.)"""
         step = GAIN_SAMPLE_STEP
         sample = modelled[::step, ::step]
-        if int(sample.sum()) < MIN_FIT_PIXELS // (step * step):
+        if int(sample.sum()) < GAIN_MIN_SAMPLES:
             sample = (self.confirmed[::step, ::step] > 0) & (warped[::step, ::step] >= 0.0)
         ratios = [
             (image[::step, ::step] / np.maximum(self.mean[side, ::step, ::step], 1.0)).astype(
-                np.float32
+                np.float32, copy=False
             )
             for side, image in ((0, left), (1, warped))
         ]
@@ -1498,7 +1527,7 @@ class FloorModel:
         modelled = self._modelled & inside
         self._gain = self._gains(left, warped, modelled)
         normalised = [
-            (image / np.maximum(gain, np.float32(1e-3))).astype(np.float32)
+            (image / np.maximum(gain, np.float32(1e-3))).astype(np.float32, copy=False)
             for image, gain in zip((left, warped), self._gain, strict=True)
         ]
         alike = [
@@ -1758,11 +1787,11 @@ class FloorModel:
         confirmed &= ~blocked
         modelled = self.modelled & inside
         if relearn:
-            # Most of the floor changed at once, and not by a global gain: start again from here.
+            # Most of the floor changed at once, not as the gain field has it: start again here.
             self.relearned += 1
             self.confirmed[~confirmed] = 0
             fresh = confirmed
-            gains = (np.ones((1, 1), np.float32), np.ones((1, 1), np.float32))
+            gains = (UNIT_GAIN, UNIT_GAIN)
         else:
             fresh = confirmed & (self.confirmed == 0)
             gains = self._gain
