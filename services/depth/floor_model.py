@@ -778,7 +778,7 @@ def _gain_surface(
         return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1).astype(np.float64)
 
     def fit(a: F64, y: F64) -> F64:
-        # The normal equations: lstsq's SVD cost 2 ms a call on this machine, these 30 µs.
+        # The normal equations: 25 µs a call here, lstsq's SVD 90 µs.
         normal = a.T @ a + 1e-9 * np.eye(QUADRATIC_TERMS)
         return np.linalg.solve(normal, a.T @ y).astype(np.float64)
 
