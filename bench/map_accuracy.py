@@ -9,7 +9,10 @@ Prints the cell scores (IoU, precision, recall, false-free overall and over stat
 unknown) as means over snapshots taken every second after the first third of the run, and for the
 last snapshot the false-occupied cells by cause and each object's seen cells; ``--picture`` writes
 the last map with its errors coloured (false-occupied red, false-free blue, missed-unknown yellow).
-The last line is a JSON object with the figures.
+With lighting steps (``--sim '{"light_step_period_s": P}'``), every frame's map is scored too and
+each step's phases printed as ``overgrid eval`` reports them (IoU before, during and after, how
+long the unknown share stayed above its level before). The last line is a JSON object with the
+figures.
 
     .venv/bin/python bench/map_accuracy.py [--seed 0] [--pairs 4] [--floor concrete]
         [--duration-s 20] [--rate-hz 2] [--start-s T] [--ideal-cameras] [--plain-objects]
@@ -42,6 +45,7 @@ from services.depth.pipeline import DepthPipeline
 from services.depth.settings import DepthParams
 from services.evaluation import metrics
 from services.evaluation import objects as object_scores
+from services.evaluation.lighting import TimelineScore, step_phases
 from services.evaluation.metrics import OBSTACLE_BAND_M
 from services.fusion.grid import FusedGrid
 from services.fusion.object_layers import serve_tracks
@@ -105,6 +109,8 @@ def run(
     frames = max(1, round(duration_s * rate_hz))
     every = max(1, round(SCORE_EVERY_S * rate_hz))
     snapshots: list[dict[str, float]] = []
+    steps_s = sim.lighting().steps_s(start_s, start_s + frames / rate_hz)
+    timeline: list[TimelineScore] = []  # every frame's map, with lighting steps: as eval's
     started = time.perf_counter()
     for k in range(frames):
         stamp_ns = int((start_s + k / rate_hz) * 1e9)
@@ -121,12 +127,25 @@ def run(
             outlined, _ = serve_tracks(grid, tracker, outline_static)  # as the fusion service does
             grid.set_predicted(outlined)
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time
-        if k == frames - 1 or (k >= frames // 3 and (frames - 1 - k) % every == 0):
+        scored = k == frames - 1 or (k >= frames // 3 and (frames - 1 - k) % every == 0)
+        if scored or steps_s:
             objects = scene.truth_objects(stamp_ns / 1e9)
             truth = scene_truth.occupancy(objects, window, r, OBSTACLE_BAND_M).astype(np.bool_)
             occupancy = reframe(grid.served_occupancy(), grid.window, window, UNKNOWN)
             scores = metrics.score_cells(occupancy, truth, seen)
             static_scores = metrics.score_cells(occupancy, static_truth, seen)
+            timeline.append(
+                TimelineScore(
+                    stamp_ns / 1e9,
+                    scores.iou,
+                    static_scores.false_free_rate,
+                    scores.unknown_fraction,
+                    scores.precision,
+                    scores.recall,
+                    scores.false_free_rate,
+                )
+            )
+        if scored:
             snapshots.append(
                 {
                     "iou": scores.iou,
@@ -155,6 +174,7 @@ def run(
         "iou_last": snapshots[-1]["iou"],
         "false_occupied_cells": breakdown["false_occupied_cells"],
         "objects": breakdown["objects"],
+        "lighting_steps": step_phases(steps_s, timeline),
         **tracked,
         "seconds": time.perf_counter() - started,
     }
@@ -266,6 +286,13 @@ def main() -> None:
         f"found {result['static_found']}, "
         f"split {result['static_split']}, merged {result['static_merged']}"
     )
+    for step in result["lighting_steps"]:  # type: ignore[attr-defined]
+        print(
+            f"lighting step at {step['step_s'] - args.start_s:.1f} s: IoU before / during / after"
+            f" {step['before']['iou']:.3f} / {step['during']['iou']:.3f} /"
+            f" {step['after']['iou']:.3f}, unknown above its level before for"
+            f" {step['unknown_excess_s']:.1f} s"
+        )
     for name, (tl, tw, ml, mw, n, part, unsure, in_view) in result["tracked_objects"].items():  # type: ignore[attr-defined]
         print(
             f"  {name:16s} true {tl:.3f}×{tw:.3f}  map {ml:.3f}×{mw:.3f}  tracks {n} partial {part}"
