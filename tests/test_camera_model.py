@@ -120,10 +120,17 @@ def test_a_step_switches_off_the_luminaires_over_one_half_of_the_hall() -> None:
     for t_s in (1005.0, 1015.0):  # all on, then the half off
         renderer.set_time(t_s)
         radiance.append(renderer.render_radiance("p0_left", 320, 240))
-    renderer.close()
     ratio = radiance[1] / np.maximum(radiance[0], 1e-3)
     far, near = float(np.median(ratio[:, 20:60])), float(np.median(ratio[:, -60:-20]))
     assert 0.2 < far < 0.4 and near > 1.4 * far
+    # Auto-exposure's step is the camera's own: p0 keeps about 0.38 of its view's light.
+    level = renderer.switched_level("p0_left", 320, 240)
+    assert level == pytest.approx(float(np.mean(ratio)), abs=0.03) and level < 0.45
+    tau = SensorParams().ae_time_constant_s
+    lighting = Lighting(step_period_s=20.0)
+    assert lighting.lag_ratio(1010.01, tau, level) == pytest.approx(level, abs=0.02)
+    assert lighting.lag_ratio(1010.0 + 10 * tau, tau, level) == pytest.approx(1.0, abs=1e-3)
+    renderer.close()
 
 
 def test_each_pixels_ray_meets_the_floor_where_the_camera_projects_that_point() -> None:

@@ -73,7 +73,11 @@ class StereoCapture:
             if sensor is None:
                 frames.append(self.renderer.render_gray(name, camera.width, camera.height))
                 continue
-            lag = self.renderer.lighting.lag_ratio(stamp_ns / 1e9, sensor.params.ae_time_constant_s)
+            lag = self.renderer.lighting.lag_ratio(
+                stamp_ns / 1e9,
+                sensor.params.ae_time_constant_s,
+                self.renderer.switched_level(name, camera.width, camera.height),
+            )
             radiance = self.renderer.render_radiance(name, camera.width, camera.height)
             frames.append(sensor.capture(radiance, stamp_ns, lag))
         return frames[0], frames[1]

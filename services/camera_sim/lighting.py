@@ -20,10 +20,9 @@ LUMINAIRE_HEIGHT_M = 7.5
 LUMINAIRE_SPACING_M = 3.0
 """High-bay luminaires on a grid about this far apart, this high over the floor (above the
 cameras); a step switches off the circuit over one half of the hall (the rows below half the
-floor's length), so the light falls off across the floor rather than by one factor everywhere.
-Auto-exposure's lag (:meth:`Lighting.lag_ratio`) takes the hall's mean step, 0.5, for every
-camera: a camera over the dark half drops to about 0.38 just after it, one over the lit half to
-0.6."""
+floor's length), so the light falls off across the floor rather than by one factor everywhere:
+a camera over the dark half keeps about 0.38 of its view's light, one over the lit half 0.6, and
+auto-exposure's lag (:meth:`Lighting.lag_ratio`) follows each camera's own step."""
 
 
 @dataclass(frozen=True)
@@ -64,22 +63,27 @@ class Lighting:
         first = math.ceil(start_s / half)
         return [k * half for k in range(first, math.ceil(end_s / half)) if k * half < end_s]
 
-    def lag_ratio(self, t_s: float, time_constant_s: float) -> float:
-        """Light now over the light auto-exposure has converged to.
+    def lag_ratio(
+        self, t_s: float, time_constant_s: float, switched_level: float = STEP_LEVEL
+    ) -> float:
+        """Light now over the light auto-exposure has converged to, for a camera whose view keeps
+        ``switched_level`` of its light while the circuit is off (its mean
+        :func:`switched_share`; the hall's, 0.5, by default).
 
         Auto-exposure follows the slow drift; after a step it converges exponentially, so its level
         is the new one plus the step's size decaying with ``time_constant_s``. The last two steps
         suffice: older ones have decayed by e^(-period/2τ)."""
-        now = self._switched(t_s)
         if not self.step_period_s or time_constant_s <= 0:
             return 1.0
+
+        def light(t_s: float) -> float:
+            return switched_level if self.switched_off(t_s) else 1.0
+
         half = self.step_period_s / 2
-        converged = now
+        now = converged = light(t_s)
         for step_s in self.steps_s(t_s - 2 * half, t_s + 1e-9):
-            before = self._switched(step_s - 1e-6 * half)
-            converged += (before - self._switched(step_s)) * math.exp(
-                -(t_s - step_s) / time_constant_s
-            )
+            before = light(step_s - 1e-6 * half)
+            converged += (before - light(step_s)) * math.exp(-(t_s - step_s) / time_constant_s)
         return now / converged
 
 

@@ -448,6 +448,7 @@ class SceneRenderer:
             f"{c.pair}_{side}": getattr(c, side) for c in calibrations for side in ("left", "right")
         }
         self._switched_shares: dict[tuple[str, int, int], npt.NDArray[np.float32]] = {}
+        self._switched_levels: dict[tuple[str, int, int], float] = {}
         self._switched_off = False
         self._base_diffuse = self.model.light_diffuse.copy()
         self._base_headlight = (
@@ -508,6 +509,14 @@ class SceneRenderer:
         renderer = self._renderer(width, height)
         renderer.update_scene(self.data, camera=camera)
         return np.asarray(renderer.render())
+
+    def switched_level(self, camera: str, width: int, height: int) -> float:
+        """The share of its view's light a camera keeps while the circuit is off (the mean of
+        :func:`switched_share` over its pixels): the size of its auto-exposure's step."""
+        key = (camera, width, height)
+        if key not in self._switched_levels:
+            self._switched_levels[key] = float(self._switched_share(camera, width, height).mean())
+        return self._switched_levels[key]
 
     def _switched_share(self, camera: str, width: int, height: int) -> npt.NDArray[np.float32]:
         """:func:`switched_share` where each pixel's ray meets the floor, once per camera: the

@@ -101,8 +101,8 @@ class Exposure:
 
 def auto_exposure(mean_radiance: float, light_lag_ratio: float, params: SensorParams) -> Exposure:
     """Exposure that maps ``mean_radiance`` to the target, off by ``light_lag_ratio`` (the light's
-    level now over the level auto-exposure has converged to: 1 when settled, 0.5 just after half
-    the luminaires go off)."""
+    level now over the level auto-exposure has converged to: 1 when settled, just after half the
+    luminaires go off the share of its view's light the camera keeps, 0.38 over the dark half)."""
     target_e = params.ae_target_dn / DN_MAX * params.full_well_e
     wanted = target_e / max(mean_radiance, 1e-6) * light_lag_ratio
     exposure = min(wanted, params.white_e_at_max_exposure)
