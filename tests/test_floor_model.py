@@ -649,6 +649,8 @@ def test_up_on_a_plain_floor_maps_free_floor_around_the_objects(bus: Bus, tmp_pa
             "plain",
             "--duration-s",
             "20",
+            "--light-step-period-s",
+            "10",  # half the hall's luminaires off, then on again, every 5 s
             "--out",
             str(out),
             *bus.flags(),
@@ -663,6 +665,9 @@ def test_up_on_a_plain_floor_maps_free_floor_around_the_objects(bus: Bus, tmp_pa
     # Before the floor model 86 % of the seen plain floor stayed unknown.
     assert report["unknown_fraction"] < 0.15, report["unknown_fraction"]
     assert report["false_free_rate_static"] < 0.2, report["false_free_rate_static"]
+    steps = report["lighting_steps"]
+    assert steps, report.keys()
+    assert max(step["unknown_excess_s"] for step in steps) <= 2.0, steps
     _meta, image = read_map_server(out / "map.yaml")
     assert (image == 254).mean() > 0.3  # nav2 trinary: free
 
