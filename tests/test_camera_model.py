@@ -124,7 +124,7 @@ def test_a_step_switches_off_the_luminaires_over_one_half_of_the_hall() -> None:
     far, near = float(np.median(ratio[:, 20:60])), float(np.median(ratio[:, -60:-20]))
     assert 0.2 < far < 0.4 and near > 1.4 * far
     # Auto-exposure's step is the camera's own: p0 keeps about 0.38 of its view's light.
-    level = renderer.switched_level("p0_left", 320, 240)
+    level = renderer.switched_level("p0_left")
     assert level == pytest.approx(float(np.mean(ratio)), abs=0.03) and level < 0.45
     tau = SensorParams().ae_time_constant_s
     lighting = Lighting(step_period_s=20.0)

@@ -76,7 +76,7 @@ class StereoCapture:
             lag = self.renderer.lighting.lag_ratio(
                 stamp_ns / 1e9,
                 sensor.params.ae_time_constant_s,
-                self.renderer.switched_level(name, camera.width, camera.height),
+                self.renderer.switched_level(name),
             )
             radiance = self.renderer.render_radiance(name, camera.width, camera.height)
             frames.append(sensor.capture(radiance, stamp_ns, lag))

@@ -17,6 +17,8 @@ from services.camera_sim.rig import floor_points_xy_m, mujoco_camera_axes
 from services.camera_sim.scene import MarkingSpec, ObjectSpec, SceneSpec
 
 TEXTURE_PX = 512
+SWITCHED_LEVEL_GRID_PX = (64, 48)
+"""A camera's mean share of the light with the circuit off is taken over this grid of its view."""
 CONCRETE_PX = 1024
 FLOOR_TEXELS_PER_M = 64.0
 """The floor's texture density (15.6 mm texels): the speckle tile repeats every 8 m, the concrete
@@ -448,7 +450,7 @@ class SceneRenderer:
             f"{c.pair}_{side}": getattr(c, side) for c in calibrations for side in ("left", "right")
         }
         self._switched_shares: dict[tuple[str, int, int], npt.NDArray[np.float32]] = {}
-        self._switched_levels: dict[tuple[str, int, int], float] = {}
+        self._switched_levels: dict[str, float] = {}
         self._switched_off = False
         self._base_diffuse = self.model.light_diffuse.copy()
         self._base_headlight = (
@@ -510,13 +512,14 @@ class SceneRenderer:
         renderer.update_scene(self.data, camera=camera)
         return np.asarray(renderer.render())
 
-    def switched_level(self, camera: str, width: int, height: int) -> float:
+    def switched_level(self, camera: str) -> float:
         """The share of its view's light a camera keeps while the circuit is off (the mean of
-        :func:`switched_share` over its pixels): the size of its auto-exposure's step."""
-        key = (camera, width, height)
-        if key not in self._switched_levels:
-            self._switched_levels[key] = float(self._switched_share(camera, width, height).mean())
-        return self._switched_levels[key]
+        :func:`switched_share` over its view, on a 64 × 48 grid: the share varies over metres):
+        the size of its auto-exposure's step. Asked at every capture, lights switching or not."""
+        if camera not in self._switched_levels:
+            share = self._switched_share(camera, *SWITCHED_LEVEL_GRID_PX)
+            self._switched_levels[camera] = float(share.mean())
+        return self._switched_levels[camera]
 
     def _switched_share(self, camera: str, width: int, height: int) -> npt.NDArray[np.float32]:
         """:func:`switched_share` where each pixel's ray meets the floor, once per camera: the
