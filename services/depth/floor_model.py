@@ -752,6 +752,12 @@ def gain_fields(ratios: list[F32], valid: Mask, step: int, shape: tuple[int, int
     return fields
 
 
+def _gain_normalised(image: F32, gain: F32) -> F32:
+    """``image`` on its background's scale: divided by its gain field (a gain held at 1e-3 at
+    least: a covered lens gives no infinities)."""
+    return (image / np.maximum(gain, np.float32(1e-3))).astype(np.float32, copy=False)
+
+
 def block_medians(values: F64, block: npt.NDArray[np.intp], counts: npt.NDArray[np.intp]) -> F64:
     """The median of ``values`` in each block (``block`` is each value's, ``counts`` the blocks'
     sizes; NaN for an empty block), from one sort: values clipped to [0, GAIN_RATIO_MAX) and
@@ -1527,7 +1533,7 @@ class FloorModel:
         modelled = self._modelled & inside
         self._gain = self._gains(left, warped, modelled)
         normalised = [
-            (image / np.maximum(gain, np.float32(1e-3))).astype(np.float32, copy=False)
+            _gain_normalised(image, gain)
             for image, gain in zip((left, warped), self._gain, strict=True)
         ]
         alike = [
@@ -1800,7 +1806,7 @@ class FloorModel:
         rate = learning.astype(np.float32) * np.float32(cfg.learn_rate)
         var_start = np.float32(cfg.match_min_gray**2 / cfg.match_sigmas**2)
         for side, image in ((0, left), (1, warped)):
-            normalised = image / np.maximum(gains[side], np.float32(1e-3))
+            normalised = _gain_normalised(image, gains[side])
             mean, var = self.mean[side], self.var[side]
             delta = normalised - mean
             mean += rate * delta
