@@ -60,6 +60,11 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
    beside the occlusion). Measurements above the band (the matcher's picks at the top of its
    search) do not count. Like 6 and 7, it only ever adds obstacles or takes evidence away, never
    clears a cell. Not in a frame that re-learns: there the whole image departs.
+   What 7 and 8 infer stands on the footprint it hides: where the image shows floor (observed,
+   or measured low, over a pixel and its neighbours) straight below the inferred point, that
+   point is a face below a top's edge, not the top. It takes the highest of a few lower heights
+   whose floor below is not seen, or none (a mover's side face, filled at its top's height, stood
+   1.3 m out over the open floor before it).
 9. Floor seen through a gap narrower than 12 cm between surfaces in the band (a pallet's deck
    between its boards) belongs to them: no robot passes there, and a cell whose centre falls in
    the slot is the pallet's.
@@ -67,7 +72,11 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
     *hidden* now (:attr:`FloorModel.hidden`): something stands in the pixel's ray (a plain mover,
     a person whose top is out of view), or a shadow darkens a plain floor. Its floor cell is no
     longer known to be free: the tile says so and the map forgets a free belief there (unknown,
-    never occupied). Not in a frame that re-learns, where the whole image departs.
+    never occupied). Not in a frame that re-learns, where the whole image departs, nor where an
+    inferred point of 7 or 8 fell: the floor before it is seen.
+
+The calibration's residual is fitted before the first frame's evidence, then every few frames (a
+pair's first frames put a poorly calibrated floor up to 0.3 m until the first fit).
 11. Paint along the baseline (a lane line along x) has no texture along x for either stereo or
     the floor test, and its edges stop the model's growth, so it is never modelled: a pixel of it
     with no evidence and texture along the baseline only, in a gap of at most PAINT_GAP_M between
@@ -260,6 +269,9 @@ GAP_KERNEL_MAX_PX = 31
 """The closing's kernel at most (a calibration of absurd focal length is refused later, by the
 disparity band it implies; it must not ask for a kernel of terabytes first)."""
 REGION_TOP_QUANTILE = 0.75
+STANDING_STEPS = 4
+"""Heights an inferred surface tries, from its own down towards the band's foot, for one that
+stands where the floor below it is not seen (a face below a top's edge)."""
 PAINT_GAP_M = 0.16
 """Rule 11: a gap up to this tall between floor rows the background confirms, across paint along
 the baseline, is the paint's (lane lines are 5–10 cm wide; the model's growth stops a pixel or
@@ -331,6 +343,78 @@ def _scan_rows(
                 bridge[row, col] = np.float32(np.nan)
 
 
+@compiled
+def _foot(
+    row: int, col: int, height_m: float, terms: tuple[F32, float, float, float, float]
+) -> tuple[int, int]:
+    """Where the floor straight below the point at ``height_m`` on the pixel's ray shows: on the
+    line from the pixel to the nadir, where vertical lines vanish. Its image is z·p + h·μ·n over
+    z + h·μ (z the point's depth, μ the depth a metre down adds), to the nearest pixel."""
+    ray_down, camera_height_m, depth_per_m_down, nadir_row, nadir_col = terms
+    depth = (camera_height_m - height_m) / ray_down[row, col]
+    weight = height_m * depth_per_m_down / (depth + height_m * depth_per_m_down)
+    return (
+        int(np.rint(row + weight * (nadir_row - row))),
+        int(np.rint(col + weight * (nadir_col - col))),
+    )
+
+
+@compiled
+def _feet(
+    rows: npt.NDArray[np.int64],
+    cols: npt.NDArray[np.int64],
+    heights_m: F32,
+    terms: tuple[F32, float, float, float, float],
+    feet: npt.NDArray[np.int64],
+) -> None:
+    for k in range(len(rows)):
+        feet[0, k], feet[1, k] = _foot(rows[k], cols[k], heights_m[k], terms)
+
+
+@compiled
+def _stand(
+    measured: F32,
+    inferred: Mask,
+    floor_seen: Mask,
+    terms: tuple[F32, float, float, float, float],
+    focal_baseline_px_m: float,
+    lowest_m: float,
+    fallen: Mask,
+) -> None:
+    """FloorModel._keep_standing's loop: per inferred pixel, the first of STANDING_STEPS heights
+    from its own down whose foot is not ``floor_seen`` (a sequential scan: the numpy passes over
+    the pixels and steps cost 1 ms a frame)."""
+    ray_down, camera_height_m = terms[0], terms[1]
+    rows, cols = measured.shape
+    for row in range(rows):
+        for col in range(cols):
+            disparity = measured[row, col]
+            if not inferred[row, col] or np.isnan(disparity):  # rule 4 emptied it
+                continue
+            top_m = camera_height_m - focal_baseline_px_m / disparity * ray_down[row, col]
+            chosen_m = np.nan
+            for step in range(STANDING_STEPS):
+                height_m = max(top_m * (1.0 - step / STANDING_STEPS), lowest_m)
+                foot_row, foot_col = _foot(row, col, height_m, terms)
+                inside = 0 <= foot_row < rows and 0 <= foot_col < cols
+                if not (inside and floor_seen[foot_row, foot_col]):
+                    chosen_m = height_m
+                    break
+            if not np.isnan(chosen_m):
+                measured[row, col] = (
+                    focal_baseline_px_m * ray_down[row, col] / (camera_height_m - chosen_m)
+                )
+            else:
+                measured[row, col] = np.nan
+                fallen[row, col] = True
+
+
+def floor_everywhere_around(floor: Mask) -> Mask:
+    """Pixels whose 3 × 3 neighbourhood is all ``floor`` (outside the image counts as floor)."""
+    eroded: Mask = cv2.erode(floor.view(np.uint8), np.ones((3, 3), np.uint8)).view(np.bool_)
+    return eroded
+
+
 @dataclass(frozen=True)
 class FloorGeometry:
     """What the floor model needs of a pair's rectified geometry."""
@@ -346,6 +430,9 @@ class FloorGeometry:
     """Where vertical lines vanish in the rectified left image (the point below the camera)."""
     floor_px_per_m: float
     """Pixels a metre of floor spans below the camera (focal length over camera height)."""
+    depth_per_m_down: float
+    """Depth (along the optical axis) a point gains per metre it moves straight down: 0 for rays
+    that are all vertical (the point below shows at the same pixel)."""
 
     @staticmethod
     def from_rectifier(rectifier: Rectifier, rays_world: F32) -> FloorGeometry:
@@ -366,6 +453,26 @@ class FloorGeometry:
             focal_baseline_px_m=focal_baseline,
             nadir_px=(float(nadir[0]), float(nadir[1])),
             floor_px_per_m=rectifier.focal_px / height_m,
+            depth_per_m_down=float(below[2]),
+        )
+
+    def foot_px(
+        self, rows: npt.NDArray[np.int64], cols: npt.NDArray[np.int64], height_m: F32
+    ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+        """The pixel (row, col) that shows the floor straight below the point at ``height_m`` on
+        each pixel's ray (:func:`_foot`); it may lie outside the image."""
+        feet = np.empty((2, len(rows)), np.int64)
+        _feet(rows, cols, height_m.astype(np.float32), self._foot_terms, feet)
+        return feet[0], feet[1]
+
+    @property
+    def _foot_terms(self) -> tuple[F32, float, float, float, float]:
+        return (
+            self.ray_down,
+            self.camera_height_m,
+            self.depth_per_m_down,
+            self.nadir_px[1],
+            self.nadir_px[0],
         )
 
     def height_m(self, disparity_px: F32, at: Mask | None = None) -> F32:
@@ -1312,6 +1419,7 @@ class FloorModel:
         _probed(none, np.zeros(tiny.shape, np.int64), np.False_)
         _window_max_at(tiny, 1, none)
         _window_max_at(np.zeros((8, 8), np.int32), 1, none)
+        self._keep_standing(np.full((8, 8), np.nan, np.float32), none, none)
 
     # -- geometry -------------------------------------------------------------------------------
 
@@ -1420,22 +1528,16 @@ class FloorModel:
         """The disparity the tile is built from: this frame under the evidence rules (NaN where
         there is no evidence). Learns from the frame as well."""
         cfg = self.config
-        floor_now = self.floor_now
         left = _blur(left_rect, cfg.blur_sigma_px)
-        map_xy, map_fraction = self._warp_maps
-        warped = np.asarray(
-            cv2.remap(
-                _blur(right_rect, cfg.blur_sigma_px),
-                map_xy,
-                map_fraction,
-                cv2.INTER_LINEAR,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=-1.0,
-            ),
-            dtype=np.float32,
-        )
-        inside = warped >= 0.0
-        test = floor_test(left, warped, inside, cfg)
+        right = _blur(right_rect, cfg.blur_sigma_px)
+        warped, inside, test = self._tested(left, right)
+        if self.frames == 0:
+            # The calibration's residual before the first evidence: a pair's first frames took
+            # the whole floor up to 0.3 m on a poorly calibrated seed (4 m wide "objects" that
+            # the tracker kept for seconds) until the first fit, two frames later.
+            self._fit_matcher_offset(disparity, test)
+            warped, inside, test = self._tested(left, right)
+        floor_now = self.floor_now
 
         valid = np.isfinite(disparity)
         with np.errstate(invalid="ignore"):
@@ -1486,18 +1588,27 @@ class FloorModel:
         measured[departs & (interpolated | covered) & low] = np.nan
         if self.plain_floor:
             measured[~self._modelled & ~test.agree & low] = np.nan
+        # Floor the image shows: observed, or measured low, over a pixel and its 8 neighbours (a
+        # lone floor reading may be a plain body's grey matching the floor's background).
+        floor_seen = floor_everywhere_around(observed | (np.isfinite(measured) & low))
         relearn = departed > cfg.relearn_share
         # Rule 8, not where the whole image departs: there a departed region tells no object (a
         # plain top there goes unfilled, unknown, for the frame).
-        if not relearn:
-            self._fill_departed_regions(measured, ~np.isfinite(measured) & ~observed & departs)
+        filled = (
+            np.zeros_like(departs)
+            if relearn
+            else self._fill_departed_regions(measured, ~np.isfinite(measured) & ~observed & departs)
+        )
+        fallen = self._keep_standing(measured, bridged | filled, floor_seen)
         observed |= self._paint(matches, test, inside & ~np.isfinite(measured))  # rule 11
         # Floor observations sit at height 0 (measurements are corrected to the calibration's floor).
         out = np.where(observed, self.geometry.floor_disparity_px, measured).astype(np.float32)
         self._close_gaps(out)  # rule 9
 
-        # Rule 10 (not in a frame that re-learns: there the whole image departs).
-        self.hidden = np.zeros_like(departs) if relearn else departs & ~np.isfinite(out)
+        # Rule 10 (not in a frame that re-learns: there the whole image departs). Not where an
+        # inferred surface fell: the floor before it is seen there, and a step of the light that
+        # left floor departing beside an object hid that floor for seconds.
+        self.hidden = np.zeros_like(departs) if relearn else departs & ~np.isfinite(out) & ~fallen
         if relearn or self.frames % cfg.learn_every == 0:
             self._learn(left, warped, inside, test, measured, at_floor, matches, relearn)
         if self.frames % cfg.offset_every == cfg.offset_every // 2:  # not in a learning frame
@@ -1505,6 +1616,24 @@ class FloorModel:
             self._fit_matcher_offset(disparity, test)
         self.frames += 1
         return out
+
+    def _tested(self, left: F32, right: F32) -> tuple[F32, Mask, FloorTest]:
+        """The right image warped onto the left by the floor (−1 outside its view), where it is
+        inside, and the floor test of the two."""
+        map_xy, map_fraction = self._warp_maps
+        warped = np.asarray(
+            cv2.remap(
+                right,
+                map_xy,
+                map_fraction,
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=-1.0,
+            ),
+            dtype=np.float32,
+        )
+        inside = warped >= 0.0
+        return warped, inside, floor_test(left, warped, inside, self.config)
 
     def _gains(self, left: F32, warped: F32, modelled: Mask) -> tuple[F32, F32]:
         """The gain field of each camera against its background (:func:`gain_fields`) over the
@@ -1616,17 +1745,19 @@ class FloorModel:
         _paint_gaps(matches, candidates, self._paint_gap_px, paint)
         return paint
 
-    def _fill_departed_regions(self, measured: F32, holes: Mask) -> None:
+    def _fill_departed_regions(self, measured: F32, holes: Mask) -> Mask:
         """Rule 8, in place: each connected region of ``holes`` (no evidence, and the image departs
         from the floor's background there) whose edges hold at least REGION_MIN_RAISED
         measurements in the obstacle band takes their upper quartile's height. A plain top (a box, a mover)
         is measured only along part of its outline (one side lies beside the occlusion stereo
         cannot see, the others often match the floor's grey), so its edges show the floor too:
         asking for more raised than floor measurements there missed the movers of other scenes
-        (bench/map_accuracy.py --seed 1 --pairs 6: forklift 0 % found, 85 % without the test)."""
+        (bench/map_accuracy.py --seed 1 --pairs 6: forklift 0 % found, 85 % without the test).
+        Returns the pixels it filled."""
+        nothing = np.zeros_like(holes)
         count, labels = cv2.connectedComponents(holes.view(np.uint8), connectivity=8)
         if count <= 1:
-            return
+            return nothing
         near = cv2.dilate(holes.view(np.uint8), np.ones((REGION_EDGE_PX,) * 2, np.uint8)) > 0
         height = self.geometry.height_m(measured[near], near)
         measured_near = np.isfinite(height)
@@ -1640,7 +1771,7 @@ class FloorModel:
         fill = raised_count >= REGION_MIN_RAISED
         fill[0] = False  # label 0: not a hole
         if not fill.any():
-            return
+            return nothing
         # The region's height: the upper quartile of its raised edge, whose lower part is the
         # faces below the top's outline.
         order = np.lexsort((edge_height[raised], region[raised]))
@@ -1652,6 +1783,27 @@ class FloorModel:
         target = holes.copy()
         target[holes] = fill[labels[holes]]  # labels elsewhere are 0, never filled
         measured[target] = self.geometry.disparity_px(region_height[labels[target]], target)
+        return target
+
+    def _keep_standing(self, measured: F32, inferred: Mask, floor_seen: Mask) -> Mask:
+        """In place: an inferred surface (rules 7 and 8: a height carried over a hole from its
+        edges) stands where the image does not show the floor straight below it. Anything in the
+        band stands on the footprint it hides; a face below a top's edge, taken at the top's
+        height, would stand out over the floor before it, which the camera sees (a mover's side
+        face put its top 1.3 m out over open floor). Such a pixel takes the highest of
+        STANDING_STEPS heights down to the band's foot whose floor below is not seen (on the face,
+        next to it), or none: returns the pixels left with none."""
+        fallen = np.zeros_like(inferred)
+        _stand(
+            measured,
+            inferred,
+            floor_seen,
+            self.geometry._foot_terms,
+            self.geometry.focal_baseline_px_m,
+            self.obstacle_min_m,
+            fallen,
+        )
+        return fallen
 
     def _upsampled(self, sampled: Mask) -> Mask:
         """A mask of the sampled grid back at every pixel."""
