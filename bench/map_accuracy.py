@@ -143,6 +143,7 @@ def run(
                     scores.precision,
                     scores.recall,
                     scores.false_free_rate,
+                    metrics.unknown_away_from_movers(occupancy, truth, seen, objects, window, r),
                 )
             )
         if scored:

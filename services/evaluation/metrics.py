@@ -177,6 +177,35 @@ def score_cells(occupancy: npt.NDArray[np.int8], truth: Mask, seen: Mask) -> Cel
     )
 
 
+MOVER_CLEARANCE_M = 2.5
+"""Floor this far from a mover's footprint (centre distance less half its diagonal) is out of
+its occlusion shadow from cameras 6–8 m up: the floor that a change of the light alone moves."""
+
+
+def unknown_away_from_movers(
+    occupancy: npt.NDArray[np.int8],
+    truth: Mask,
+    seen: Mask,
+    objects: Sequence[TruthObject],
+    window: Window,
+    resolution_m: float,
+) -> float:
+    """The unknown cells of the seen floor farther than MOVER_CLEARANCE_M from every mover, as a
+    share of all the seen floor (a fixed measure, wherever the movers are): a mover's occlusion
+    shadow swings the whole floor's share by 2–3 points as it walks (two pairs), which read as a
+    lighting step's unknown floor when it fell after one."""
+    x_m, y_m = window.cell_centers(resolution_m)
+    floor = seen & ~truth
+    away = floor.copy()
+    for obj in objects:
+        if obj.moving:
+            reach_m = MOVER_CLEARANCE_M + math.hypot(obj.size_m[0], obj.size_m[1]) / 2
+            away &= (x_m - obj.center_m[0]) ** 2 + (y_m - obj.center_m[1]) ** 2 > reach_m**2
+    return _ratio(
+        int(np.count_nonzero(away & (occupancy == UNKNOWN))), int(np.count_nonzero(floor))
+    )
+
+
 def cell_shares(occupancy: npt.NDArray[np.int8], cells: Mask) -> dict[str, float]:
     """Share of ``cells`` the map calls occupied, free and unknown (e.g. static objects' seen
     cells: on uniform objects over a uniform floor, unknown is the honest answer, free is not)."""

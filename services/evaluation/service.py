@@ -274,6 +274,14 @@ class Evaluator:
                     scores.precision,
                     scores.recall,
                     scores.false_free_rate,
+                    metrics.unknown_away_from_movers(
+                        occupancy,
+                        truth.occupied,
+                        self.seen,
+                        truth.header.objects,
+                        self.window,
+                        self.resolution_m,
+                    ),
                 )
             )
         return out
