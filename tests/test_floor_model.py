@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import cast
 
@@ -983,10 +984,13 @@ def test_a_plain_top_is_filled_from_its_outlines_measurements_in_the_band_only()
 
 
 def test_the_foot_of_a_point_is_the_pixel_that_sees_the_floor_below_it() -> None:
-    """FloorGeometry.foot_px against the rectified camera's own projection (the default rig's
-    calibration, tilted and off the nadir): the point at a height on each pixel's ray, moved
+    """FloorGeometry.foot_px against the rectified camera's own projection, the default rig's
+    camera tilted 25° and 10° about its axes (its nadir off the image's centre, a point moving
+    down gains 0.89 m of depth a metre): the point at a height on each pixel's ray, moved
     straight down to the floor and projected, lands on the foot to the rounding."""
-    rectifier = Rectifier.from_calibration(CALIB, 2)
+    straight_down = Rectifier.from_calibration(CALIB, 2)
+    tilt = rotation_from_vector(np.deg2rad([25.0, -10.0, 0.0]))
+    rectifier = replace(straight_down, R_world_rect=straight_down.R_world_rect @ tilt)
     rays = rectifier.pixel_rays_world()
     geometry = floor_model.FloorGeometry.from_rectifier(rectifier, rays)
     rng = np.random.default_rng(5)
@@ -1004,6 +1008,7 @@ def test_the_foot_of_a_point_is_the_pixel_that_sees_the_floor_below_it() -> None
     assert np.abs(foot_cols - u).max() <= 0.5 + 1e-3
     assert np.abs(foot_rows - v).max() <= 0.5 + 1e-3
     assert np.abs(foot_cols - cols).max() > 10  # the feet are not the pixels themselves
+    assert geometry.depth_per_m_down < 0.95 and abs(geometry.nadir_px[0] - rectifier.cx_px) > 20
 
 
 def test_a_face_below_a_plain_tops_edge_is_not_filled_out_over_the_floor_before_it() -> None:

@@ -74,13 +74,15 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
     longer known to be free: the tile says so and the map forgets a free belief there (unknown,
     never occupied). Not in a frame that re-learns, where the whole image departs, nor where an
     inferred point of 7 or 8 fell: the floor before it is seen.
-
-The calibration's residual is fitted before the first frame's evidence, then every few frames (a
-pair's first frames put a poorly calibrated floor up to 0.3 m until the first fit).
 11. Paint along the baseline (a lane line along x) has no texture along x for either stereo or
     the floor test, and its edges stop the model's growth, so it is never modelled: a pixel of it
     with no evidence and texture along the baseline only, in a gap of at most PAINT_GAP_M between
-    floor rows that match their background above and below it, is floor.
+    floor rows that match their background above and below it, is floor (not where an inferred
+    point of 7 or 8 fell).
+
+The matcher's offset on the floor (and through its coarse fit the disparity residual) is fitted
+before the first frame's evidence as well as every few frames: until the first fit, two frames
+later, a poorly calibrated pair's floor read up to 0.3 m high.
 
 Learning (never from pixels where something stands), every ``learn_every`` frames:
 
@@ -270,7 +272,7 @@ GAP_KERNEL_MAX_PX = 31
 disparity band it implies; it must not ask for a kernel of terabytes first)."""
 REGION_TOP_QUANTILE = 0.75
 STANDING_STEPS = 4
-"""Heights an inferred surface tries, from its own down towards the band's foot, for one that
+"""Heights an inferred surface tries, evenly from its own down to the band's foot, for one that
 stands where the floor below it is not seen (a face below a top's edge)."""
 PAINT_GAP_M = 0.16
 """Rule 11: a gap up to this tall between floor rows the background confirms, across paint along
@@ -389,17 +391,19 @@ def _stand(
     for row in range(rows):
         for col in range(cols):
             disparity = measured[row, col]
-            if not inferred[row, col] or np.isnan(disparity):  # rule 4 emptied it
+            if not inferred[row, col] or not disparity > 0.0:  # (NaN or none: no surface)
                 continue
             top_m = camera_height_m - focal_baseline_px_m / disparity * ray_down[row, col]
             chosen_m = np.nan
             for step in range(STANDING_STEPS):
-                height_m = max(top_m * (1.0 - step / STANDING_STEPS), lowest_m)
+                height_m = top_m + (lowest_m - top_m) * step / (STANDING_STEPS - 1)
                 foot_row, foot_col = _foot(row, col, height_m, terms)
                 inside = 0 <= foot_row < rows and 0 <= foot_col < cols
                 if not (inside and floor_seen[foot_row, foot_col]):
                     chosen_m = height_m
                     break
+            if chosen_m == top_m:
+                continue
             if not np.isnan(chosen_m):
                 measured[row, col] = (
                     focal_baseline_px_m * ray_down[row, col] / (camera_height_m - chosen_m)
@@ -1600,7 +1604,7 @@ class FloorModel:
             else self._fill_departed_regions(measured, ~np.isfinite(measured) & ~observed & departs)
         )
         fallen = self._keep_standing(measured, bridged | filled, floor_seen)
-        observed |= self._paint(matches, test, inside & ~np.isfinite(measured))  # rule 11
+        observed |= self._paint(matches, test, inside & ~np.isfinite(measured) & ~fallen)  # 11
         # Floor observations sit at height 0 (measurements are corrected to the calibration's floor).
         out = np.where(observed, self.geometry.floor_disparity_px, measured).astype(np.float32)
         self._close_gaps(out)  # rule 9
@@ -1791,8 +1795,8 @@ class FloorModel:
         band stands on the footprint it hides; a face below a top's edge, taken at the top's
         height, would stand out over the floor before it, which the camera sees (a mover's side
         face put its top 1.3 m out over open floor). Such a pixel takes the highest of
-        STANDING_STEPS heights down to the band's foot whose floor below is not seen (on the face,
-        next to it), or none: returns the pixels left with none."""
+        STANDING_STEPS heights, from its own down to the band's foot, whose floor below is not
+        seen (on the face, next to it), or none: returns the pixels left with none."""
         fallen = np.zeros_like(inferred)
         _stand(
             measured,

@@ -19,7 +19,8 @@ DURING_S = 3.0
 """Auto-exposure settles within about 5 time constants (0.6 s): samples this long after a step
 are "during" it; the next ones, until the next step, "after"."""
 UNKNOWN_EXCESS = 0.02
-"""Unknown share of the seen floor above its pre-step level that counts as "turned unknown"."""
+"""Unknown share of the seen floor away from the movers (``unknown_fraction_still``) above its
+pre-step level that counts as "turned unknown"."""
 
 
 @dataclass(frozen=True)
@@ -86,7 +87,8 @@ def step_phases(
     steps_s: Sequence[float], timeline: Sequence[TimelineScore]
 ) -> list[dict[str, Any]]:
     """Per step with samples on both sides: the phases' mean scores, the IoU drop (before minus the
-    worse of during and after) and how long the unknown share stayed above its level before."""
+    worse of during and after) and until when after it the unknown share of the floor away from
+    the movers stood above its level before (its last sample there)."""
     out = []
     ordered = sorted(steps_s)
     for index, step_s in enumerate(ordered):

@@ -565,17 +565,18 @@ def table(result: dict[str, Any]) -> str:
     for step in result.get("lighting_steps", []):
         lines += [
             "",
-            f"lighting step at {step['step_s']:.1f} s: {'phase':<8}{'IoU':>8}{'ff static':>11}{'unknown':>9}",
+            f"lighting step at {step['step_s']:.1f} s: {'phase':<8}{'IoU':>8}{'ff static':>11}"
+            f"{'unknown':>9}{'away from movers':>18}",
         ]
         for phase in ("before", "during", "after"):
             row = step[phase]
             lines.append(
                 f"{'':<33}{phase:<8}{row['iou']:>8.3f}{row['false_free_rate_static']:>11.4f}"
-                f"{row['unknown_fraction']:>9.3f}"
+                f"{row['unknown_fraction']:>9.3f}{row['unknown_fraction_still']:>18.3f}"
             )
         lines.append(
             f"{'':<33}IoU drop {step['iou_drop']:.3f} (target ≤ {LIGHTING_IOU_DROP_MAX:g}); "
-            f"floor unknown for {step['unknown_excess_s']:.1f} s"
+            f"floor away from movers unknown for {step['unknown_excess_s']:.1f} s"
         )
     return "\n".join(lines)
 
