@@ -72,8 +72,7 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
     *hidden* now (:attr:`FloorModel.hidden`): something stands in the pixel's ray (a plain mover,
     a person whose top is out of view), or a shadow darkens a plain floor. Its floor cell is no
     longer known to be free: the tile says so and the map forgets a free belief there (unknown,
-    never occupied). Not in a frame that re-learns, where the whole image departs, nor where an
-    inferred point of 7 or 8 fell: the floor before it is seen.
+    never occupied). Not in a frame that re-learns, where the whole image departs.
 11. Paint along the baseline (a lane line along x) has no texture along x for either stereo or
     the floor test, and its edges stop the model's growth, so it is never modelled: a pixel of it
     with no evidence and texture along the baseline only, in a gap of at most PAINT_GAP_M between
@@ -1536,9 +1535,10 @@ class FloorModel:
         right = _blur(right_rect, cfg.blur_sigma_px)
         warped, inside, test = self._tested(left, right)
         if self.frames == 0:
-            # The calibration's residual before the first evidence: a pair's first frames took
-            # the whole floor up to 0.3 m on a poorly calibrated seed (4 m wide "objects" that
-            # the tracker kept for seconds) until the first fit, two frames later.
+            # The matcher's offset (through its coarse fit, the residual) before the first
+            # evidence: a pair's first frames took the whole floor up to 0.3 m on a poorly
+            # calibrated seed (4 m wide "objects" the tracker kept for seconds) until the first
+            # fit, two frames later.
             self._fit_matcher_offset(disparity, test)
             warped, inside, test = self._tested(left, right)
         floor_now = self.floor_now
@@ -1609,10 +1609,8 @@ class FloorModel:
         out = np.where(observed, self.geometry.floor_disparity_px, measured).astype(np.float32)
         self._close_gaps(out)  # rule 9
 
-        # Rule 10 (not in a frame that re-learns: there the whole image departs). Not where an
-        # inferred surface fell: the floor before it is seen there, and a step of the light that
-        # left floor departing beside an object hid that floor for seconds.
-        self.hidden = np.zeros_like(departs) if relearn else departs & ~np.isfinite(out) & ~fallen
+        # Rule 10 (not in a frame that re-learns: there the whole image departs).
+        self.hidden = np.zeros_like(departs) if relearn else departs & ~np.isfinite(out)
         if relearn or self.frames % cfg.learn_every == 0:
             self._learn(left, warped, inside, test, measured, at_floor, matches, relearn)
         if self.frames % cfg.offset_every == cfg.offset_every // 2:  # not in a learning frame
