@@ -101,3 +101,8 @@ def test_unknown_away_from_movers_leaves_out_the_floor_around_them() -> None:
     occupancy[x_m > 9.0] = UNKNOWN  # a strip of floor far from it
     away = unknown_away_from_movers(occupancy, truth, seen, [mover], window, resolution_m)
     assert away == pytest.approx(0.1)  # of all the floor: where the mover is changes nothing
+    # Moving at 2 m/s towards +y, it was at (2, -2) 2 s ago: the map may still show it there.
+    came = mover.model_copy(update={"center_m": (2.0, 6.0, 0.5), "velocity_mps": (0.0, 2.0)})
+    assert unknown_away_from_movers(occupancy, truth, seen, [came], window, resolution_m) == (
+        pytest.approx(0.1)
+    )

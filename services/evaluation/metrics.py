@@ -180,6 +180,10 @@ def score_cells(occupancy: npt.NDArray[np.int8], truth: Mask, seen: Mask) -> Cel
 MOVER_CLEARANCE_M = 2.5
 """Floor this far from a mover's footprint (centre distance less half its diagonal) is out of
 its occlusion shadow from cameras 6–8 m up: the floor that a change of the light alone moves."""
+MOVER_TRAIL_S = 2.0
+"""… and this far from where it was over the last seconds (by its velocity): the map shows a
+mover a frame interval and its latency late, and at 1 Hz (two pairs on a loaded machine) the
+forklift's contested footprint lay 4 m behind it."""
 
 
 def unknown_away_from_movers(
@@ -190,7 +194,8 @@ def unknown_away_from_movers(
     window: Window,
     resolution_m: float,
 ) -> float:
-    """The unknown cells of the seen floor farther than MOVER_CLEARANCE_M from every mover, as a
+    """The unknown cells of the seen floor farther than MOVER_CLEARANCE_M from every mover and
+    its trail over MOVER_TRAIL_S, as a
     share of all the seen floor (a fixed measure, wherever the movers are): a mover's occlusion
     shadow swings the whole floor's share by 2–3 points as it walks (two pairs), which read as a
     lighting step's unknown floor when it fell after one."""
@@ -200,7 +205,12 @@ def unknown_away_from_movers(
     for obj in objects:
         if obj.moving:
             reach_m = MOVER_CLEARANCE_M + math.hypot(obj.size_m[0], obj.size_m[1]) / 2
-            away &= (x_m - obj.center_m[0]) ** 2 + (y_m - obj.center_m[1]) ** 2 > reach_m**2
+            # The segment it came along over MOVER_TRAIL_S: the closest point of it to each cell.
+            back_x, back_y = (-v * MOVER_TRAIL_S for v in obj.velocity_mps)
+            length2 = back_x**2 + back_y**2
+            dx, dy = x_m - obj.center_m[0], y_m - obj.center_m[1]
+            along = np.clip((dx * back_x + dy * back_y) / length2, 0.0, 1.0) if length2 else 0.0
+            away &= (dx - along * back_x) ** 2 + (dy - along * back_y) ** 2 > reach_m**2
     return _ratio(
         int(np.count_nonzero(away & (occupancy == UNKNOWN))), int(np.count_nonzero(floor))
     )
