@@ -135,14 +135,10 @@ def run(
             scores = metrics.score_cells(occupancy, truth, seen)
             static_scores = metrics.score_cells(occupancy, static_truth, seen)
             timeline.append(
-                TimelineScore(
+                TimelineScore.of(
                     stamp_ns / 1e9,
-                    scores.iou,
-                    static_scores.false_free_rate,
-                    scores.unknown_fraction,
-                    scores.precision,
-                    scores.recall,
-                    scores.false_free_rate,
+                    scores,
+                    static_scores,
                     metrics.unknown_away_from_movers(occupancy, truth, seen, objects, window, r),
                 )
             )

@@ -984,7 +984,7 @@ def test_a_plain_top_is_filled_from_its_outlines_measurements_in_the_band_only()
 
 
 def test_the_foot_of_a_point_is_the_pixel_that_sees_the_floor_below_it() -> None:
-    """FloorGeometry.foot_px against the rectified camera's own projection, the default rig's
+    """floor_model._foot against the rectified camera's own projection, the default rig's
     camera tilted 25° and 10° about its axes (its nadir off the image's centre, a point moving
     down gains 0.89 m of depth a metre): the point at a height on each pixel's ray, moved
     straight down to the floor and projected, lands on the foot to the rounding."""
@@ -998,7 +998,12 @@ def test_the_foot_of_a_point_is_the_pixel_that_sees_the_floor_below_it() -> None
     rows = rng.integers(0, height, 200)
     cols = rng.integers(0, width, 200)
     heights_m = rng.uniform(0.1, 2.0, 200).astype(np.float32)
-    foot_rows, foot_cols = geometry.foot_px(rows, cols, heights_m)
+    foot_rows, foot_cols = np.array(
+        [
+            floor_model._foot(int(r), int(c), float(h), geometry.foot_terms)
+            for r, c, h in zip(rows, cols, heights_m, strict=True)
+        ]
+    ).T
     depth = (geometry.camera_height_m - heights_m) / geometry.ray_down[rows, cols]
     below = rectifier.C_world[:, None] + depth * rays[:, rows, cols]
     below[2] = 0.0

@@ -361,18 +361,6 @@ def _foot(
 
 
 @compiled
-def _feet(
-    rows: npt.NDArray[np.int64],
-    cols: npt.NDArray[np.int64],
-    heights_m: F32,
-    terms: tuple[F32, float, float, float, float],
-    feet: npt.NDArray[np.int64],
-) -> None:
-    for k in range(len(rows)):
-        feet[0, k], feet[1, k] = _foot(rows[k], cols[k], heights_m[k], terms)
-
-
-@compiled
 def _stand(
     measured: F32,
     inferred: Mask,
@@ -459,17 +447,10 @@ class FloorGeometry:
             depth_per_m_down=float(below[2]),
         )
 
-    def foot_px(
-        self, rows: npt.NDArray[np.int64], cols: npt.NDArray[np.int64], height_m: F32
-    ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
-        """The pixel (row, col) that shows the floor straight below the point at ``height_m`` on
-        each pixel's ray (:func:`_foot`); it may lie outside the image."""
-        feet = np.empty((2, len(rows)), np.int64)
-        _feet(rows, cols, height_m.astype(np.float32), self._foot_terms, feet)
-        return feet[0], feet[1]
-
     @property
-    def _foot_terms(self) -> tuple[F32, float, float, float, float]:
+    def foot_terms(self) -> tuple[F32, float, float, float, float]:
+        """What :func:`_foot` needs of the geometry: ray_down, the camera's height, the depth a
+        metre down adds, the nadir's row and column."""
         return (
             self.ray_down,
             self.camera_height_m,
@@ -1800,7 +1781,7 @@ class FloorModel:
             measured,
             inferred,
             floor_seen,
-            self.geometry._foot_terms,
+            self.geometry.foot_terms,
             self.geometry.focal_baseline_px_m,
             self.obstacle_min_m,
             fallen,

@@ -9,9 +9,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from services.evaluation.metrics import CellScores
 
 BEFORE_S = 10.0
 """Samples up to this long before a step describe the map before it."""
@@ -36,6 +39,22 @@ class TimelineScore:
     false_free_rate: float
     unknown_fraction_still: float
     """The unknown share of the floor away from the movers (metrics.unknown_away_from_movers)."""
+
+    @staticmethod
+    def of(
+        stamp_s: float, scores: CellScores, static: CellScores, unknown_fraction_still: float
+    ) -> TimelineScore:
+        """A map's scores against the truth (``scores``) and its static objects (``static``)."""
+        return TimelineScore(
+            stamp_s,
+            scores.iou,
+            static.false_free_rate,
+            scores.unknown_fraction,
+            scores.precision,
+            scores.recall,
+            scores.false_free_rate,
+            unknown_fraction_still,
+        )
 
 
 RUN_WARMUP_SHARE = 1 / 3

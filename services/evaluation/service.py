@@ -266,14 +266,10 @@ class Evaluator:
             scores = metrics.score_cells(occupancy, truth.occupied, self.seen)
             static = metrics.score_cells(occupancy, self.static_occupied, self.seen)
             out.append(
-                TimelineScore(
+                TimelineScore.of(
                     stamp_ns / 1e9,
-                    scores.iou,
-                    static.false_free_rate,
-                    scores.unknown_fraction,
-                    scores.precision,
-                    scores.recall,
-                    scores.false_free_rate,
+                    scores,
+                    static,
                     metrics.unknown_away_from_movers(
                         occupancy,
                         truth.occupied,
