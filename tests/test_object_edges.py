@@ -1,6 +1,6 @@
 """Objects' outlines refined on the image's edges: a ray-traced overhead view of a box or a round
-top on a textured floor (side faces included, edges antialiased), a detection a few centimetres off
-as the points give it, and the refined outline within a centimetre of the truth."""
+top on a textured (or plain) floor (side faces included, edges antialiased), a detection a few
+centimetres off as the points give it, and the refined outline within a centimetre of the truth."""
 
 import math
 from dataclasses import replace

@@ -160,13 +160,14 @@ def _side_band_m(
 class _Across:
     """How an edge's profile is sampled across it, for one top's height: its pixel's footprint
     there, the step's lag (half a pixel each way, in samples) and the offsets from the points'
-    edge, outward positive."""
+    edge, outward positive (reaching ``plain_search_m`` inside, in whole samples)."""
 
     pixel_m: float
     lag: int
     offsets_m: F64
     first_textured: int
-    """The first offset searched where the floor beyond is textured (``search_m`` inside)."""
+    """The first offset searched where the floor beyond is textured (``search_m`` and the lag
+    inside: the offsets as they were before the plain floor's reach)."""
 
     @staticmethod
     def at(top_m: float, view: ImageView, config: EdgeConfig) -> _Across:
@@ -179,14 +180,22 @@ class _Across:
         inside = offsets[0] - config.step_m * np.arange(more, 0, -1)
         return _Across(pixel_m, lag, np.concatenate([inside, offsets]), more)
 
-    def step(self, grey: F64, side_band_m: float, config: EdgeConfig) -> tuple[float, float] | None:
-        """:func:`_step_at` on a side's samples (rows: offsets, columns: along the side), searched
-        ``plain_search_m`` inside where the floor beyond the side (a pixel past it and past its
-        face) is plain, else ``search_m``."""
+    def find_side(
+        self, grey: F64, along_px: float, side_band_m: float, config: EdgeConfig
+    ) -> tuple[float, float] | None:
+        """:func:`_step_at` on a side's samples (rows: offsets, columns: ``along_px`` apart along
+        the side), searched ``plain_search_m`` inside where the floor beyond the side (a pixel
+        past it and past its face) is plain and the samples there lie in the image, else
+        ``search_m``. It looks at the floor only: a print on a top over a plain floor can still
+        take over from its edge."""
         beyond = grey[self.offsets_m > side_band_m + self.pixel_m]
-        # Samples along a side are half a pixel apart: a pixel's change is every second one's.
-        change = np.abs(beyond[:, 2:] - beyond[:, :-2])
-        plain = bool(change.size) and float(np.median(change)) < config.plain_grey
+        lag = max(1, round(1.0 / along_px))  # the samples a pixel apart
+        change = np.abs(beyond[:, lag:] - beyond[:, :-lag])
+        plain = (
+            bool(change.size)
+            and float(np.median(change)) < config.plain_grey
+            and not np.isnan(grey[: self.first_textured]).any()
+        )
         first = 0 if plain else self.first_textured
         return _step_at(
             grey[first:].mean(axis=1), self.offsets_m[first:], self.lag, side_band_m, config
@@ -234,7 +243,7 @@ def _refine_box(
     grey = _sample(image, view, np.hstack(xs), np.hstack(ys), d.top_m)
     strengths = []
     for side, columns in enumerate(np.split(grey, np.cumsum(widths)[:-1], axis=1)):
-        found = across.step(columns, bands[side], config)
+        found = across.find_side(columns, 0.5, bands[side], config)
         if found is None:
             continue
         axis, sign = sides[side]
@@ -270,6 +279,7 @@ def _refine_round(
     angles = (np.arange(config.sectors * per_sector) + 0.5) * (
         2 * math.pi / (config.sectors * per_sector)
     )
+    arc_px = 2 * math.pi * radius / (config.sectors * per_sector) / across.pixel_m
     radii = np.maximum(radius + across.offsets_m, 0.0)
     x = d.center_xy_m[0] + radii[:, None] * np.cos(angles)[None, :]
     y = d.center_xy_m[1] + radii[:, None] * np.sin(angles)[None, :]
@@ -280,7 +290,7 @@ def _refine_round(
         normal = (math.cos(theta), math.sin(theta))
         rim = (d.center_xy_m[0] + radius * normal[0], d.center_xy_m[1] + radius * normal[1])
         band = _side_band_m(view, rim, normal, d.top_m)
-        found = across.step(grey[:, k], band, config)
+        found = across.find_side(grey[:, k], arc_px, band, config)
         if found is None:
             continue
         rim_x.append((radius + found[0]) * math.cos(theta))
