@@ -820,8 +820,8 @@ def test_the_coarse_offset_fit_sees_the_floor_past_strongly_textured_pallets(
 ) -> None:
     """Sparse weak texture on the floor (5 % of its pixels measured, σ 0.1 px) and two pallets'
     decks half a pixel up, measured everywhere: per-pixel weights made the decks outvote the floor
-    and tilted the fit toward them (0.66 px at the image's edge). One vote a block, grown from the
-    blocks' median, finds the floor; with the ``--seed 2`` slope as well."""
+    and tilted the fit toward them (0.66 px at the image's edge). One vote a block, the plane that
+    explains the blocks best, finds the floor; with the ``--seed 2`` slope as well."""
     rng = np.random.default_rng(2)
     height, width = 120, 160  # the step-2 grid of a 320 × 240 image
     v, u = np.mgrid[0:height, 0:width].astype(np.float32)

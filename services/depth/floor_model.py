@@ -922,6 +922,11 @@ OFFSET_BLOCKS = (4, 3)
 OFFSET_BIN_PX = 0.05
 OFFSET_OUTLIER_PX = 0.3
 """A block whose mode lies further than this from the floor's plane is not the floor's (a pallet)."""
+BELOW_FLOOR_COST = 4.0
+"""A block's mode further than OFFSET_OUTLIER_PX below a plane costs this many times one as far
+above (nothing stands below the floor; a plane through low tops leaves the floor below it)."""
+MIN_FLOOR_BLOCKS = 4
+"""The coarse fit needs this many blocks on its plane: the three that make it and one more."""
 
 
 @dataclass(frozen=True)
@@ -943,9 +948,11 @@ def coarse_floor_offset(
     ±``OFFSET_CAPTURE_PX``, placed where the pixels that make the mode are; then the plane
     through three blocks' modes that explains them best, one vote a block (a pallet's strongly
     textured deck must not outweigh sparse concrete): a block costs its squared distance, at most
-    ``OFFSET_OUTLIER_PX``² (something standing on the floor), and four times that where it lies
-    further below (nothing stands below the floor); and the affine fit through the blocks within
-    ``OFFSET_OUTLIER_PX`` of it. A block's mode is the floor only where the floor is most of what
+    ``OFFSET_OUTLIER_PX``² (something standing on the floor), and ``BELOW_FLOOR_COST`` times that
+    where it lies further below (nothing stands below the floor); and the affine fit through the
+    blocks within ``OFFSET_OUTLIER_PX`` of it (at least ``MIN_FLOOR_BLOCKS``). Blocks whose modes
+    lie coherently a pixel below the floor (not seen on the renders: a reflection on a glossy
+    floor could) would tilt it: two of twelve did by 1.2 px in a review's test. A block's mode is the floor only where the floor is most of what
     the matcher measures there; on a plain floor the textured tops of low boxes are, in most
     blocks: grown from the modes' median, the fit went through them (``--floor plain --seed 4``:
     a pair's floor 1 px high, a 0.3 m box 86 % free). The fine fits start from it: they only see
@@ -985,17 +992,21 @@ def coarse_floor_offset(
     b = np.asarray(modes, np.float64)
     # Every plane through three blocks, scored at once: the cheapest is the floor's.
     trios = np.array(list(itertools.combinations(range(len(b)), 3)), np.intp)
-    corners = a[trios]  # (trios, 3 blocks, 3 terms)
-    planar = np.abs(np.linalg.det(corners)) > 1e-6  # three blocks in a line make no plane
+    trio_basis = a[trios]  # (trios, 3 blocks, 3 terms)
+    planar = np.abs(np.linalg.det(trio_basis)) > 1e-6  # three blocks in a line make no plane
     if not planar.any():
         return None
-    trios, corners = trios[planar], corners[planar]
-    planes = np.linalg.solve(corners, b[trios][..., None])[..., 0]  # (trios, 3 terms)
-    residual = b[None, :] - planes @ a.T  # (trios, blocks)
-    limit = OFFSET_OUTLIER_PX**2
-    cost = np.where(residual < -OFFSET_OUTLIER_PX, 4 * limit, np.minimum(residual**2, limit))
-    keep = np.abs(residual[int(np.argmin(cost.sum(axis=1)))]) <= OFFSET_OUTLIER_PX
-    if int(keep.sum()) < 3:
+    trios, trio_basis = trios[planar], trio_basis[planar]
+    planes = np.linalg.solve(trio_basis, b[trios][..., None])[..., 0]  # (trios, 3 terms)
+    residual_px = b[None, :] - planes @ a.T  # (trios, blocks)
+    limit_px2 = OFFSET_OUTLIER_PX**2
+    cost = np.where(
+        residual_px < -OFFSET_OUTLIER_PX,
+        BELOW_FLOOR_COST * limit_px2,
+        np.minimum(residual_px**2, limit_px2),
+    )
+    keep = np.abs(residual_px[int(np.argmin(cost.sum(axis=1)))]) <= OFFSET_OUTLIER_PX
+    if int(keep.sum()) < MIN_FLOOR_BLOCKS:
         return None
     coef = np.linalg.lstsq(a[keep], b[keep], rcond=None)[0]
     clipped = np.clip(coef, -MAX_RESIDUAL_PX, MAX_RESIDUAL_PX)
