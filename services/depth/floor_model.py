@@ -921,7 +921,8 @@ OFFSET_BLOCKS = (4, 3)
 """Columns × rows of image blocks the coarse fit takes one floor offset from each."""
 OFFSET_BIN_PX = 0.05
 OFFSET_OUTLIER_PX = 0.3
-"""A block whose mode lies further than this from the floor's plane is not the floor's (a pallet)."""
+"""A block whose mode lies further than this from the floor's plane is not the floor's (a
+pallet)."""
 BELOW_FLOOR_COST = 4.0
 """A block's mode further than OFFSET_OUTLIER_PX below a plane costs this many times one as far
 above (nothing stands below the floor; a plane through low tops leaves the floor below it)."""
@@ -952,13 +953,12 @@ def coarse_floor_offset(
     where it lies further below (nothing stands below the floor); and the affine fit through the
     blocks within ``OFFSET_OUTLIER_PX`` of it (at least ``MIN_FLOOR_BLOCKS``). Blocks whose modes
     lie coherently a pixel below the floor (not seen on the renders: a reflection on a glossy
-    floor could) would tilt it: two of twelve did by 1.2 px in a review's test. A block's mode is the floor only where the floor is most of what
-    the matcher measures there; on a plain floor the textured tops of low boxes are, in most
-    blocks: grown from the modes' median, the fit went through them (``--floor plain --seed 4``:
-    a pair's floor 1 px high, a 0.3 m box 86 % free). The fine fits start from it: they only see
-    pixels near their current estimate, and from a wrong start they creep (0.02 px a fit) or
-    never begin.
-    """
+    floor could) would tilt it: two of twelve did by 1.2 px in a review's test. A block's mode is
+    the floor only where the floor is most of what the matcher measures there; on a plain floor
+    the textured tops of low boxes are, in most blocks: grown from the modes' median, the fit went
+    through them (``--floor plain --seed 4``: a pair's floor 1 px high, a 0.3 m box 86 % free).
+    The fine fits start from it: they only see pixels near their current estimate, and from a
+    wrong start they creep (0.02 px a fit) or never begin."""
     height, width = offset_px.shape
     cols, rows = OFFSET_BLOCKS
     edges = np.arange(-OFFSET_CAPTURE_PX, OFFSET_CAPTURE_PX + OFFSET_BIN_PX / 2, OFFSET_BIN_PX)
@@ -986,7 +986,7 @@ def coarse_floor_offset(
             around = np.abs(values - centre) <= 2 * OFFSET_BIN_PX
             modes.append(_median(values[around]))
             where.append(basis[:, block[0], block[1]][:, chosen][:, around].mean(axis=1))
-    if len(modes) < 3:
+    if len(modes) < MIN_FLOOR_BLOCKS:
         return None
     a = np.asarray(where, np.float64)
     b = np.asarray(modes, np.float64)
