@@ -50,7 +50,10 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
    with it (a plain top between its two edges). A dark vertical face between a top and the floor, a
    lane line along the baseline or the floor beside a box edge along x take whatever their
    surroundings carry: measured-looking heights that put a ring of false obstacles along every
-   edge parallel to the baseline; they give no evidence.
+   edge parallel to the baseline; they give no evidence. But a floor reading beside such an edge
+   (a wall's foot), where only the window holds the edge and the pixel's own row has texture along
+   x, is kept where the nearest measurements up and down its column agree with it (6b: the floor
+   along the walls along x, two cells wide, stayed unknown without it).
 7. A run with no disparity at all between two measurements at one height in the obstacle band
    (the plain top of a box or a mover: SGBM's uniqueness test leaves most of it empty) is that
    surface, unless the background says floor there.
@@ -262,6 +265,9 @@ ROW_REACH_PX = 40
 """How far along a row (processing pixels) a measurement vouches for the matcher's filling."""
 ROW_TOLERANCE_M = 0.1
 """A filled value agrees with a measurement bounding its run within this height."""
+EDGE_REACH_PX = 6
+"""How far along a column a measurement vouches for a floor reading beside an edge along the
+baseline (:meth:`FloorModel._beside_edges`): the floor test's window and its blur."""
 REGION_EDGE_PX = 5
 """A measurement within (this − 1) / 2 px of a departed region lies on its edge (rule 8)."""
 REGION_MIN_RAISED = 10
@@ -343,6 +349,51 @@ def _scan_rows(
                 bridge[row, col] = start_height + (nearest_height - start_height) * along
             else:
                 bridge[row, col] = np.float32(np.nan)
+
+
+@compiled
+def _column_support(
+    gradient_x: F32,
+    height_m: F32,
+    anchors: Mask,
+    rows: npt.NDArray[np.intp],
+    cols: npt.NDArray[np.intp],
+    half_px: int,
+    reach_px: int,
+    tolerance_m: np.float32,
+    held: Mask,
+) -> None:
+    """Rule 6b at the given pixels: texture along x in the pixel's own row (the x-gradient's
+    variance over ``2·half_px + 1`` columns above X_ENERGY_MIN), and a measurement (``anchors``)
+    within ``reach_px`` up or down its column, every such nearest one agreeing with its height
+    (as :func:`_scan_rows` along a row; NaN never agrees). At the candidates alone: over the
+    whole image (the row's variance by blurs, the row scan on the transpose) the rule cost 0.87
+    ms a frame, so 0.27 ms."""
+    height, width = height_m.shape
+    energy_min = np.float32(X_ENERGY_MIN)
+    for k in range(rows.size):
+        row, col = rows[k], cols[k]
+        first, last = max(col - half_px, 0), min(col + half_px, width - 1)
+        total, squares = np.float32(0.0), np.float32(0.0)
+        for c in range(first, last + 1):
+            g = gradient_x[row, c]
+            total += g
+            squares += g * g
+        count = np.float32(last - first + 1)
+        mean = total / count
+        if squares / count - mean * mean <= energy_min:
+            continue
+        value, anchored, agrees = height_m[row, col], False, True
+        for step in (-1, 1):
+            r = row + step
+            while 0 <= r < height and abs(r - row) <= reach_px:
+                if anchors[r, col]:
+                    anchored = True
+                    if not abs(value - height_m[r, col]) <= tolerance_m:
+                        agrees = False
+                    break
+                r += step
+        held[row, col] = anchored and agrees
 
 
 @compiled
@@ -1417,6 +1468,18 @@ class FloorModel:
         row_support(np.zeros((1, 1), np.float32), np.zeros((1, 1), np.bool_), 1, ROW_TOLERANCE_M)
         no_runs = np.zeros((1, 1), np.uint8)
         _top_runs(no_runs, no_runs, 1, 1, no_runs)
+        one = np.zeros(1, np.intp)
+        _column_support(
+            np.zeros((1, 1), np.float32),
+            np.zeros((1, 1), np.float32),
+            no_runs.view(np.bool_),
+            one,
+            one,
+            1,
+            1,
+            np.float32(ROW_TOLERANCE_M),
+            no_runs.view(np.bool_).copy(),
+        )
         _march_outward(no_runs.view(np.bool_), no_runs.view(np.bool_), (0.0, 0.0), 1, 1, no_runs)
         tiny, none = np.zeros((8, 8), np.float32), np.zeros((8, 8), np.bool_)
         floor_test(tiny, tiny, none, self.config)
@@ -1574,9 +1637,8 @@ class FloorModel:
         interpolated = valid & ~test.matchable
         observed = matches & ((interpolated & ~at_floor) | (~valid & ~refined))
         height_now = self.geometry.height_m(measured)
-        support = row_support(
-            height_now, np.isfinite(height_now) & ~interpolated, ROW_REACH_PX, ROW_TOLERANCE_M
-        )
+        anchors = np.isfinite(height_now) & ~interpolated
+        support = row_support(height_now, anchors, ROW_REACH_PX, ROW_TOLERANCE_M)
         # No texture (a plain box top), or texture only across the baseline (board gaps, grain
         # along x: a pallet's deck), lets the matcher carry the floor's disparity in from around:
         # that "floor" is believed only where the background says floor too.
@@ -1585,6 +1647,9 @@ class FloorModel:
         carried = interpolated & low & ~matches & (test.along_baseline | ~test.textured)
         # Rule 6; with no measurement within reach, only the background vouches (for the floor).
         vouched = np.where(support.anchored, support.consistent, matches & low)
+        held = self._beside_edges(left, height_now, anchors, interpolated & low & ~matches)
+        carried &= ~held
+        vouched |= held
         measured[carried | (interpolated & ~vouched & ~observed)] = np.nan
         bridged = ~np.isfinite(measured) & ~observed & self._in_band(support.bridge_m)
         measured[bridged] = self.geometry.disparity_px(support.bridge_m[bridged], bridged)  # 7
@@ -1621,6 +1686,31 @@ class FloorModel:
             self._fit_matcher_offset(disparity, test)
         self.frames += 1
         return out
+
+    def _beside_edges(self, left: F32, height_m: F32, anchors: Mask, candidates: Mask) -> Mask:
+        """Rule 6b: the ``candidates`` (floor readings the matcher filled in) beside an edge along
+        the baseline, such as a wall's foot, that the measurements nearest up and down their
+        column within EDGE_REACH_PX agree with (:func:`_column_support`). There the floor test's
+        window holds the edge, whose texture runs across the baseline only, so the window reads
+        as grain along x and the reading was dropped as carried in, or by rule 6 with no
+        measurement along its row (the floor along the walls along x stayed unknown, two cells
+        wide), yet the pixel's own row has texture along x for the matcher (a pallet's boards
+        along x give their rows little)."""
+        held = np.zeros(self.shape, np.bool_)
+        rows, cols = np.nonzero(candidates)
+        if rows.size:
+            _column_support(
+                _gradient(left, 1, 0),
+                height_m,
+                anchors,
+                rows,
+                cols,
+                self.config.window_px // 2,
+                EDGE_REACH_PX,
+                np.float32(ROW_TOLERANCE_M),
+                held,
+            )
+        return held
 
     def _tested(self, left: F32, right: F32) -> tuple[F32, Mask, FloorTest]:
         """The right image warped onto the left by the floor (−1 outside its view), where it is
