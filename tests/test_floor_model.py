@@ -642,6 +642,30 @@ def test_row_support_vouches_only_for_what_the_measurements_bounding_a_run_agree
     assert not far.anchored[0, 3] and not np.isfinite(far.bridge_m[0, 3])
 
 
+def test_column_support_holds_a_floor_reading_its_columns_nearest_measurements_agree_with() -> None:
+    """Rule 6b on hand-made pixels: a candidate in a row with texture along x is held where the
+    nearest measurement up or down its column within reach agrees, each one that is near; not
+    beyond reach, not against a disagreeing one, not in a row plain along x, never a NaN."""
+    nan = np.nan
+    height = np.zeros((20, 6), np.float32)
+    anchors = np.zeros((20, 6), np.bool_)
+    candidates = np.zeros((20, 6), np.bool_)
+    gradient_x = np.zeros((20, 6), np.float32)
+    gradient_x[10] = [0.0, 2.0, 0.0, 2.0, 0.0, 2.0]  # texture along x: variance 1 gray²/px²
+    candidates[10] = True
+    anchors[16, 0] = True  # 6 px down: within reach
+    anchors[17, 1] = True  # 7 px: beyond it
+    anchors[4, 2], anchors[16, 2], height[4, 2] = True, True, 0.5  # up a face, down the floor
+    anchors[11, 3] = True
+    height[10, 3] = nan
+    anchors[9, 4] = True
+    candidates[18, 5], anchors[19, 5] = True, True  # a row plain along x
+    held = np.zeros_like(candidates)
+    floor_model._column_support(gradient_x, height, anchors, candidates, 2, 6, 0.1, held)
+    assert held.tolist()[10] == [True, False, False, False, True, False]
+    assert not held[18].any()
+
+
 @pytest.mark.process
 def test_up_on_a_plain_floor_maps_free_floor_around_the_objects(bus: Bus, tmp_path: Path) -> None:
     out = tmp_path / "run"
