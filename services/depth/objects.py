@@ -259,7 +259,7 @@ def detect_objects(
     detections = []
     order = np.argsort(label_of_point, kind="stable")
     bounds = np.searchsorted(label_of_point[order], np.arange(1, labels.max() + 2))
-    for start, stop in itertools.pairwise(bounds):
+    for label, (start, stop) in enumerate(itertools.pairwise(bounds), start=1):
         members = order[start:stop]
         if members.size < config.min_points:
             continue
@@ -292,7 +292,7 @@ def detect_objects(
             top_m < config.low_strip_top_m
             and (
                 length > config.low_strip_aspect * width
-                or stats[label_of_point[members[0]], cv2.CC_STAT_AREA] * config.grid_m**2
+                or stats[label, cv2.CC_STAT_AREA] * config.grid_m**2
                 < config.low_min_fill * length * width
             )
         ):
