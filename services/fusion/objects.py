@@ -385,6 +385,11 @@ class Track:
             return self._size[1]
         views = np.asarray(self.sizes, np.float64).reshape(-1, 7)
         partial = np.asarray(self.partial_sizes, np.float64).reshape(-1, 7)
+        if len(self.partial_sizes) == self.partial_sizes.maxlen:
+            # Complete views older than all ``size_history`` partial views kept are stale: a pair
+            # that sees the object whole sees it so every frame (the cameras stand still), so a
+            # complete view that never came again was the first frames' or a merge's.
+            views = views[views[:, 5] >= partial[:, 5].min()]
         recent = partial[partial[:, 5] >= views[:, 5].min(initial=math.inf)]
         if len(recent):
             seen = np.median(recent[:, :2], axis=0)
