@@ -380,7 +380,8 @@ class Track:
         (their median) are pieces of the object, not all of it (a fragment of a plain top, the
         corner of a box a taller neighbour hides) where the partial views of the same time (since
         the oldest complete view kept) outnumber them; where they do not, the partial views are
-        what is wrong (another object's, taken once)."""
+        what is wrong (another object's, taken once). Complete views older than every partial
+        view of a full history are stale (the comment below)."""
         if self._size is not None and self._size[0] is config:
             return self._size[1]
         views = np.asarray(self.sizes, np.float64).reshape(-1, 7)
