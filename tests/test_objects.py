@@ -281,25 +281,46 @@ def test_stale_partial_views_do_not_outvote_newer_complete_ones() -> None:
     assert not found.partial and np.allclose(found.size_m, (0.6, 0.5))
 
 
-def test_a_complete_view_no_frame_repeated_since_does_not_outvote_twenty_newer_partial_ones() -> (
-    None
-):
-    """``--floor plain --seed 5 --pairs 6``: a drum seen in the first frames, while the floor
-    model still learned, as one 1.10 × 0.87 m "complete" view of 3265 points (merged with what
-    stood by), then every frame whole but flagged partial (0.48 m: near a pair's left margin). The
-    cameras stand still, so a pair that saw it whole would see it so again: once twenty partial
-    views came since, that view is stale and the size is the partial views' (a lower bound)."""
+def test_complete_views_older_than_twenty_partial_ones_and_too_few_to_agree_are_stale() -> None:
+    """``--floor plain --seed 5 --pairs 6``: a drum seen in the first two frames, while the floor
+    model still learned, as "complete" views of 1.10 × 0.87 m (3265 points: merged with what stood
+    by), then every frame whole but flagged partial (0.48 m: near a pair's left margin). The
+    cameras stand still, so a pair that saw a standing object whole would see it so again: once
+    twenty partial views came since, two views that never agreed on a size are stale and the size
+    is the partial views' (a lower bound)."""
     merged = _record((7.2, 6.1), (1.1, 0.87), points=3265)
     seen = _record((7.2, 6.1), (0.48, 0.47), partial=True, points=800)
     tracker = ObjectTracker()
     for k in range(24):
         tracker.add("p3", T0_NS + k * FRAME_NS, [merged if k < 2 else seen], now_s=0.0)
         tracker.flush(now_s=0.0, live_pairs={"p3"})
-        if k == 20:  # 19 partial views since: the complete one still counts
+        if k == 20:  # 19 partial views since: the complete ones still count
             (found,) = tracker.objects()
             assert np.allclose(found.size_m, (1.1, 0.87))
     (found,) = tracker.objects()
     assert found.partial and np.allclose(found.size_m, (0.48, 0.47))
+
+
+@pytest.mark.parametrize("moving", [False, True])
+def test_complete_views_that_agreed_keep_the_size_through_partial_ones(moving: bool) -> None:
+    """A box measured whole for 15 s, then half hidden by a parked forklift for 12.5 s (partial
+    views of its other half); a forklift seen whole for 4 s, then only at an image's edge: their
+    complete views agreed, so they keep the size (a stale view is one no frame repeated)."""
+    whole_size, part_size = ((2.4, 1.2), (1.1, 0.8)) if moving else ((1.2, 0.8), (0.6, 0.8))
+    whole_frames = 8 if moving else 30
+    tracker = ObjectTracker()
+    for k in range(whole_frames + 25):
+        x = 2.0 + 0.5 * k if moving else 5.0
+        view = (
+            _record((x, 5.0), whole_size, points=2000)
+            if k < whole_frames
+            else _record((x + 0.3, 5.0), part_size, partial=True, points=900)
+        )
+        tracker.add("p0", T0_NS + k * FRAME_NS, [view], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+    (found,) = tracker.objects()
+    assert found.object_class == ("moving" if moving else "static")
+    assert np.allclose(found.size_m, whole_size) and not found.partial
 
 
 def test_a_top_outline_is_what_the_points_saw_within_their_rectangle() -> None:

@@ -380,17 +380,18 @@ class Track:
         (their median) are pieces of the object, not all of it (a fragment of a plain top, the
         corner of a box a taller neighbour hides) where the partial views of the same time (since
         the oldest complete view kept) outnumber them; where they do not, the partial views are
-        what is wrong (another object's, taken once). Complete views older than every partial
-        view of a full history are stale (the comment below)."""
+        what is wrong (another object's, taken once). A static track's complete views older than
+        every partial view of a full history, too few or too spread to agree on a size, are stale:
+        a pair that sees a standing object whole sees it so every frame (the cameras stand still),
+        so such views were the first frames' or a merge's."""
         if self._size is not None and self._size[0] is config:
             return self._size[1]
         views = np.asarray(self.sizes, np.float64).reshape(-1, 7)
         partial = np.asarray(self.partial_sizes, np.float64).reshape(-1, 7)
-        if len(self.partial_sizes) == self.partial_sizes.maxlen:
-            # Complete views older than all ``size_history`` partial views kept are stale: a pair
-            # that sees the object whole sees it so every frame (the cameras stand still), so a
-            # complete view that never came again was the first frames' or a merge's.
-            views = views[views[:, 5] >= partial[:, 5].min()]
+        if self.static and len(self.partial_sizes) == self.partial_sizes.maxlen:
+            stale = views[:, 5] < partial[:, 5].min()
+            if _views_unsure(views[stale, :2], config):
+                views = views[~stale]
         recent = partial[partial[:, 5] >= views[:, 5].min(initial=math.inf)]
         if len(recent):
             seen = np.median(recent[:, :2], axis=0)
