@@ -415,9 +415,8 @@ def _blocked_on_synthetic_floor(
     model = floor_model.FloorModel(geometry, (0.1, 2.0))
     measured = geometry.disparity_px(measured_height_m.astype(np.float32))
     no = np.zeros(textured.shape, np.bool_)
-    test = floor_model.FloorTest(
-        textured, textured, no, textured, np.full(textured.shape, np.nan, np.float32), no, no
-    )
+    nan = np.full(textured.shape, np.nan, np.float32)
+    test = floor_model.FloorTest(textured, textured, no, textured, nan, no, no, nan)
     inside = np.ones(textured.shape, np.bool_)
     return model._blocked(test, measured, inside, model._plain_floor_seen(test, inside))
 
@@ -474,9 +473,8 @@ def test_a_learning_frame_that_finds_a_plain_tops_edge_takes_back_a_confirmation
     model.confirmed[100:140, 205:230] = model.config.confirm_frames  # the top: modelled …
     model.confirmed[100:140, 230:260] = 200  # … and the floor beyond it, long learnt
     no = np.zeros((height, width), np.bool_)
-    test = floor_model.FloorTest(
-        textured, textured, no, textured, np.full((height, width), np.nan, np.float32), no, no
-    )
+    nan = np.full((height, width), np.nan, np.float32)
+    test = floor_model.FloorTest(textured, textured, no, textured, nan, no, no, nan)
     image = np.full((height, width), 120.0, np.float32)
     inside = np.ones((height, width), np.bool_)
     model._learn(image, image, inside, test, measured, no, no, relearn=False)

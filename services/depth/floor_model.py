@@ -572,6 +572,9 @@ class FloorTest:
     """Disparity minus the floor's, measured to a fraction of a pixel; NaN where not measured."""
     agree: Mask
     contradict: Mask
+    left_x_gray: F32
+    """The left image's x-gradient (gray levels per pixel), one of the test's planes: rule 6b
+    reads a pixel's own row of it."""
 
 
 class FloorTestThresholds(NamedTuple):
@@ -823,6 +826,7 @@ def floor_test(left: F32, warped: F32, inside: Mask, config: FloorModelConfig) -
         shift_px=np.empty(shape, np.float32),
         agree=np.empty(shape, np.bool_),
         contradict=np.empty(shape, np.bool_),
+        left_x_gray=planes[_LEFT_X],
     )
     _floor_decisions(
         means,
@@ -1667,7 +1671,7 @@ class FloorModel:
         # (a dark face beside a top's edge along x takes the floor's disparity as well).
         disagreed = support.anchored & ~support.consistent
         dropped = (carried | (interpolated & ~vouched)) & ~disagreed
-        held = self._beside_edges(left, height_now, anchors, dropped & low & ~matches)
+        held = self._beside_edges(test, height_now, anchors, dropped & low & ~matches)
         carried &= ~held
         vouched |= held
         measured[carried | (interpolated & ~vouched & ~observed)] = np.nan
@@ -1707,7 +1711,9 @@ class FloorModel:
         self.frames += 1
         return out
 
-    def _beside_edges(self, left: F32, height_m: F32, anchors: Mask, candidates: Mask) -> Mask:
+    def _beside_edges(
+        self, test: FloorTest, height_m: F32, anchors: Mask, candidates: Mask
+    ) -> Mask:
         """Rule 6b: the ``candidates`` (floor readings the matcher filled in, that rule 6 or the
         carried-floor rule drop and no measurement along their row disagrees with) that have
         texture along x in their own row and that the measurements nearest up and down their
@@ -1719,7 +1725,7 @@ class FloorModel:
         their rows little)."""
         held = np.zeros(self.shape, np.bool_)
         _column_support(
-            _gradient(left, 1, 0),
+            test.left_x_gray,
             height_m,
             anchors,
             candidates,
