@@ -929,6 +929,46 @@ def test_a_plain_surface_of_the_floors_grey_over_a_textured_floor_is_never_floor
         assert float(np.mean(np.abs(geometry.height_m(evidence)[around]) < 0.05)) > 0.8
 
 
+def test_a_background_learnt_from_something_since_gone_is_learnt_again() -> None:
+    """A textured mat lies on the floor while the model starts, then is taken away: the floor it
+    uncovers departs from that background (its texture is not the mat's), and a modelled pixel
+    learns only while it matches, so it stayed hidden for good. On a live default run a
+    floor-grey forklift top, grown into while the model started among floor learnt a frame
+    before, left such a patch: hidden, and filled as an obstacle 0.13 m high whenever the next
+    mover's edge came near (rule 8). Where the matcher reads the floor and nothing in the band
+    stands, ``stale_learning_frames`` learning frames in a row, the pixel starts again from the
+    image."""
+    rng = np.random.default_rng(5)
+    geometry = _synthetic_geometry()
+    width, height = SYNTHETIC_SIZE
+    floor, mat = (
+        cv2.GaussianBlur(rng.uniform(40, 220, (height, width)).astype(np.float32), (0, 0), 1.2)
+        for _ in range(2)
+    )
+    patch = (slice(80, 160), slice(120, 220))
+    with_mat = floor.copy()
+    with_mat[patch] = mat[patch]
+    model = floor_model.FloorModel(geometry, (0.1, 2.0))
+    chain = DisparityChain(MatcherConfig(), 16, 32)
+    for _ in range(12):
+        left, right = _textured_pair(geometry.floor_disparity_px, rng, with_mat)
+        model.update(left, right, chain(left, right))
+    inner = np.zeros((height, width), np.bool_)
+    inner[patch] = True
+    inner = _eroded(inner, 6)
+    assert model.modelled[inner].mean() > 0.9  # the mat is learnt as floor: it lies on it
+    hidden = []
+    for _ in range(20):
+        left, right = _textured_pair(geometry.floor_disparity_px, rng, floor)
+        evidence = model.update(left, right, chain(left, right))
+        hidden.append(float(model.hidden[inner].mean()))
+    assert hidden[0] > 0.5, hidden  # the floor under the mat departs from the mat's background
+    assert hidden[-1] < 0.05, hidden  # without: as at first
+    assert model.restarted > 0.5 * inner.sum()
+    with np.errstate(invalid="ignore"):
+        assert float(np.mean(np.abs(geometry.height_m(evidence)[inner]) < 0.05)) > 0.9
+
+
 def test_a_floor_reading_where_the_floors_texture_is_gone_is_no_floor_but_under_a_shadow_is() -> (
     None
 ):

@@ -236,6 +236,7 @@ class DepthPipeline:
             "modelled_share": round(model.modelled_share(), 4),
             "frames": model.frames,
             "relearned": model.relearned,
+            "restarted_px": model.restarted,
             "disparity_offset_px": round(float(model.residual_coef[0, 0]), 3),
             "row_offset_px": round(float(model.residual_coef[1, 0]), 3),
             "matcher_offset_px": round(float(model.matcher_offset_coef[0]), 3),
