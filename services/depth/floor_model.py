@@ -114,14 +114,14 @@ Learning (never from pixels where something stands), every ``learn_every`` frame
 - When most modelled pixels depart at once after gain normalisation (a lighting change the gain
   field does not take off), the model re-learns from that frame: confirmed pixels restart from it,
   the rest is forgotten; in that frame rule 8 fills no departed region.
-- A modelled pixel that departs in ``stale_learning_frames`` learning frames in a row, each time
-  where the matcher reads the floor and nothing in the band stands on it or before it (line of
-  sight, plain tops), starts again from the image: its model was learnt from something since
-  gone. A floor-grey forklift top was grown into while the model started, among floor learnt a
-  learning frame before: the floor it left matched that mixed background in grey but not in
-  texture, departed for good (hidden), and rule 8 filled it as an obstacle whenever the next
-  mover's edge came near (a live default run: 70 cells at the clamp, 0.13 m high, 4.5 m behind
-  the forklift).
+- A modelled pixel whose grey still matches its background but whose texture does not, in
+  ``stale_learning_frames`` learning frames since it last matched, each time where the matcher
+  reads the floor and nothing in the band stands on it or before it (line of sight, plain tops),
+  starts again from the image: its background was learnt from something since gone (a floor-grey
+  forklift top grown into while the model started, among floor learnt a frame before). Grey
+  that departs never does (a dark body standing still, whose plain sides the matcher carries the
+  floor's disparity onto, was learnt as floor from its third learning frame on without that
+  condition: a person at the image's edge, 0.35–0.44 of its footprint free).
 - The floor's disparity from the calibration is off by a fraction of a pixel when the calibration
   is (a poor one by a pixel at the image's edges): an affine offset in the pixel is fitted to the
   pixels measured near the floor, started (and started again whenever a quarter of the image
@@ -267,9 +267,9 @@ class FloorModelConfig:
     relearn_share: float = 0.5
     """Re-learn when more than this share of the modelled pixels departs at once."""
     stale_learning_frames: int = 3
-    """A modelled pixel that departs from its background in this many learning frames in a row,
-    each time where the matcher reads the floor and nothing in the band stands there or before
-    it, starts again from the image: its model was learnt from something that has gone."""
+    """Learning frames a modelled pixel departs in texture alone, where the matcher reads the floor
+    and nothing stands (not necessarily in a row: matching again resets the count), before it
+    starts again from the image (module docstring, Learning); 1–255."""
     offset_every: int = 4
     offset_rate: float = 0.5
 
@@ -1457,7 +1457,7 @@ class FloorModel:
         until then."""
         self.confirmed = np.zeros((height, width), np.uint8)
         self._stale = np.zeros((height, width), np.uint8)
-        """Learning frames in a row each modelled pixel departed where the matcher read the floor
+        """Learning frames each modelled pixel departed in texture alone since it last matched
         (``stale_learning_frames``)."""
         self.restarted = 0
         """Pixels started again from the image because their model had gone stale."""
@@ -1666,7 +1666,7 @@ class FloorModel:
             disparity - self.matcher_offset_px,
         ).astype(np.float32)
 
-        both_match, departed, covered = self._match(left, warped, inside)
+        both_match, departed, covered, grey_alike = self._match(left, warped, inside)
         matches = both_match & ~test.contradict
         # The matcher's interpolation (a disparity without texture along x) is a weak measurement:
         # an obstacle there, where both cameras see the floor's background, is the matcher's
@@ -1721,7 +1721,9 @@ class FloorModel:
         # Rule 10 (not in a frame that re-learns: there the whole image departs).
         self.hidden = np.zeros_like(departs) if relearn else departs & ~np.isfinite(out)
         if relearn or self.frames % cfg.learn_every == 0:
-            self._learn(left, warped, inside, test, measured, at_floor, matches, relearn)
+            self._learn(
+                left, warped, inside, test, measured, at_floor, matches, grey_alike, relearn
+            )
         if self.frames % cfg.offset_every == cfg.offset_every // 2:  # not in a learning frame
             self._fit_residual(left, warped, test)
             self._fit_matcher_offset(disparity, test)
@@ -1791,10 +1793,11 @@ class FloorModel:
         fields = gain_fields(ratios, sample, step, left.shape)
         return fields[0], fields[1]
 
-    def _match(self, left: F32, warped: F32, inside: Mask) -> tuple[Mask, float, Mask]:
+    def _match(self, left: F32, warped: F32, inside: Mask) -> tuple[Mask, float, Mask, Mask]:
         """Whether both cameras match their backgrounds at each pixel after gain normalisation
         (their grey and texture: :meth:`_texture_checks`); the share of modelled pixels that
-        departs (for the re-learn decision); and where the left background's texture is gone."""
+        departs (for the re-learn decision); where the left background's texture is gone; and
+        whether both match in grey alone."""
         modelled = self._modelled & inside
         self._gain = self._gains(left, warped, modelled)
         normalised = [
@@ -1809,7 +1812,7 @@ class FloorModel:
         kept, gone = self._texture_checks(normalised, alike, modelled)
         count = int(np.count_nonzero(modelled))
         departed = 0.0 if count < MIN_FIT_PIXELS else 1.0 - float(np.count_nonzero(both)) / count
-        return both & kept, departed, gone
+        return both & kept, departed, gone, both
 
     def _texture_checks(
         self, normalised: list[F32], alike: list[Mask], modelled: Mask
@@ -2069,6 +2072,7 @@ class FloorModel:
         measured: F32,
         at_floor: Mask,
         matches: Mask,
+        grey_alike: Mask,
         relearn: bool,
     ) -> None:
         cfg = self.config
@@ -2091,11 +2095,12 @@ class FloorModel:
             fresh = confirmed & (self.confirmed == 0)
             gains = self._gain
             # A stale background (module docstring, Learning): the matcher reads the floor where
-            # nothing stands, frame after frame, and the pixel still departs.
+            # nothing stands, the grey matches, the texture does not.
             with np.errstate(invalid="ignore"):
                 standing = self.geometry.height_m(measured) >= self.obstacle_min_m
-            stale = modelled & at_floor & ~matches & ~blocked & ~standing
-            self._stale = np.where(stale, self._stale + np.uint8(1), np.uint8(0)).astype(np.uint8)
+            stale = modelled & grey_alike & ~matches & at_floor & ~blocked & ~standing
+            self._stale[~modelled | matches] = 0
+            self._stale[stale] += 1
             restart = self._stale >= cfg.stale_learning_frames
             if restart.any():
                 self.restarted += int(np.count_nonzero(restart))
