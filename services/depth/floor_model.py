@@ -115,13 +115,14 @@ Learning (never from pixels where something stands), every ``learn_every`` frame
   field does not take off), the model re-learns from that frame: confirmed pixels restart from it,
   the rest is forgotten; in that frame rule 8 fills no departed region.
 - A modelled pixel whose grey still matches its background but whose texture does not, in
-  ``stale_learning_frames`` learning frames since it last matched, each time where the matcher
-  reads the floor and nothing in the band stands on it or before it (line of sight, plain tops),
-  starts again from the image: its background was learnt from something since gone (a floor-grey
-  forklift top grown into while the model started, among floor learnt a frame before). Grey
-  that departs never does (a dark body standing still, whose plain sides the matcher carries the
-  floor's disparity onto, was learnt as floor from its third learning frame on without that
-  condition: a person at the image's edge, 0.35–0.44 of its footprint free).
+  ``stale_learning_frames`` learning frames in a row, each time where the matcher reads the floor
+  and nothing stands on it or before it (line of sight, plain tops, any reading in or above the
+  band), starts again from the image: its background was learnt from something since gone (a
+  floor-grey forklift top grown into while the model started, among floor learnt a frame
+  before). A departure in grey never counts: a dark body standing still, whose plain sides the
+  matcher carries the floor's disparity onto, would be learnt as floor. Nor does a count that
+  ran on over frames out of the row: the floor-grey side of something standing with its top out
+  of view meets the conditions now and then.
 - The floor's disparity from the calibration is off by a fraction of a pixel when the calibration
   is (a poor one by a pixel at the image's edges): an affine offset in the pixel is fitted to the
   pixels measured near the floor, started (and started again whenever a quarter of the image
@@ -267,11 +268,15 @@ class FloorModelConfig:
     relearn_share: float = 0.5
     """Re-learn when more than this share of the modelled pixels departs at once."""
     stale_learning_frames: int = 3
-    """Learning frames a modelled pixel departs in texture alone, where the matcher reads the floor
-    and nothing stands (not necessarily in a row: matching again resets the count), before it
-    starts again from the image (module docstring, Learning); 1–255."""
+    """Learning frames in a row a modelled pixel departs in texture alone, where the matcher reads
+    the floor and nothing stands, before it starts again from the image (module docstring,
+    Learning); 1–255."""
     offset_every: int = 4
     offset_rate: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.stale_learning_frames <= 255:  # a uint8 count per pixel
+            raise ValueError(f"stale_learning_frames {self.stale_learning_frames} is not in 1–255")
 
 
 ROW_REACH_PX = 40
@@ -1457,7 +1462,7 @@ class FloorModel:
         until then."""
         self.confirmed = np.zeros((height, width), np.uint8)
         self._stale = np.zeros((height, width), np.uint8)
-        """Learning frames each modelled pixel departed in texture alone since it last matched
+        """Learning frames in a row each modelled pixel departed in texture alone
         (``stale_learning_frames``)."""
         self.restarted = 0
         """Pixels started again from the image because their model had gone stale."""
@@ -2099,7 +2104,7 @@ class FloorModel:
             with np.errstate(invalid="ignore"):
                 standing = self.geometry.height_m(measured) >= self.obstacle_min_m
             stale = modelled & grey_alike & ~matches & at_floor & ~blocked & ~standing
-            self._stale[~modelled | matches] = 0
+            self._stale[~stale] = 0
             self._stale[stale] += 1
             restart = self._stale >= cfg.stale_learning_frames
             if restart.any():
