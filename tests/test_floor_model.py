@@ -965,7 +965,7 @@ def test_a_background_learnt_from_a_passing_forklift_starts_again() -> None:
     for _ in range(52):
         left, right = pair.next()
         standing = None
-        for kept, pipeline in enumerate(pipelines):
+        for which, pipeline in enumerate(pipelines):
             tile = pipeline.process(left, right).tile
             if standing is None:
                 standing = np.zeros(tile.window.shape, np.bool_)
@@ -976,7 +976,7 @@ def test_a_background_learnt_from_a_passing_forklift_starts_again() -> None:
             x_m = (cols + tile.window.i0 + 0.5) * tile.resolution_m
             y_m = (rows + tile.window.j0 + 0.5) * tile.resolution_m
             there = (np.abs(x_m - 2.225) < 0.33) & (np.abs(y_m - 1.875) < 0.28)
-            phantoms[kept] += int(np.count_nonzero(there))
+            phantoms[which] += int(np.count_nonzero(there))
     pair.close()
     with_restart, without = phantoms
     assert without > 150, phantoms  # the instant still puts the forklift over the learning
