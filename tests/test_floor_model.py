@@ -419,7 +419,8 @@ def _blocked_on_synthetic_floor(
     nan = np.full(textured.shape, np.nan, np.float32)
     test = floor_model.FloorTest(textured, textured, no, textured, nan, no, no, nan)
     inside = np.ones(textured.shape, np.bool_)
-    return model._blocked(test, measured, inside, model._plain_floor_seen(test, inside))
+    plain = model._plain_floor_seen(test, inside)
+    return model._blocked(test, model.geometry.height_m(measured), inside, plain)
 
 
 @pytest.mark.parametrize("floor_textured", [True, False])

@@ -2004,7 +2004,7 @@ class FloorModel:
         return bool(np.count_nonzero(test.textured & floor) < TEXTURED_FLOOR_SHARE * count)
 
     def _blocked(
-        self, test: FloorTest, measured: F32, inside: Mask, plain: bool | None
+        self, test: FloorTest, height: F32, inside: Mask, plain: bool | None
     ) -> tuple[Mask, Mask]:
         """Pixels no learning frame may take for floor: under the columns of this frame's measured
         obstacle points (line of sight), and on a textured floor the plain runs outward of them
@@ -2012,9 +2012,8 @@ class FloorModel:
         measure, and where it meets a floor of its grey with hardly an edge the model grew over
         it; offline, ``--seed 2``: a light crate on concrete, 50 of its cells free). On a plain
         floor, the plain runs outward of a plain top's edge (:meth:`_plain_tops`), which are
-        returned apart as well: they lose a confirmation. ``plain``: :meth:`_plain_floor_seen`
-        (None: the line of sight only)."""
-        height = self.geometry.height_m(measured)
+        returned apart as well: they lose a confirmation. ``height``: the frame's evidence in
+        metres; ``plain``: :meth:`_plain_floor_seen` (None: the line of sight only)."""
         with np.errstate(invalid="ignore"):
             obstacle = test.textured & (height >= self.obstacle_min_m)
         radius = self.line_of_sight.pixel_radius_px
@@ -2086,7 +2085,8 @@ class FloorModel:
         plain = self._plain_floor_seen(test, inside)
         if plain is not None:
             self.plain_floor = plain
-        blocked, tops = self._blocked(test, measured, inside, plain)
+        height = self.geometry.height_m(measured)
+        blocked, tops = self._blocked(test, height, inside, plain)
         confirmed &= ~blocked
         modelled = self.modelled & inside
         if relearn:
@@ -2102,7 +2102,7 @@ class FloorModel:
             # A stale background (module docstring, Learning): the matcher reads the floor where
             # nothing stands, the grey matches, the texture does not.
             with np.errstate(invalid="ignore"):
-                standing = self.geometry.height_m(measured) >= self.obstacle_min_m
+                standing = height >= self.obstacle_min_m
             stale = modelled & grey_alike & ~matches & at_floor & ~blocked & ~standing
             self._stale[~stale] = 0
             self._stale[stale] += 1
