@@ -965,13 +965,11 @@ def test_a_background_learnt_from_a_passing_forklift_starts_again() -> None:
     phantoms = [0, 0]  # obstacle cells where the forklift passed, over 3.5 cells from anything
     for _ in range(52):
         left, right = pair.next()
-        standing = None
         for which, pipeline in enumerate(pipelines):
-            tile = pipeline.process(left, right).tile
-            if standing is None:
-                standing = np.zeros(tile.window.shape, np.bool_)
-                for thing in scene.truth_objects(pair.t_s):
-                    standing |= footprint_mask(thing, tile.window, tile.resolution_m)
+            tile = pipeline.process(left, right).tile  # each on its own window
+            standing = np.zeros(tile.window.shape, np.bool_)
+            for thing in scene.truth_objects(pair.t_s):
+                standing |= footprint_mask(thing, tile.window, tile.resolution_m)
             away = cv2.distanceTransform((~standing).view(np.uint8), cv2.DIST_L2, 3) > 3.5
             rows, cols = np.nonzero((tile.logodds > 0) & (tile.height_m >= 0.1) & away)
             x_m = (cols + tile.window.i0 + 0.5) * tile.resolution_m
