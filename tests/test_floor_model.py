@@ -3,6 +3,7 @@
 import json
 import subprocess
 import sys
+from collections.abc import Generator
 from dataclasses import replace
 from pathlib import Path
 from typing import cast
@@ -359,35 +360,17 @@ def test_a_plain_crate_of_the_floors_grey_put_down_on_learnt_floor_is_not_mapped
     its measured edge)."""
     scene = generate_scene(2)
     crate = next(o for o in scene.objects if o.name == "crate_0")
-    scene = scene.model_copy(update={"movers": []})
+    scene = scene.model_copy(update={"objects": [], "movers": []})
     calibration = layout_pairs(RigSpec(), scene.floor_size_m)[0]
-    empty, with_crate = (
-        Pair(scene.model_copy(update={"objects": objects}), calibration=calibration)
-        for objects in ([], [crate])
-    )
-    pipeline = DepthPipeline(empty.capture.calibration, PipelineConfig())
-    grid = FusedGrid(GridParams())
-
-    def fuse(pair: Pair) -> None:
-        tile = pipeline.process(*pair.next()).tile
-        grid.integrate_tile(tile, int(pair.t_s * 1e9))
-
-    for _ in range(16):
-        fuse(empty)
-    assert pipeline.floor_model is not None
-    assert pipeline.floor_model.modelled_share() > 0.6  # the floor under it was learnt
-    with_crate.t_s = empty.t_s
-    inner = _eroded(
-        footprint_mask(with_crate.renderer.scene.truth_objects(0)[0], grid.window, 0.05), 1
-    )
+    fused = _put_down(scene, crate, calibration, learn_frames=16)
+    grid = next(fused)
+    inner = _eroded(_footprint_cells(scene, crate, grid), 1)
     assert inner.sum() > 100
     free_share = []
     for _ in range(40):
-        fuse(with_crate)
-        occupancy = grid.served_occupancy()[inner]
+        occupancy = next(fused).served_occupancy()[inner]
         free_share.append(float(np.mean((occupancy >= 0) & (occupancy <= 25))))
-    empty.close()
-    with_crate.close()
+    fused.close()
     assert max(free_share) < 0.08, free_share  # 0.19–0.21 without rule 12
     assert float(np.mean(grid.served_occupancy()[inner] > 65)) > 0.5  # mostly occupied
 
@@ -1192,14 +1175,13 @@ def test_a_face_below_a_plain_tops_edge_is_not_filled_out_over_the_floor_before_
     assert float(np.nanmin(x_m)) > side_m - 0.05  # before: 0.28 m out, all at 1.0 m
 
 
-def _stepping_onto_mapped_floor(
-    thing: ObjectSpec, frames: int = 3
-) -> tuple[np.ndarray, np.ndarray]:
-    """The served occupancy of ``thing``'s inner cells and of its whole footprint after it
-    steps onto floor one pair has mapped free (asserted mapped free first) and stands there for
-    ``frames`` frames."""
+def _put_down(
+    scene: SceneSpec, thing: ObjectSpec, calibration: StereoCalibration, learn_frames: int
+) -> Generator[FusedGrid, None, None]:
+    """One pair's tiles fused alone: ``learn_frames`` frames of ``scene``, then ``thing`` put
+    down in it. Yields the grid after the learning and after each frame with ``thing``."""
     empty, with_thing = (
-        Pair(SceneSpec(floor="concrete", objects=objects, markings=LANES))
+        Pair(scene.model_copy(update={"objects": objects}), calibration=calibration)
         for objects in ([], [thing])
     )
     pipeline = DepthPipeline(empty.capture.calibration, PipelineConfig())
@@ -1209,17 +1191,41 @@ def _stepping_onto_mapped_floor(
         tile = pipeline.process(*pair.next()).tile
         grid.integrate_tile(tile, int(pair.t_s * 1e9))
 
-    for _ in range(17):
-        fuse(empty)
-    whole = footprint_mask(with_thing.renderer.scene.truth_objects(0)[0], grid.window, 0.05)
+    try:
+        for _ in range(learn_frames):
+            fuse(empty)
+        yield grid
+        with_thing.t_s = empty.t_s
+        while True:
+            fuse(with_thing)
+            yield grid
+    finally:
+        empty.close()
+        with_thing.close()
+
+
+def _footprint_cells(scene: SceneSpec, thing: ObjectSpec, grid: FusedGrid) -> np.ndarray:
+    """``thing``'s footprint in ``scene`` on ``grid``'s window."""
+    truth = scene.model_copy(update={"objects": [thing]}).truth_objects(0)[0]
+    return footprint_mask(truth, grid.window, 0.05)
+
+
+def _stepping_onto_mapped_floor(
+    thing: ObjectSpec, frames: int = 3
+) -> tuple[np.ndarray, np.ndarray]:
+    """The served occupancy of ``thing``'s inner cells and of its whole footprint after it
+    steps onto floor one pair has mapped free (asserted mapped free first) and stands there for
+    ``frames`` frames."""
+    scene = SceneSpec(floor="concrete", markings=LANES)
+    fused = _put_down(scene, thing, CALIB, learn_frames=17)
+    grid = next(fused)
+    whole = _footprint_cells(scene, thing, grid)
     inner = _eroded(whole, 1)
     occupancy = grid.served_occupancy()[inner]
     assert float(np.mean((occupancy >= 0) & (occupancy <= 25))) > 0.8  # mapped free
-    with_thing.t_s = empty.t_s
     for _ in range(frames):
-        fuse(with_thing)
-    empty.close()
-    with_thing.close()
+        next(fused)
+    fused.close()
     return grid.served_occupancy()[inner], grid.served_occupancy()[whole]
 
 
