@@ -82,16 +82,19 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
     floor rows that match their background above and below it, is floor (not where an inferred
     point of 7 or 8 fell).
 12. Something put down after the model learnt the floor under it: on a textured floor, along
-    the plain run outward of a plain top's measured edge (a strip measured in the obstacle band
+    the plain run outward of a plain top's measured edge (a strip measured at obstacle height
     on modelled pixels) that ends within TOP_REACH_M at texture or the image's edge, the
     background vouches for nothing: no floor observation (1, 2), no floor reading kept on its
-    word alone (6), and a modelled pixel there does not learn. The matcher's filling across the top stands or falls
-    by rule 6 like any other interpolation; where nothing is left, the floor is hidden (10). A
-    plain top of the floor's grey matches the background wherever the floor under it is smooth,
-    and rule 1 took that filling for fattening (offline, ``--seed 2``'s light crate put down on
-    concrete, one pair fused alone: 21–24 of its 112 inner cells served free in every frame;
-    with the rule 0–6). An object standing since start-up never had its edges modelled, so the
-    floor beyond its top keeps its evidence.
+    word alone (6), and a modelled pixel there does not learn. Nor is the matcher's filling
+    there evidence: on the top it is the top's height, but the run goes on past the top's far
+    edge (a plain top of the floor's grey meeting smooth floor has no edge to stop it), and
+    there the filling is fattening that rule 1 no longer takes away (kept, it stood as false
+    obstacles up to 0.6 m beyond a crate put down). Where nothing is left the floor is hidden
+    (10). A plain top of the floor's grey matches the background wherever the floor under it
+    is smooth, and rule 1 took the filling for fattening (offline, ``--seed 2``'s light crate
+    put down on concrete, one pair fused alone: 21–24 of its 112 inner cells served free in
+    every frame; with the rule 0–6). An object standing since start-up never had its edges
+    modelled, so the floor beyond its top keeps its evidence.
 
 The matcher's offset on the floor (and through its coarse fit the disparity residual) is fitted
 before the first frame's evidence as well as every few frames: until the first fit, two frames
@@ -1722,6 +1725,7 @@ class FloorModel:
         # an obstacle there, where both cameras see the floor's background, is the matcher's
         # window dragging a nearby edge over smooth floor (rule 1, fattening).
         interpolated = valid & ~test.matchable
+        measured[put_down & interpolated] = np.nan  # rule 12
         observed = matches & ((interpolated & ~at_floor) | (~valid & ~refined))
         anchors = np.isfinite(height_now) & ~interpolated
         support = row_support(height_now, anchors, ROW_REACH_PX, ROW_TOLERANCE_M)
@@ -2080,8 +2084,10 @@ class FloorModel:
     def _put_down_tops(self, test: FloorTest, height_m: F32) -> Mask:
         """Rule 12, on a textured floor: the plain runs outward of a plain top's edge measured on
         modelled floor (something put down after the model learnt the floor there) that end
-        within reach at texture or the image's edge. An object standing since start-up never
-        had its edges modelled, so the floor beyond its top keeps its evidence. Offline, six
+        within reach at texture or the image's edge, on the top and on smooth floor beyond it
+        alike (a fifth of the mask of a crate put down lies beyond it: its floor is hidden). An
+        object standing since start-up never had its edges modelled, so the floor beyond its
+        top keeps its evidence. Offline, six
         textured scenes of 20 s: runs from any measured point (as the learning's) left 0.9–1.7
         points more of the floor unknown, runs from modelled pixels 0.6–1.2 (most of the rest
         came from patches of the matcher's noise over open floor; both measured with rules 1
@@ -2099,9 +2105,9 @@ class FloorModel:
         return self.line_of_sight.top_runs(edges, ~test.textured, reach_px, self.config.window_px)
 
     def _top_edges(self, obstacle: Mask, height_m: F32) -> Mask:
-        """The pixels of ``obstacle`` (measured in the band) on a plain top's measured edge: a
-        strip thin along the ray (the matcher measures its window's width of a plain top; a
-        textured top is measured across and its far edge is no such strip) that runs on across
+        """The pixels of ``obstacle`` (measured at obstacle height) on a plain top's measured
+        edge: a strip thin along the ray (the matcher measures its window's width of a plain
+        top; a textured top is measured across, so most of it is no strip) that runs on across
         it, 20 pixels or more of it (not an object's corner, a person's shoulder, nor a patch of
         the matcher's noise)."""
         near = cv2.dilate(obstacle.view(np.uint8), self._window) > 0
