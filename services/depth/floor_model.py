@@ -72,10 +72,11 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
    between its boards) belongs to them: no robot passes there, and a cell whose centre falls in
    the slot is the pallet's.
 10. Where the image still departs from the background (or lies on a run of rule 12) and no rule
-    made evidence, the floor is *hidden* now (:attr:`FloorModel.hidden`): something stands in the pixel's ray (a plain mover,
-    a person whose top is out of view), or a shadow darkens a plain floor. Its floor cell is no
-    longer known to be free: the tile says so and the map forgets a free belief there (unknown,
-    never occupied). Not in a frame that re-learns, where the whole image departs.
+    made evidence, the floor is *hidden* now (:attr:`FloorModel.hidden`): something stands in
+    the pixel's ray (a plain mover, a person whose top is out of view), or a shadow darkens a
+    plain floor. Its floor cell is no longer known to be free: the tile says so and the map
+    forgets a free belief there (unknown, never occupied). Not in a frame that re-learns, where
+    the whole image departs.
 11. Paint along the baseline (a lane line along x) has no texture along x for either stereo or
     the floor test, and its edges stop the model's growth, so it is never modelled: a pixel of it
     with no evidence and texture along the baseline only, in a gap of at most PAINT_GAP_M between
@@ -90,11 +91,12 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
     but the run goes on past the top's far edge (a plain top of the floor's grey meeting smooth
     floor has no edge to stop it), and there the filling is fattening that rule 1 no longer
     takes away (kept and vetted by rule 6, it stood as false obstacles up to 0.6 m beyond a
-    crate put down; kept unvetted, 0.8 m). Where nothing is left the floor is hidden (10). A plain top of the floor's grey matches the background wherever the floor under it
-    is smooth, and rule 1 took the filling for fattening (offline, ``--seed 2``'s light crate
-    put down on concrete, one pair fused alone: 21–24 of its 112 inner cells served free in
-    every frame; with the rule 0–6). An object standing since start-up never had its edges
-    modelled, so the floor beyond its top keeps its evidence.
+    crate put down; kept unvetted, 0.8 m). Where nothing is left the floor is hidden (10). A
+    plain top of the floor's grey matches the background wherever the floor under it is
+    smooth, and rule 1 took the filling for fattening (offline, ``--seed 2``'s light crate put
+    down on concrete, one pair fused alone: 21–24 of its 112 inner cells served free in every
+    frame; with the rule 0–6). An object standing since start-up never had its edges modelled,
+    so the floor beyond its top keeps its evidence.
 
 The matcher's offset on the floor (and through its coarse fit the disparity residual) is fitted
 before the first frame's evidence as well as every few frames: until the first fit, two frames
