@@ -1545,6 +1545,8 @@ class FloorModel:
             [probe(0.0, -THIN_TOP_PX).ravel(), probe(0.0, THIN_TOP_PX).ravel()]
         )
         self._beyond_probe = probe(-SEED_PROBE_PX - LINE_ACROSS_PX)
+        self._top_reach_px = TOP_REACH_M * geometry.floor_px_per_m
+        """TOP_REACH_M in pixels of the floor."""
         self._gain = (UNIT_GAIN, UNIT_GAIN)
         self._set_floor(self.geometry.floor_disparity_px)
         focal_px = geometry.floor_px_per_m * geometry.camera_height_m
@@ -2074,15 +2076,14 @@ class FloorModel:
             obstacle, radius * (1.0 - height / np.float32(self.geometry.camera_height_m)), np.inf
         ).astype(np.float32)
         blocked = self.line_of_sight.blocked(feet)
-        reach_px = TOP_REACH_M * self.geometry.floor_px_per_m
         if plain is None:
             return blocked, np.zeros_like(blocked)
         if not plain:
             tops = self.line_of_sight.top_runs(
-                obstacle, ~test.textured, reach_px, self.config.window_px
+                obstacle, ~test.textured, self._top_reach_px, self.config.window_px
             )
             return blocked | tops, np.zeros_like(tops)
-        tops = self._plain_tops(obstacle, height, ~test.textured, reach_px)
+        tops = self._plain_tops(obstacle, height, ~test.textured)
         return blocked | tops, tops
 
     def _put_down_tops(self, test: FloorTest, height_m: F32) -> Mask:
@@ -2104,8 +2105,9 @@ class FloorModel:
         edges = self._top_edges(obstacle, height_m)
         if not edges.any():
             return edges
-        reach_px = TOP_REACH_M * self.geometry.floor_px_per_m
-        return self.line_of_sight.top_runs(edges, ~test.textured, reach_px, self.config.window_px)
+        return self.line_of_sight.top_runs(
+            edges, ~test.textured, self._top_reach_px, self.config.window_px
+        )
 
     def _top_edges(self, obstacle: Mask, height_m: F32) -> Mask:
         """The pixels of ``obstacle`` (measured at obstacle height) on a plain top's measured
@@ -2130,7 +2132,7 @@ class FloorModel:
         strip &= (np.bincount(labels.ravel(), minlength=count) >= MIN_STRIP_PX)[labels]
         return strip
 
-    def _plain_tops(self, obstacle: Mask, height: F32, plain: Mask, reach_px: float) -> Mask:
+    def _plain_tops(self, obstacle: Mask, height: F32, plain: Mask) -> Mask:
         """On a plain floor: the plain pixels outward of a plain top's measured edge, within
         reach, open run or not (a top of the floor's grey meets the floor with no edge at all;
         live, ``--floor plain --plain-objects``: a 1.3 m box's top 39 % free, 12 % with this
@@ -2144,7 +2146,7 @@ class FloorModel:
             self._top_edges(obstacle, height),
             plain & ~obstacle,
             self.geometry.nadir_px,
-            round(reach_px),
+            round(self._top_reach_px),
             self.config.window_px,
             runs,
         )
