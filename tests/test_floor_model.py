@@ -351,15 +351,22 @@ def test_a_plain_crate_of_the_floors_grey_on_concrete_is_never_learned_as_floor(
     assert pipeline.floor_model.modelled_share() > 0.6  # the floor around it was learned
 
 
-def test_a_plain_crate_of_the_floors_grey_put_down_on_learnt_floor_is_not_mapped_free() -> None:
+@pytest.mark.parametrize("square", [False, True], ids=["as-placed", "square-to-the-image"])
+def test_a_plain_crate_of_the_floors_grey_put_down_on_learnt_floor_is_not_mapped_free(
+    square: bool,
+) -> None:
     """The light crate of the test above, put down after the model learnt the concrete under
     it, and left there for 40 frames (ten learning frames), one pair fused alone. Its top
     matches the learnt floor wherever the floor under it is smooth, and rule 1 took the
     matcher's filling across the top for fattening: 21–24 of its 112 inner cells served free
     in every frame without rule 12, 0–6 with it (at the crate's far end, beyond the runs from
-    its measured edge)."""
+    its measured edge). Turned square to the image, its near edge runs at 40–50 degrees to the
+    ray: found as a top's edge only with STRIP_TILTS_DEG (15–21 of 147 inner cells free in the
+    pair's tiles without them, 0–1 with them)."""
     scene = generate_scene(2)
     crate = next(o for o in scene.objects if o.name == "crate_0")
+    if square:
+        crate = crate.model_copy(update={"yaw_rad": 0.0})
     scene = scene.model_copy(update={"objects": [], "movers": []})
     calibration = layout_pairs(RigSpec(), scene.floor_size_m)[0]
     fused = _put_down(scene, crate, calibration, learn_frames=16)
@@ -464,6 +471,31 @@ def test_plain_tops_beyond_a_measured_edge_are_kept_from_the_model(floor_texture
     blocked, withdrawn = _blocked_on_synthetic_floor(textured, measured)
     assert blocked[110:130, 210:235].all()
     assert withdrawn[110:130, 210:235].all() != floor_textured  # on a plain floor only
+
+
+def test_a_tops_edge_is_a_strip_thin_along_the_ray_running_on_at_up_to_60_degrees_across() -> None:
+    """The strip test (nadir at (160, 120)): a top's near edge is found whether it runs across
+    the ray or, tilted (rule 12), as a box's square to the image does up and to the side of the
+    nadir, at 40–50 degrees to it; a strip along the ray, a compact blob and a lone corner
+    piece are not."""
+    width, height = SYNTHETIC_SIZE
+    model = floor_model.FloorModel(_synthetic_geometry(), (0.1, 2.0))
+    obstacle = np.zeros((height, width), np.bool_)
+    obstacle[100:140, 240:244] = True  # right of the nadir: across the ray
+    obstacle[10:50, 230:234] = True  # up and right: at about 45 degrees to the ray
+    obstacle[180:220, 158:162] = True  # below the nadir, along the ray
+    obstacle[60:68, 60:68] = True  # a blob
+    obstacle[200:204, 20:26] = True  # a corner piece, 24 px
+    height_m = np.where(obstacle, np.float32(0.4), np.float32(np.nan))
+    edges = model._top_edges(obstacle, height_m, tilted=True)
+    assert edges[110:130, 240:244].mean() > 0.9
+    assert edges[20:40, 230:234].mean() > 0.9
+    across = model._top_edges(obstacle, height_m, tilted=False)  # a plain floor's test
+    assert across[110:130, 240:244].mean() > 0.9 and not across[15:45, 230:234].any()
+    assert not (across & ~edges).any()
+    assert not edges[185:215, 158:162].any()
+    assert not edges[60:68, 60:68].any()
+    assert not edges[200:204, 20:26].any()
 
 
 def test_on_a_plain_floor_only_a_thin_edge_holds_up_a_top() -> None:
