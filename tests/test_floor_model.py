@@ -954,12 +954,12 @@ def test_the_coarse_offset_is_the_floor_under_the_low_tops_that_fill_most_blocks
     assert np.abs(corners @ (coarse.coef - truth)).max() < 0.12
 
 
-def test_the_coarse_offset_takes_a_blocks_lowest_strong_peak_for_the_floor() -> None:
+def test_the_coarse_offset_hears_the_floor_under_a_deck_that_makes_a_blocks_highest_peak() -> None:
     """On a plain floor few blocks measure anything, and a pallet's deck, 0.5 px up, may be the
     highest peak of a block where the floor is measured too (``--floor plain --seed 2``'s p1: two
     of its five blocks; the plane went through the decks and the pallet read free for 4 s; here
-    1.1 px off at a corner). Nothing stands below the floor: a block's lowest peak holding half
-    its highest is the floor's."""
+    1.1 px off at a corner with the blocks' highest peaks alone). A block offers its lower peak
+    as well (FLOOR_PEAK_SHARE): the floor's plane explains every block."""
     rng = np.random.default_rng(2)
     height, width = 120, 160  # the step-2 grid of a 320 × 240 image: 4 × 3 blocks of 40 × 40
     v, u = np.mgrid[0:height, 0:width].astype(np.float32)
@@ -975,6 +975,32 @@ def test_the_coarse_offset_takes_a_blocks_lowest_strong_peak_for_the_floor() -> 
         deck = (slice(row * 40 + 10, row * 40 + 30), slice(col * 40 + 25, col * 40 + 31))
         offset[deck] += np.float32(0.55) + rng.normal(0.0, 0.05, (20, 6)).astype(np.float32)
         usable[deck] = True
+    coarse = floor_model.coarse_floor_offset(offset, usable, basis)
+    assert coarse is not None
+    corners = np.array([[1.0, su, sv] for su in (-1, 1) for sv in (-1, 1)])
+    assert np.abs(corners @ (coarse.coef - truth)).max() < 0.12
+
+
+def test_scattered_mismatches_below_the_floor_do_not_pull_the_coarse_offset_down() -> None:
+    """Mismatches spread over a pixel below the floor (300 in each of four blocks, against about
+    110 floor pixels) make bumps of half the floor's peak; a lower peak counts only where the
+    counts dip to half of it before the highest, so no bump prices the floor's plane as one with
+    the floor below it (taking every strong peak, the plane fell 1.2 px at a corner)."""
+    rng = np.random.default_rng(1)
+    height, width = 120, 160  # the step-2 grid of a 320 × 240 image: 4 × 3 blocks of 40 × 40
+    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
+    basis = np.stack([np.ones_like(u), u / width * 2 - 1, v / height * 2 - 1])
+    truth = np.array([0.12, -0.36, 0.06])
+    offset = np.asarray(
+        np.tensordot(truth, basis, axes=1) + rng.normal(0.0, 0.03, u.shape), np.float32
+    )
+    usable = np.asarray(rng.random(u.shape) < 0.07, np.bool_)
+    for col in range(4):  # the top row of blocks
+        block = offset[:40, col * 40 : col * 40 + 40]
+        scattered = np.zeros(1600, np.bool_)
+        scattered[rng.choice(1600, 300, replace=False)] = True
+        block[scattered.reshape(40, 40)] += rng.uniform(-1.2, -0.05, 300).astype(np.float32)
+        usable[:40, col * 40 : col * 40 + 40] |= scattered.reshape(40, 40)
     coarse = floor_model.coarse_floor_offset(offset, usable, basis)
     assert coarse is not None
     corners = np.array([[1.0, su, sv] for su in (-1, 1) for sv in (-1, 1)])

@@ -233,11 +233,14 @@ THIN_TOP_PX = 10.0
 """A strip measured in the obstacle band thinner than twice this along the ray (from the nadir)
 is a plain top's edge: the matcher measures its window's width of the top and nothing beyond."""
 MIN_STRIP_PX = 20
-STRIP_TILTS_DEG = (0.0, -30.0, 30.0, -60.0, 60.0)
-"""The directions, from across the ray, a top's edge may run in: a box's edge runs across the
-ray only where the box faces the camera's foot (one put down square to the image, up and to the
-side of the nadir, has its near edge at 40–50 degrees to the ray)."""
 """Fewer pixels than this of such a strip are a corner of something, not a top's edge."""
+STRIP_TILTS_DEG = (0.0, -30.0, 30.0, -60.0, 60.0)
+"""The directions, from across the ray, a top's edge may run in (the first: across it, the
+plain floor's test): a box's edge runs across the ray only where the box faces the camera's foot
+(one put down square to the image, up and to the side of the nadir, has its near edge at 40–50
+degrees to the ray). The thin test bounds it: a strip 2–4 px wide within about 15 degrees of the
+ray is none; a compact blob 16–18 px across where the ray runs along an image axis passes (its
+runs cost unknown floor, not free)."""
 SAME_SURFACE_M = 0.1
 """A measurement that close below another's height, or higher, belongs to the same surface."""
 TEXTURED_FLOOR_SHARE = 0.5
@@ -1032,18 +1035,19 @@ OFFSET_BLOCKS = (4, 3)
 """Columns × rows of image blocks the coarse fit takes one floor offset from each."""
 OFFSET_BIN_PX = 0.05
 OFFSET_OUTLIER_PX = 0.3
-"""A block whose mode lies further than this from the floor's plane is not the floor's (a
+"""A block none of whose peaks lies within this of the floor's plane is not the floor's (a
 pallet)."""
 BELOW_FLOOR_COST = 4.0
-"""A block's mode further than OFFSET_OUTLIER_PX below a plane costs this many times one as far
-above (nothing stands below the floor; a plane through low tops leaves the floor below it)."""
+"""A block with a peak further than OFFSET_OUTLIER_PX below a plane costs this many times one as
+far above (nothing stands below the floor; a plane through low tops leaves the floor below it)."""
 MIN_FLOOR_BLOCKS = 4
 """The coarse fit needs this many blocks on its plane: the three that make it and one more."""
 FLOOR_PEAK_SHARE = 0.5
-"""A block's lowest peak of offsets holding this share of its highest or more is the floor's
-(nothing stands below the floor). On a plain floor the floor is seldom most of what a block
-measures: a pallet's deck, 0.5 px up, made the highest peak in two of five blocks and the fit
-went through it (``--floor plain --seed 2``: the pallet read free for 4 s)."""
+"""A block offers the coarse fit its highest peak of offsets and its lowest peak holding this
+share of the highest or more, where the counts between them dip to this share of it or less (a
+surface of its own, not a bump of scattered mismatches). On a plain floor the floor is seldom
+most of what a block measures: a pallet's deck, 0.5 px up, made the highest peak in two of five
+blocks and the plane went through it (``--floor plain --seed 2``: the pallet read free for 4 s)."""
 
 
 @dataclass(frozen=True)
@@ -1051,35 +1055,37 @@ class CoarseOffset:
     """The floor's disparity offset found without a starting guess (:func:`coarse_floor_offset`)."""
 
     coef: npt.NDArray[np.float64]
-    """Affine a + b·u' + c·v' through the blocks' modes."""
+    """Affine a + b·u' + c·v' through the peaks below."""
     modes_px: npt.NDArray[np.float64]
-    """Each block's peak on the plane (the floor's offset there), and where it is in (u', v')."""
+    """Of each block on the plane, its peak nearest it (the floor's offset there)."""
     basis: npt.NDArray[np.float64]
+    """Where each of those peaks is: (1, u', v') of the pixels that make it."""
 
 
 def coarse_floor_offset(
     offset_px: F32, usable: Mask, basis: npt.NDArray[np.float32]
 ) -> CoarseOffset | None:
     """The floor's disparity offset (measured minus the calibration's floor disparity) over the
-    image, with no starting guess: in each block the strong peaks of the offsets within
-    ±``OFFSET_CAPTURE_PX`` (``FLOOR_PEAK_SHARE``), each placed where the pixels that make it are;
-    then the plane through peaks of three blocks that explains the blocks best, one vote a block
-    (a pallet's strongly textured deck must not outweigh sparse concrete): a block costs its
-    nearest peak's squared distance, at most ``OFFSET_OUTLIER_PX``² (something standing on the
-    floor), and ``BELOW_FLOOR_COST`` times that where any of its strong peaks lies further below
-    (nothing stands below the floor); and the affine fit through each block's peak nearest the
-    plane, within ``OFFSET_OUTLIER_PX`` of it (at least ``MIN_FLOOR_BLOCKS``). Blocks whose modes
-    lie coherently a pixel below the floor (not seen on the renders: a reflection on a glossy
-    floor could) would tilt it: two of twelve did by 1.2 px in a review's test. A block's mode is
-    the floor only where the floor is most of what the matcher measures there; on a plain floor
-    the textured tops of low boxes are, in most blocks: grown from the modes' median, the fit went
-    through them (``--floor plain --seed 4``: a pair's floor 1 px high, a 0.3 m box 86 % free).
+    image, with no starting guess: in each block one or two peaks of the offsets within
+    ±``OFFSET_CAPTURE_PX`` (its highest, and a lower one where ``FLOOR_PEAK_SHARE`` finds it),
+    each placed where the pixels that make it are; then the plane through peaks of three blocks
+    that explains the blocks best, one vote a block (a pallet's strongly textured deck must not
+    outweigh sparse concrete): a block costs its nearer peak's squared distance, at most
+    ``OFFSET_OUTLIER_PX``² (something standing on the floor), and ``BELOW_FLOOR_COST`` times that
+    where a peak of it lies further below (nothing stands below the floor); and the affine fit
+    through each block's peak nearer the plane, where within ``OFFSET_OUTLIER_PX`` of it (at
+    least ``MIN_FLOOR_BLOCKS``). Blocks whose peaks lie coherently a pixel below the floor (not
+    seen on the renders: a reflection on a glossy floor could) would tilt it: two of twelve did
+    by 1.2 px in a review's test. A block's highest peak is the floor only where the floor is most
+    of what the matcher measures there; on a plain floor the textured tops of low boxes are, in
+    most blocks: grown from the modes' median, the fit went through them (``--floor plain --seed
+    4``: a pair's floor 1 px high, a 0.3 m box 86 % free).
     The fine fits start from it: they only see pixels near their current estimate, and from a
     wrong start they creep (0.02 px a fit) or never begin."""
     height, width = offset_px.shape
     cols, rows = OFFSET_BLOCKS
     edges = np.arange(-OFFSET_CAPTURE_PX, OFFSET_CAPTURE_PX + OFFSET_BIN_PX / 2, OFFSET_BIN_PX)
-    # Every block's strong peaks, where each is, and the block's index.
+    # Every block's peaks, where each is, and the block's index.
     peak_px: list[float] = []
     where: list[npt.NDArray[np.float32]] = []
     owner: list[int] = []
@@ -1104,9 +1110,13 @@ def coarse_floor_offset(
             smooth = np.convolve(histogram, np.ones(3), mode="same")
             rising = np.r_[True, smooth[1:] >= smooth[:-1]]
             falling = np.r_[smooth[:-1] > smooth[1:], True]
-            strong = rising & falling & (smooth >= FLOOR_PEAK_SHARE * smooth.max())
+            strong = np.flatnonzero(rising & falling & (smooth >= FLOOR_PEAK_SHARE * smooth.max()))
+            lowest, highest = int(strong[0]), int(strong[np.argmax(smooth[strong])])
+            # A surface of its own: the counts dip to half of it or less before the highest.
+            if smooth[lowest : highest + 1].min() > FLOOR_PEAK_SHARE * smooth[lowest]:
+                lowest = highest
             block_basis = basis[:, block[0], block[1]][:, chosen]
-            for peak in np.flatnonzero(strong):
+            for peak in {lowest, highest}:
                 centre = (edges[peak] + edges[peak + 1]) / 2
                 around = np.abs(values - centre) <= 2 * OFFSET_BIN_PX
                 peak_px.append(_median(values[around]))
@@ -1135,7 +1145,7 @@ def coarse_floor_offset(
     residual_px = b[None, :] - planes @ a.T  # (trios, peaks)
     limit_px2 = OFFSET_OUTLIER_PX**2
     # A block costs its peak nearest the plane's squared distance, at most the limit, and more
-    # where any of its strong peaks lies below the plane.
+    # where a peak of it lies below the plane.
     fit_cost = np.minimum(residual_px**2, limit_px2)
     below = residual_px < -OFFSET_OUTLIER_PX
     cost = np.zeros(len(planes))
@@ -2150,8 +2160,9 @@ class FloorModel:
         point (as the learning's) left 0.9–1.7 points more of the floor unknown, runs from
         modelled pixels 0.6–1.2 (most of the rest came from patches of the matcher's noise over
         open floor; both measured with rules 1 and 2 alone giving way); from strips, a top's
-        edge, IoU moves by −0.0008 to +0.0014 and the unknown share by −0.19 to +0.02 points.
-        ``height_m``: this frame's measurements."""
+        edge, IoU moves by −0.0008 to +0.0014 and the unknown share by −0.19 to +0.02 points;
+        strips tilted up to 60 degrees off across as well, by −0.0011 to +0.0030 and +0.00 to
+        +0.05 points against that. ``height_m``: this frame's measurements."""
         if self.plain_floor:
             return np.zeros(self.shape, np.bool_)
         with np.errstate(invalid="ignore"):
