@@ -1007,6 +1007,25 @@ def test_scattered_mismatches_below_the_floor_do_not_pull_the_coarse_offset_down
     assert np.abs(corners @ (coarse.coef - truth)).max() < 0.12
 
 
+def test_the_coarse_offset_takes_no_plane_from_one_row_of_blocks() -> None:
+    """Only the top row of blocks measures anything (a plain floor with one lane line): their
+    places lie in a line but for their pixels' scatter, which says nothing of the slope down the
+    image. No plane (the fine fits go on from where they are), not one tilted by that scatter
+    (0.3–1.7 px off at a corner, the slope clipped at 1 px)."""
+    height, width = 120, 160  # the step-2 grid of a 320 × 240 image: 4 × 3 blocks of 40 × 40
+    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
+    basis = np.stack([np.ones_like(u), u / width * 2 - 1, v / height * 2 - 1])
+    truth = np.array([0.12, -0.36, 0.06])
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        offset = np.asarray(
+            np.tensordot(truth, basis, axes=1) + rng.normal(0.0, 0.03, u.shape), np.float32
+        )
+        usable = np.zeros(u.shape, np.bool_)
+        usable[:40] = rng.random((40, width)) < 0.07
+        assert floor_model.coarse_floor_offset(offset, usable, basis) is None
+
+
 def test_a_plain_surface_of_the_floors_grey_over_a_textured_floor_is_never_floor() -> None:
     """A plain object whose grey lies within the background's tolerance (a plain orange forklift
     over grey concrete has the same luma) matches the background pixel by pixel; the texture the

@@ -1042,6 +1042,12 @@ BELOW_FLOOR_COST = 4.0
 far above (nothing stands below the floor; a plane through low tops leaves the floor below it)."""
 MIN_FLOOR_BLOCKS = 4
 """The coarse fit needs this many blocks on its plane: the three that make it and one more."""
+MIN_TRIO_SPAN = 0.1
+"""Three peaks whose places span less than this (twice their triangle's area in (u', v'), the
+image 2 × 2; two blocks side by side and one below span 0.33) make no plane: with one row of
+blocks measuring, they lie in a line but for the scatter of their pixels (0.02), and a plane
+through them took its slope across the row from that scatter (1.0 px, the clip, 1.7 px off at a
+corner; the review)."""
 FLOOR_PEAK_SHARE = 0.5
 """A block offers the coarse fit its highest peak of offsets and its lowest peak holding this
 share of the highest or more, where the counts between them dip to this share of it or less (a
@@ -1137,7 +1143,7 @@ def coarse_floor_offset(
         & (trio_blocks[:, 0] != trio_blocks[:, 2])
     ]
     trio_basis = a[trios]  # (trios, 3 peaks, 3 terms)
-    planar = np.abs(np.linalg.det(trio_basis)) > 1e-6  # three blocks in a line make no plane
+    planar = np.abs(np.linalg.det(trio_basis)) > MIN_TRIO_SPAN
     if not planar.any():
         return None
     trios, trio_basis = trios[planar], trio_basis[planar]
