@@ -902,6 +902,28 @@ def test_rows_a_calibration_leaves_apart_are_aligned_before_the_matcher() -> Non
     assert occupied.sum() < 0.005 * (tile.count > 0).sum()
 
 
+def _coarse_floor(
+    truth: npt.NDArray[np.float64], sigma_px: float, rng: np.random.Generator
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+    """The coarse offset fit's basis (1, u', v') on the step-2 grid of a 320 × 240 image (4 × 3
+    blocks of 40 × 40), and the floor's offset there: the affine ``truth`` and noise of σ
+    ``sigma_px``."""
+    height, width = 120, 160
+    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
+    basis = np.stack([np.ones_like(u), u / width * 2 - 1, v / height * 2 - 1])
+    noise = rng.normal(0.0, sigma_px, u.shape)
+    return basis, np.asarray(np.tensordot(truth, basis, axes=1) + noise, np.float32)
+
+
+def _corner_error_px(
+    coarse: floor_model.CoarseOffset | None, truth: npt.NDArray[np.float64]
+) -> float:
+    """How far the coarse fit's plane lies from ``truth`` at the image's worst corner."""
+    assert coarse is not None
+    corners = np.array([[1.0, su, sv] for su in (-1, 1) for sv in (-1, 1)])
+    return float(np.abs(corners @ (coarse.coef - truth)).max())
+
+
 @pytest.mark.parametrize("slope_px", [0.0, 0.95])
 def test_the_coarse_offset_fit_sees_the_floor_past_strongly_textured_pallets(
     slope_px: float,
@@ -911,22 +933,15 @@ def test_the_coarse_offset_fit_sees_the_floor_past_strongly_textured_pallets(
     and tilted the fit toward them (0.66 px at the image's edge). One vote a block, the plane that
     explains the blocks best, finds the floor; with the ``--seed 2`` slope as well."""
     rng = np.random.default_rng(2)
-    height, width = 120, 160  # the step-2 grid of a 320 × 240 image
-    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
-    basis = np.stack([np.ones_like(u), u / width * 2 - 1, v / height * 2 - 1])
     truth = np.array([-0.05, slope_px, 0.0])
-    offset = np.asarray(
-        np.tensordot(truth, basis, axes=1) + rng.normal(0.0, 0.1, u.shape), np.float32
-    )
-    usable = np.asarray(rng.random(u.shape) < 0.05, np.bool_)
+    basis, offset = _coarse_floor(truth, 0.1, rng)
+    usable = np.asarray(rng.random(offset.shape) < 0.05, np.bool_)
     for row, col in ((5, 120), (70, 125)):  # decks 22 px square, fully textured, +0.55 px
         deck = (slice(row, row + 22), slice(col, col + 22))
         offset[deck] += 0.55
         usable[deck] = True
     coarse = floor_model.coarse_floor_offset(offset, usable, basis)
-    assert coarse is not None
-    corners = np.array([[1.0, su, sv] for su in (-1, 1) for sv in (-1, 1)])
-    assert np.abs(corners @ (coarse.coef - truth)).max() < 0.12
+    assert _corner_error_px(coarse, truth) < 0.12
 
 
 def test_the_coarse_offset_is_the_floor_under_the_low_tops_that_fill_most_blocks() -> None:
@@ -935,23 +950,16 @@ def test_the_coarse_offset_is_the_floor_under_the_low_tops_that_fill_most_blocks
     above the floor, outnumber the floor's (``--floor plain --seed 4``: a pair's floor fitted 1 px
     high, a 0.3 m box 86 % free). Nothing stands below the floor: the plane under them is."""
     rng = np.random.default_rng(4)
-    height, width = 120, 160  # the step-2 grid of a 320 × 240 image: 4 × 3 blocks of 40 × 40
-    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
-    basis = np.stack([np.ones_like(u), u / width * 2 - 1, v / height * 2 - 1])
     truth = np.array([0.05, 0.4, -0.1])
-    offset = np.asarray(
-        np.tensordot(truth, basis, axes=1) + rng.normal(0.0, 0.05, u.shape), np.float32
-    )
-    usable = np.asarray(rng.random(u.shape) < 0.04, np.bool_)  # lane lines, bases: 64 a block
+    basis, offset = _coarse_floor(truth, 0.05, rng)
+    usable = np.asarray(rng.random(offset.shape) < 0.04, np.bool_)  # lane lines, bases: 64 a block
     tops = ((0, 0), (0, 1), (0, 3), (1, 1), (1, 2), (2, 0), (2, 3))  # 7 of the 12 blocks
     for (row, col), above in zip(tops, np.linspace(0.6, 0.9, len(tops)), strict=True):
         top = (slice(row * 40 + 5, row * 40 + 35), slice(col * 40 + 5, col * 40 + 35))
         offset[top] += above
         usable[top] = True
     coarse = floor_model.coarse_floor_offset(offset, usable, basis)
-    assert coarse is not None
-    corners = np.array([[1.0, su, sv] for su in (-1, 1) for sv in (-1, 1)])
-    assert np.abs(corners @ (coarse.coef - truth)).max() < 0.12
+    assert _corner_error_px(coarse, truth) < 0.12
 
 
 def test_the_coarse_offset_hears_the_floor_under_a_deck_that_makes_a_blocks_highest_peak() -> None:
@@ -961,14 +969,9 @@ def test_the_coarse_offset_hears_the_floor_under_a_deck_that_makes_a_blocks_high
     1.1 px off at a corner with the blocks' highest peaks alone). A block offers its lower peak
     as well (FLOOR_PEAK_SHARE): the floor's plane explains every block."""
     rng = np.random.default_rng(2)
-    height, width = 120, 160  # the step-2 grid of a 320 × 240 image: 4 × 3 blocks of 40 × 40
-    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
-    basis = np.stack([np.ones_like(u), u / width * 2 - 1, v / height * 2 - 1])
     truth = np.array([0.12, -0.36, 0.06])
-    offset = np.asarray(
-        np.tensordot(truth, basis, axes=1) + rng.normal(0.0, 0.03, u.shape), np.float32
-    )
-    usable = np.zeros(u.shape, np.bool_)
+    basis, offset = _coarse_floor(truth, 0.03, rng)
+    usable = np.zeros(offset.shape, np.bool_)
     for row, col in ((0, 1), (0, 2), (0, 3), (1, 3), (2, 3)):  # the blocks that measure
         usable[row * 40 : row * 40 + 40, col * 40 : col * 40 + 40] = rng.random((40, 40)) < 0.07
     for row, col in ((0, 1), (0, 2)):  # a deck, +0.55 px: 120 pixels against the floor's 110
@@ -976,9 +979,7 @@ def test_the_coarse_offset_hears_the_floor_under_a_deck_that_makes_a_blocks_high
         offset[deck] += np.float32(0.55) + rng.normal(0.0, 0.05, (20, 6)).astype(np.float32)
         usable[deck] = True
     coarse = floor_model.coarse_floor_offset(offset, usable, basis)
-    assert coarse is not None
-    corners = np.array([[1.0, su, sv] for su in (-1, 1) for sv in (-1, 1)])
-    assert np.abs(corners @ (coarse.coef - truth)).max() < 0.12
+    assert _corner_error_px(coarse, truth) < 0.12
 
 
 def test_scattered_mismatches_below_the_floor_do_not_pull_the_coarse_offset_down() -> None:
@@ -987,14 +988,9 @@ def test_scattered_mismatches_below_the_floor_do_not_pull_the_coarse_offset_down
     counts dip to half of it before the highest, so no bump prices the floor's plane as one with
     the floor below it (taking every strong peak, the plane fell 1.2 px at a corner)."""
     rng = np.random.default_rng(1)
-    height, width = 120, 160  # the step-2 grid of a 320 × 240 image: 4 × 3 blocks of 40 × 40
-    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
-    basis = np.stack([np.ones_like(u), u / width * 2 - 1, v / height * 2 - 1])
     truth = np.array([0.12, -0.36, 0.06])
-    offset = np.asarray(
-        np.tensordot(truth, basis, axes=1) + rng.normal(0.0, 0.03, u.shape), np.float32
-    )
-    usable = np.asarray(rng.random(u.shape) < 0.07, np.bool_)
+    basis, offset = _coarse_floor(truth, 0.03, rng)
+    usable = np.asarray(rng.random(offset.shape) < 0.07, np.bool_)
     for col in range(4):  # the top row of blocks
         block = offset[:40, col * 40 : col * 40 + 40]
         scattered = np.zeros(1600, np.bool_)
@@ -1002,9 +998,7 @@ def test_scattered_mismatches_below_the_floor_do_not_pull_the_coarse_offset_down
         block[scattered.reshape(40, 40)] += rng.uniform(-1.2, -0.05, 300).astype(np.float32)
         usable[:40, col * 40 : col * 40 + 40] |= scattered.reshape(40, 40)
     coarse = floor_model.coarse_floor_offset(offset, usable, basis)
-    assert coarse is not None
-    corners = np.array([[1.0, su, sv] for su in (-1, 1) for sv in (-1, 1)])
-    assert np.abs(corners @ (coarse.coef - truth)).max() < 0.12
+    assert _corner_error_px(coarse, truth) < 0.12
 
 
 def test_the_coarse_offset_takes_no_plane_from_one_row_of_blocks() -> None:
@@ -1012,17 +1006,12 @@ def test_the_coarse_offset_takes_no_plane_from_one_row_of_blocks() -> None:
     places lie in a line but for their pixels' scatter, which says nothing of the slope down the
     image. No plane (the fine fits go on from where they are), not one tilted by that scatter
     (0.3–1.7 px off at a corner, the slope clipped at 1 px)."""
-    height, width = 120, 160  # the step-2 grid of a 320 × 240 image: 4 × 3 blocks of 40 × 40
-    v, u = np.mgrid[0:height, 0:width].astype(np.float32)
-    basis = np.stack([np.ones_like(u), u / width * 2 - 1, v / height * 2 - 1])
     truth = np.array([0.12, -0.36, 0.06])
     for seed in range(3):
         rng = np.random.default_rng(seed)
-        offset = np.asarray(
-            np.tensordot(truth, basis, axes=1) + rng.normal(0.0, 0.03, u.shape), np.float32
-        )
-        usable = np.zeros(u.shape, np.bool_)
-        usable[:40] = rng.random((40, width)) < 0.07
+        basis, offset = _coarse_floor(truth, 0.03, rng)
+        usable = np.zeros(offset.shape, np.bool_)
+        usable[:40] = rng.random((40, offset.shape[1])) < 0.07
         assert floor_model.coarse_floor_offset(offset, usable, basis) is None
 
 
