@@ -1035,25 +1035,19 @@ OFFSET_BLOCKS = (4, 3)
 """Columns × rows of image blocks the coarse fit takes one floor offset from each."""
 OFFSET_BIN_PX = 0.05
 OFFSET_OUTLIER_PX = 0.3
-"""A block none of whose peaks lies within this of the floor's plane is not the floor's (a
+"""A block whose mode lies further than this from the floor's plane is not the floor's (a
 pallet)."""
 BELOW_FLOOR_COST = 4.0
-"""A block with a peak further than OFFSET_OUTLIER_PX below a plane costs this many times one as
-far above (nothing stands below the floor; a plane through low tops leaves the floor below it)."""
+"""A block's mode further than OFFSET_OUTLIER_PX below a plane costs this many times one as far
+above (nothing stands below the floor; a plane through low tops leaves the floor below it)."""
 MIN_FLOOR_BLOCKS = 4
 """The coarse fit needs this many blocks on its plane: the three that make it and one more."""
 MIN_TRIO_SPAN = 0.1
-"""Three peaks whose places span less than this (twice their triangle's area in (u', v'), the
-image 2 × 2; two blocks side by side and one below span 0.33) make no plane: with one row of
-blocks measuring, they lie in a line but for the scatter of their pixels (0.02), and a plane
-through them took its slope across the row from that scatter (1.0 px, the clip, 1.7 px off at a
-corner; the review)."""
-FLOOR_PEAK_SHARE = 0.5
-"""A block offers the coarse fit its highest peak of offsets and its lowest peak holding this
-share of the highest or more, where the counts between them dip to this share of it or less (a
-surface of its own, not a bump of scattered mismatches). On a plain floor the floor is seldom
-most of what a block measures: a pallet's deck, 0.5 px up, made the highest peak in two of five
-blocks and the plane went through it (``--floor plain --seed 2``: the pallet read free for 4 s)."""
+"""Three blocks whose modes' places span less than this (twice their triangle's area in
+(u', v'), the image 2 × 2; two blocks side by side and one below span 0.33) make no plane: with
+one row of blocks measuring, they lie in a line but for the scatter of their pixels (0.02), and a
+plane through them took its slope across the row from that scatter (1.0 px, the clip, 1.7 px off
+at a corner; a review)."""
 
 
 @dataclass(frozen=True)
@@ -1061,41 +1055,34 @@ class CoarseOffset:
     """The floor's disparity offset found without a starting guess (:func:`coarse_floor_offset`)."""
 
     coef: npt.NDArray[np.float64]
-    """Affine a + b·u' + c·v' through the peaks below."""
+    """Affine a + b·u' + c·v' through the blocks' modes."""
     modes_px: npt.NDArray[np.float64]
-    """Of each block on the plane, its peak nearest it (the floor's offset there)."""
+    """Each block's mode (the floor's offset there), and where it is in (u', v')."""
     basis: npt.NDArray[np.float64]
-    """Where each of those peaks is: (1, u', v') of the pixels that make it."""
 
 
 def coarse_floor_offset(
     offset_px: F32, usable: Mask, basis: npt.NDArray[np.float32]
 ) -> CoarseOffset | None:
     """The floor's disparity offset (measured minus the calibration's floor disparity) over the
-    image, with no starting guess: in each block one or two peaks of the offsets within
-    ±``OFFSET_CAPTURE_PX`` (its highest, and a lower one where ``FLOOR_PEAK_SHARE`` finds it),
-    each placed where the pixels that make it are; then the plane through peaks of three blocks
-    that explains the blocks best, one vote a block (a pallet's strongly textured deck must not
-    outweigh sparse concrete): a block costs its nearer peak's squared distance, at most
+    image, with no starting guess: in each block the mode of the offsets within
+    ±``OFFSET_CAPTURE_PX``, placed where the pixels that make the mode are; then the plane
+    through three blocks' modes that explains them best, one vote a block (a pallet's strongly
+    textured deck must not outweigh sparse concrete): a block costs its squared distance, at most
     ``OFFSET_OUTLIER_PX``² (something standing on the floor), and ``BELOW_FLOOR_COST`` times that
-    where a peak of it lies further below (nothing stands below the floor); and the affine fit
-    through each block's peak nearer the plane, where within ``OFFSET_OUTLIER_PX`` of it (at
-    least ``MIN_FLOOR_BLOCKS``). Blocks whose peaks lie coherently a pixel below the floor (not
-    seen on the renders: a reflection on a glossy floor could) would tilt it: two of twelve did
-    by 1.2 px in a review's test. A block's highest peak is the floor only where the floor is most
-    of what the matcher measures there; on a plain floor the textured tops of low boxes are, in
-    most blocks: grown from the modes' median, the fit went through them (``--floor plain --seed
-    4``: a pair's floor 1 px high, a 0.3 m box 86 % free).
+    where it lies further below (nothing stands below the floor); and the affine fit through the
+    blocks within ``OFFSET_OUTLIER_PX`` of it (at least ``MIN_FLOOR_BLOCKS``). Blocks whose modes
+    lie coherently a pixel below the floor (not seen on the renders: a reflection on a glossy
+    floor could) would tilt it: two of twelve did by 1.2 px in a review's test. A block's mode is
+    the floor only where the floor is most of what the matcher measures there; on a plain floor
+    the textured tops of low boxes are, in most blocks: grown from the modes' median, the fit went
+    through them (``--floor plain --seed 4``: a pair's floor 1 px high, a 0.3 m box 86 % free).
     The fine fits start from it: they only see pixels near their current estimate, and from a
     wrong start they creep (0.02 px a fit) or never begin."""
     height, width = offset_px.shape
     cols, rows = OFFSET_BLOCKS
     edges = np.arange(-OFFSET_CAPTURE_PX, OFFSET_CAPTURE_PX + OFFSET_BIN_PX / 2, OFFSET_BIN_PX)
-    # Every block's peaks, where each is, and the block's index.
-    peak_px: list[float] = []
-    where: list[npt.NDArray[np.float32]] = []
-    owner: list[int] = []
-    blocks = 0
+    modes, where = [], []
     with np.errstate(invalid="ignore"):
         near = usable & (np.abs(offset_px) < OFFSET_CAPTURE_PX)
     for j in range(rows):
@@ -1114,59 +1101,32 @@ def coarse_floor_offset(
                 np.searchsorted(edges, values, side="right") - 1, minlength=edges.size - 1
             )
             smooth = np.convolve(histogram, np.ones(3), mode="same")
-            rising = np.r_[True, smooth[1:] >= smooth[:-1]]
-            falling = np.r_[smooth[:-1] > smooth[1:], True]
-            strong = np.flatnonzero(rising & falling & (smooth >= FLOOR_PEAK_SHARE * smooth.max()))
-            lowest, highest = int(strong[0]), int(strong[np.argmax(smooth[strong])])
-            # A surface of its own: the counts dip to half of it or less before the highest.
-            if smooth[lowest : highest + 1].min() > FLOOR_PEAK_SHARE * smooth[lowest]:
-                lowest = highest
-            block_basis = basis[:, block[0], block[1]][:, chosen]
-            for peak in {lowest, highest}:
-                centre = (edges[peak] + edges[peak + 1]) / 2
-                around = np.abs(values - centre) <= 2 * OFFSET_BIN_PX
-                peak_px.append(_median(values[around]))
-                where.append(block_basis[:, around].mean(axis=1))
-                owner.append(blocks)
-            blocks += 1
-    if blocks < MIN_FLOOR_BLOCKS:
+            peak = int(np.argmax(smooth))
+            centre = (edges[peak] + edges[peak + 1]) / 2
+            around = np.abs(values - centre) <= 2 * OFFSET_BIN_PX
+            modes.append(_median(values[around]))
+            where.append(basis[:, block[0], block[1]][:, chosen][:, around].mean(axis=1))
+    if len(modes) < MIN_FLOOR_BLOCKS:
         return None
     a = np.asarray(where, np.float64)
-    b = np.asarray(peak_px, np.float64)
-    of_block = np.asarray(owner, np.intp)
-    # Every plane through three peaks of three blocks, scored at once: the cheapest is the floor's.
+    b = np.asarray(modes, np.float64)
+    # Every plane through three blocks, scored at once: the cheapest is the floor's.
     trios = np.array(list(itertools.combinations(range(len(b)), 3)), np.intp)
-    trio_blocks = of_block[trios]
-    trios = trios[
-        (trio_blocks[:, 0] != trio_blocks[:, 1])
-        & (trio_blocks[:, 1] != trio_blocks[:, 2])
-        & (trio_blocks[:, 0] != trio_blocks[:, 2])
-    ]
-    trio_basis = a[trios]  # (trios, 3 peaks, 3 terms)
+    trio_basis = a[trios]  # (trios, 3 blocks, 3 terms)
     planar = np.abs(np.linalg.det(trio_basis)) > MIN_TRIO_SPAN
     if not planar.any():
         return None
     trios, trio_basis = trios[planar], trio_basis[planar]
     planes = np.linalg.solve(trio_basis, b[trios][..., None])[..., 0]  # (trios, 3 terms)
-    residual_px = b[None, :] - planes @ a.T  # (trios, peaks)
+    residual_px = b[None, :] - planes @ a.T  # (trios, blocks)
     limit_px2 = OFFSET_OUTLIER_PX**2
-    # A block costs its peak nearest the plane's squared distance, at most the limit, and more
-    # where a peak of it lies below the plane.
-    fit_cost = np.minimum(residual_px**2, limit_px2)
-    below = residual_px < -OFFSET_OUTLIER_PX
-    cost = np.zeros(len(planes))
-    for index in range(blocks):
-        mine = of_block == index
-        cost += np.where(
-            below[:, mine].any(axis=1), BELOW_FLOOR_COST * limit_px2, fit_cost[:, mine].min(axis=1)
-        )
-    best = residual_px[int(np.argmin(cost))]
-    # Each block's peak nearest the plane, within the limit.
-    nearest = np.full(blocks, -1, np.intp)
-    for peak in np.argsort(np.abs(best))[::-1]:
-        nearest[of_block[peak]] = peak
-    keep = nearest[np.abs(best[nearest]) <= OFFSET_OUTLIER_PX]
-    if keep.size < MIN_FLOOR_BLOCKS:
+    cost = np.where(
+        residual_px < -OFFSET_OUTLIER_PX,
+        BELOW_FLOOR_COST * limit_px2,
+        np.minimum(residual_px**2, limit_px2),
+    )
+    keep = np.abs(residual_px[int(np.argmin(cost.sum(axis=1)))]) <= OFFSET_OUTLIER_PX
+    if int(keep.sum()) < MIN_FLOOR_BLOCKS:
         return None
     coef = np.linalg.lstsq(a[keep], b[keep], rcond=None)[0]
     clipped = np.clip(coef, -MAX_RESIDUAL_PX, MAX_RESIDUAL_PX)
