@@ -378,7 +378,8 @@ def test_a_plain_crate_of_the_floors_grey_put_down_on_learnt_floor_is_not_mapped
         occupancy = next(fused).served_occupancy()[inner]
         free_share.append(_free_share(occupancy))
     fused.close()
-    assert max(free_share) < 0.08, free_share  # 0.19–0.21 without rule 12
+    # Without rule 12: 0.19–0.21 as placed; square, without its tilted edges: 0.07–0.17.
+    assert max(free_share) < 0.08, free_share
     assert float(np.mean(grid.served_occupancy()[inner] > 65)) > 0.5  # mostly occupied
 
 
