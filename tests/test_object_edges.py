@@ -184,3 +184,34 @@ def test_over_a_textured_floor_a_print_inside_the_top_is_not_its_side() -> None:
     prior = Detection((center[0] + 0.015, center[1]), 0.86, 0.67, math.pi / 2, top, 500, False)
     refined = refine_on_edges([prior], image, VIEW)[0]
     assert abs(refined.center_xy_m[0] + refined.width_m / 2 - (center[0] + size[0] / 2)) < 0.01
+
+
+def test_a_side_the_points_put_out_over_its_face_is_found_behind_the_face() -> None:
+    """A tall plain box (a forklift, 1.1 m) shows the camera a face 13 cm wide below its near
+    side, and the face's pixels near the top take the top's disparity: the points put that side
+    at the face's foot, past the search's reach inside from there (offline, the forklift 1.34 m
+    long of 1.2). The foot is the strong step nearest the points' side; the top's edge lies the
+    face's width further in, as wide as the face below it, not below the points' side."""
+    center, size, top = (6.3, 4.0), (1.2, 0.8), 1.1
+    image = _render(center, size, 0.0, top, round_top=False, top_grey=FLOOR_GREY)
+    foot_x = VIEW.C_world[0] + (center[0] - size[0] / 2 - VIEW.C_world[0]) * (
+        (VIEW.C_world[2] - top) / VIEW.C_world[2]
+    )
+    length = center[0] + size[0] / 2 - foot_x  # 1.33 m: from the face's foot
+    prior = Detection((foot_x + length / 2, center[1]), length, 0.8, 0.0, top, 500, False)
+    refined = refine_on_edges([prior], image, VIEW)[0]
+    assert abs(refined.length_m - size[0]) < 0.01 and abs(refined.width_m - size[1]) < 0.01
+    assert math.dist(refined.center_xy_m, center) < 0.01
+
+
+def test_a_print_where_a_top_would_end_behind_its_face_is_not_its_side() -> None:
+    """A side the points put right, its face below it: a dark tape inside the top where the
+    top's edge would lie had the points put the side at the face's foot is no side, since the
+    face's foot shows beyond the chosen step, where that step's face ends."""
+    center, size, top = (3.7, 4.0), (1.2, 0.8), 1.1
+    face_m = (VIEW.C_world[0] - (center[0] + size[0] / 2)) * top / VIEW.C_world[2]
+    tape_m = face_m / (1 - top / VIEW.C_world[2])  # where the top's edge would lie
+    image = _render(center, size, 0.0, top, False, top_grey=FLOOR_GREY, stripe_inside_m=tape_m)
+    prior = Detection(center, 1.2, 0.8, 0.0, top, 500, False)
+    refined = refine_on_edges([prior], image, VIEW)[0]
+    assert abs(refined.length_m - size[0]) < 0.01 and math.dist(refined.center_xy_m, center) < 0.01
