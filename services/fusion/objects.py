@@ -182,8 +182,8 @@ class TrackerConfig:
     measured it whole (not ``partial``) are its fringe then, as a static object's
     (``fringe_margin_m``; served unknown). 0.1 m before the fringe: offline, nine scenes and
     four plain ones (20 s), the fringe, the faces' edges (``services.depth.object_edges``) and
-    this margin together IoU +0.0002 to +0.007 on twelve, −0.004 on ``--floor plain --seed 1
-    --pairs 6``; false-free within ±0.0003 (README, "How good is the map") …"""
+    this margin together IoU +0.001 to +0.006 on twelve, −0.001 on ``--floor plain --seed 1
+    --pairs 6``; false-free within +0.03 points (README, "How good is the map") …"""
     wake_missed_frames: float = 0.5
     """… and occupied wake cells no frame has shown for this many frame intervals are forgotten:
     half a frame, so those the newest capture did not show (the floor a mover uncovered in its own
@@ -876,13 +876,13 @@ class ObjectTracker:
             subtract_cells(cells, polygon_cells(footprint, resolution_m))
         return cells, self.stamp_ns / 1e9 - self.config.wake_missed_frames * self.ahead_s()
 
-    def _footprints_now(self, moving: bool = True) -> list[F64]:
+    def _footprints_now(self, with_movers: bool = True) -> list[F64]:
         """Every track's footprint (its polygon) where it is at the newest capture, as predicted: a
-        mover this capture missed, an object whose plain top frames rarely measure (``moving``
-        False: the moving tracks' left out)."""
+        mover this capture missed, an object whose plain top frames rarely measure (without the
+        moving tracks' unless ``with_movers``)."""
         out = []
         for track in self.tracks:
-            if track.moving and not moving:
+            if track.moving and not with_movers:
                 continue
             length, width, yaw, *_, round_ = track.size(self.config)
             if max(length, width) <= self.config.max_size_m:
@@ -932,8 +932,7 @@ class ObjectTracker:
         its fringe instead (:meth:`ConnectedCells.fringe`, less every track's footprint; of a
         partial one, only where free floor lies beyond; an unsure one hands over none), which
         fusion serves unknown (the fringe layer); so does each whole view of a moving track in
-        the newest capture, out to ``wake_margin_m`` and less the standing tracks' footprints
-        (a mover's own track is sized on all its views, its cut ones too)."""
+        the newest capture (:meth:`_mover_fringes`)."""
         config, resolution_m = self.config, cells.resolution_m
         pieces, enclosures, fringes = set(), [], []
         for track in self.tracks:
@@ -959,29 +958,41 @@ class ObjectTracker:
                         free_beyond=cells.free_in(connected.window) if partial else None,
                     )
                 )
-        mover_fringes = []
-        for view in self.wake_footprints:
-            if view.stamp_ns != self.stamp_ns or view.partial:
-                continue
-            connected = connected_cells(cells, view.rectangle, config)
-            if connected is not None:
-                mover_fringes.append(
-                    connected.fringe(view.rectangle, config.fringe_margin_m, config.wake_margin_m)
-                )
         return MapCheck(
             frozenset(pieces),
             enclosures,
-            self._outside_tracks(fringes, resolution_m)
-            + self._outside_tracks(mover_fringes, resolution_m, moving=False),
+            self._outside_tracks(fringes, resolution_m) + self._mover_fringes(cells),
         )
 
+    def _mover_fringes(self, cells: OccupiedCells) -> list[tuple[Window, Mask]]:
+        """The fringe of each whole view of a moving track in the newest capture, out to
+        ``wake_margin_m``, less every other view of that capture and the footprints of the tracks
+        that are not moving (a mover's own track, sized on all its views, is mostly larger than
+        this one: the faces' hits stretch most of them)."""
+        config, resolution_m = self.config, cells.resolution_m
+        views = [view for view in self.wake_footprints if view.stamp_ns == self.stamp_ns]
+        out: list[tuple[Window, Mask]] = []
+        for view in views:
+            connected = None if view.partial else connected_cells(cells, view.rectangle, config)
+            if connected is None:
+                continue
+            fringe = [
+                connected.fringe(view.rectangle, config.fringe_margin_m, config.wake_margin_m)
+            ]
+            for other in views:
+                if other is not view:
+                    subtract_cells(fringe, polygon_cells(other.polygon(), resolution_m))
+            out += self._outside_tracks(fringe, resolution_m, with_movers=False)
+        return out
+
     def _outside_tracks(
-        self, cells: list[tuple[Window, Mask]], resolution_m: float, moving: bool = True
+        self, cells: list[tuple[Window, Mask]], resolution_m: float, with_movers: bool = True
     ) -> list[tuple[Window, Mask]]:
-        """``cells`` less every track's footprint where it is now (a fringe is no other object's
-        cells: a box beside it, a mover passing, one just put down)."""
+        """``cells`` less every track's footprint where it is now, the moving ones' only
+        ``with_movers`` (a fringe is no other object's cells: a box beside it, a mover passing,
+        one just put down)."""
         if cells:
-            for footprint in self._footprints_now(moving):
+            for footprint in self._footprints_now(with_movers):
                 subtract_cells(cells, polygon_cells(footprint, resolution_m))
         return cells
 
