@@ -833,40 +833,42 @@ def test_the_cells_just_outside_a_static_objects_footprint_are_its_fringe() -> N
 
 @pytest.mark.parametrize("cut", [False, True])
 def test_the_cells_just_outside_a_movers_measured_footprint_are_its_fringe(cut: bool) -> None:
-    """A forklift at 2 m/s, seen whole, a person walking 10 cm behind it: the frames call
-    occupied their footprints and a band 0.15 m deep behind the forklift (its plain rear face's
-    pixels take its top's disparity). The band is its fringe, served unknown, out to
-    ``wake_margin_m`` past its footprint as the newest capture measured it, but not where the
-    person stands; the cells further out, the movers' own and the floor are as the frames say. A
-    view cut by the image's border (``partial``: a lower bound) gives no fringe."""
+    """A forklift at 2 m/s, seen whole, a person walking beside it against its flank: the
+    frames call occupied their footprints, a band 0.15 m deep behind the forklift (its plain rear
+    face's pixels take its top's disparity) and a few cells past 0.2 m. The band is its fringe,
+    served unknown, out to ``wake_margin_m`` past its footprint as the newest capture measured
+    it, but not where the person stands; the cells further out, the movers' own and the floor
+    are as the frames say. A view cut by the image's border (``partial``: a lower bound) gives
+    no fringe."""
     resolution = 0.05
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
     tracker = ObjectTracker()
     for k in range(7):
         x = 2.0 + 1.0 * k
         forklift = _record((x, 2.0), (1.2, 0.8), partial=k == 6 and cut)
-        person = _record((x - 0.95, 2.0), (0.5, 0.5), partial=k == 6 and cut)
+        person = _record((x, 1.325), (0.55, 0.55), partial=k == 6 and cut)
         tracker.add("p0", T0_NS + k * FRAME_NS, [forklift, person], now_s=0.0)
         tracker.flush(now_s=0.0, live_pairs={"p0"})
     assert [t.object_class for t in tracker.objects()] == ["moving", "moving"]
     _measure(grid, Window(0, 0, 200, 100), -2.0)  # the floor: free
     _measure(grid, Window(148, 32, 24, 16), 4.0)  # the forklift: x 7.4–8.6, y 1.6–2.4
     _measure(grid, Window(145, 32, 3, 16), 4.0)  # its rear face's hits: x 7.25–7.4
-    _measure(grid, Window(136, 35, 10, 10), 4.0)  # the person: x 6.8–7.3, y 1.75–2.25
+    _measure(grid, Window(143, 38, 2, 2), 4.0)  # x 7.15–7.25, y 1.9–2.0: over 0.2 m behind it
+    _measure(grid, Window(155, 21, 11, 11), 4.0)  # the person: x 7.75–8.3, y 1.05–1.6
 
     def served(x: float, y: float) -> int:
         return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
 
-    band = [(7.325, 1.7), (7.375, 2.3), (7.325, 2.35)]
-    movers = [(7.275, 2.0), (7.175, 1.875), (7.05, 2.0), (7.425, 2.0), (8.0, 2.0)]  # their own
-    floor = [(6.5, 2.0), (8.0, 2.6)]
+    band = [(7.325, 1.7), (7.375, 2.3), (7.325, 2.35), (7.275, 1.65)]
+    movers = [(8.0, 1.575), (8.0, 1.3), (7.425, 2.0), (8.0, 2.0)]  # their own
+    beyond, floor = [(7.175, 1.925)], [(6.5, 2.0), (8.0, 2.6), (7.0, 1.25)]
     assert all(served(*cell) >= OCCUPIED_MIN for cell in band)  # the frames' verdict
     grid.set_fringe(tracker.check_against(grid).fringes)
     if cut:
         assert all(served(*cell) >= OCCUPIED_MIN for cell in band)
     else:
         assert [served(*cell) for cell in band] == [-1] * len(band)
-    assert all(served(*cell) >= OCCUPIED_MIN for cell in movers)
+    assert all(served(*cell) >= OCCUPIED_MIN for cell in movers + beyond)
     assert all(0 <= served(*cell) <= 25 for cell in floor)
 
 
