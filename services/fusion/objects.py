@@ -971,7 +971,7 @@ class ObjectTracker:
         this one: the faces' hits stretch most of them)."""
         config, resolution_m = self.config, cells.resolution_m
         views = [view for view in self.wake_footprints if view.stamp_ns == self.stamp_ns]
-        out: list[tuple[Window, Mask]] = []
+        fringes: list[tuple[Window, Mask]] = []
         for view in views:
             connected = None if view.partial else connected_cells(cells, view.rectangle, config)
             if connected is None:
@@ -982,8 +982,8 @@ class ObjectTracker:
             for other in views:
                 if other is not view:
                     subtract_cells(fringe, polygon_cells(other.polygon(), resolution_m))
-            out += self._outside_tracks(fringe, resolution_m, with_movers=False)
-        return out
+            fringes += fringe
+        return self._outside_tracks(fringes, resolution_m, with_movers=False)
 
     def _outside_tracks(
         self, cells: list[tuple[Window, Mask]], resolution_m: float, with_movers: bool = True
