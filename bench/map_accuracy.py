@@ -123,7 +123,7 @@ def run(
             pair = capture.calibration.pair
             found = detections_header(pipeline.detect_objects(result), pair, k, stamp_ns).detections
             tracker.add(pair, stamp_ns, list(found), k / rate_hz)
-        if tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures}):
+        if tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures}, grid):
             outlined, _ = serve_tracks(grid, tracker, outline_static)  # as the fusion service does
             grid.set_predicted(outlined)
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time

@@ -397,6 +397,66 @@ def test_two_pairs_each_seeing_half_of_an_object_give_one_object() -> None:
     assert len(objects) == 1 and objects[0].pairs == ["p0", "p1"]
 
 
+@pytest.mark.parametrize(
+    ("case", "objects"),
+    [("gap unseen", 1), ("floor seen between", 2), ("a lower top", 2), ("longer than a rack", 2)],
+)
+def test_pieces_of_two_pairs_a_seams_gap_keeps_apart_are_one_object(
+    case: str, objects: int
+) -> None:
+    """A 1.0 × 0.6 m box from x = 2.0 to 3.0, 1 m high, at a seam: pair p0 sees its top to x = 2.3,
+    pair p1 from x = 2.7; the 0.4 m between is in neither view at that height (unknown in the
+    map, the floor around it free). One object, 1 m long; two where the map saw the floor
+    between, where one piece stands half as high, or where together they would be longer than a
+    rack (a wall's pieces, one per pair along it)."""
+    length = 1.9 if case == "longer than a rack" else 0.3
+    left = 2.3 - length / 2
+    pieces = [
+        ("p0", _record((left, 2.5), (length, 0.6), partial=True)),
+        (
+            "p1",
+            _record((2.7 + length / 2, 2.5), (length, 0.6), partial=True, top=0.5)
+            if case == "a lower top"
+            else _record((2.7 + length / 2, 2.5), (length, 0.6), partial=True),
+        ),
+    ]
+    resolution = 0.05
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
+    floor = Window(0, 0, 200, 100)
+    gap = Window(46, 44, 8, 12)  # x 2.3–2.7 m, y 2.2–2.8 m
+    for part in (floor,) if case == "floor seen between" else _around_window(floor, gap):
+        _measure(grid, part, -2.0)
+    cells = round(length / resolution)
+    for i0 in (46 - cells, 54):  # the pieces' tops: occupied
+        _measure(grid, Window(i0, 44, cells, 12), 4.0)
+    tracker = ObjectTracker()
+    for k in range(4):
+        for pair, record in pieces:
+            tracker.add(pair, T0_NS + k * FRAME_NS, [record], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0", "p1"}, cells=grid)
+    found = tracker.objects()
+    assert len(found) == objects
+    if objects == 1:
+        assert found[0].pairs == ["p0", "p1"] and found[0].partial
+        assert abs(found[0].size_m[0] - 1.0) < 1e-6 and abs(found[0].center_m[0] - 2.5) < 1e-6
+    # Without the map's evidence no gap is judged: two objects.
+    assert len(merge_capture(pieces, gap_m=0.1)) == 2
+
+
+def _around_window(outer: Window, hole: Window) -> list[Window]:
+    """``outer`` less ``hole``, as up to four windows."""
+    return [
+        w
+        for w in (
+            Window(outer.i0, outer.j0, hole.i0 - outer.i0, outer.rows),
+            Window(hole.i1, outer.j0, outer.i1 - hole.i1, outer.rows),
+            Window(hole.i0, outer.j0, hole.cols, hole.j0 - outer.j0),
+            Window(hole.i0, hole.j1, hole.cols, outer.j1 - hole.j1),
+        )
+        if not w.empty
+    ]
+
+
 def test_a_complete_view_wins_over_a_partial_one() -> None:
     merged = merge_capture(
         [

@@ -1,5 +1,6 @@
 """Objects over time: every pair's detections of one capture merged (one object at a seam is one
-object), associated with tracks (Hungarian on centre distance, in turns), each track a
+object, across the gap a seam leaves in the views at its top's height too:
+:mod:`services.fusion.seams`), associated with tracks (Hungarian on centre distance, in turns), each track a
 constant-velocity Kalman filter; the cells a moving track sweeps ahead (DESIGN.md, Objects) and
 those it left behind.
 
@@ -63,6 +64,7 @@ from common.footprints import (
 from common.lattice import Window
 from common.messages import DetectionRecord, TrackedObject
 from services.fusion.captures import CaptureGroups
+from services.fusion.seams import FreeCells, Piece, SeamConfig, one_object_across
 
 F64 = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
@@ -86,6 +88,8 @@ class OccupiedCells(Protocol):
 class TrackerConfig:
     merge_gap_m: float = 0.1
     """Footprints of different pairs closer than this in one capture are one object."""
+    seam: SeamConfig = field(default_factory=SeamConfig)
+    """Partial views of different pairs farther apart: one object across a seam's gap."""
     measurement_sigma_m: float = 0.05
     partial_sigma_m: float = 0.15
     """A partial detection's centre is off by up to half the unseen part."""
@@ -244,10 +248,17 @@ def _around(views: list[F64]) -> tuple[tuple[float, float], tuple[float, float],
     return (cx, cy), (length, width), yaw, hull
 
 
-def merge_capture(detections: list[tuple[str, DetectionRecord]], gap_m: float) -> list[Observation]:
+def merge_capture(
+    detections: list[tuple[str, DetectionRecord]],
+    gap_m: float,
+    cells: FreeCells | None = None,
+    seam: SeamConfig | None = None,
+) -> list[Observation]:
     """Detections of one capture from every pair → one observation per object. Detections of
-    different pairs whose footprints overlap (within ``gap_m``) are one object: a complete view
-    wins; partial views alone are joined into the rectangle around what they all saw."""
+    different pairs whose footprints overlap (within ``gap_m``), or, given the map's ``cells``,
+    two partial ones a seam's blind gap keeps apart (:mod:`services.fusion.seams`), are one
+    object: a complete view wins; partial views alone are joined into the rectangle around what
+    they all saw."""
     parent = list(range(len(detections)))
 
     def root(k: int) -> int:
@@ -257,10 +268,18 @@ def merge_capture(detections: list[tuple[str, DetectionRecord]], gap_m: float) -
         return k
 
     polygons = [_polygon(d) for _, d in detections]
+
+    def across_seam(a: DetectionRecord, b: DetectionRecord) -> bool:
+        if cells is None or not (a.partial and b.partial) or a.low or b.low:
+            return False
+        pieces = Piece(_seen(a), a.top_m), Piece(_seen(b), b.top_m)
+        return one_object_across(*pieces, cells, seam or SeamConfig())
+
     for a in range(len(detections)):
         for b in range(a + 1, len(detections)):
-            if detections[a][0] != detections[b][0] and polygons_overlap(
-                polygons[a], polygons[b], gap_m
+            if detections[a][0] != detections[b][0] and (
+                polygons_overlap(polygons[a], polygons[b], gap_m)
+                or across_seam(detections[a][1], detections[b][1])
             ):
                 parent[root(a)] = root(b)
     groups: dict[int, list[int]] = {}
@@ -492,13 +511,15 @@ class ObjectTracker:
         """One pair's detections of one frame (an empty list says it saw nothing: still counts)."""
         self.captures.add(pair, stamp_ns, detections, now_s)
 
-    def flush(self, now_s: float, live_pairs: set[str]) -> bool:
-        """Process every complete (or waited-for) capture in stamp order; True if tracks changed."""
+    def flush(self, now_s: float, live_pairs: set[str], cells: FreeCells | None = None) -> bool:
+        """Process every complete (or waited-for) capture in stamp order; True if tracks changed.
+        ``cells``: the map's evidence, to join the pieces of an object at a seam."""
         changed = False
         for group, detections in self.captures.ready(now_s, live_pairs):
             if group <= self.stamp_ns:
                 continue  # older than a capture already processed
-            self.update(group, merge_capture(detections, self.config.merge_gap_m))
+            merged = merge_capture(detections, self.config.merge_gap_m, cells, self.config.seam)
+            self.update(group, merged)
             changed = True
         return changed
 

@@ -224,7 +224,7 @@ class FusionState:
         changed."""
         now_ns = time.time_ns()
         resolution_m = self.grid.params.resolution_m
-        changed = self.tracker.flush(time.monotonic(), self.alive)
+        changed = self.tracker.flush(time.monotonic(), self.alive, self.grid)
         check = MapCheck()
         if changed:  # once a capture: tracks and evidence both moved
             self.outlined, check = serve_tracks(
