@@ -25,7 +25,8 @@ from services.depth.objects import (
 from services.depth.projection import WorldPoints
 from services.evaluation.objects import match_static, score_movers
 from services.fusion.grid import FusedGrid, GridParams
-from services.fusion.objects import ObjectTracker, merge_capture
+from services.fusion.objects import ObjectTracker, SeamJoin, merge_capture
+from services.fusion.seams import SeamConfig
 from tests.tiles import dirty_window
 
 PITCH_M = 0.02
@@ -397,64 +398,121 @@ def test_two_pairs_each_seeing_half_of_an_object_give_one_object() -> None:
     assert len(objects) == 1 and objects[0].pairs == ["p0", "p1"]
 
 
+def _seam_map(pieces_m: list[tuple[float, float]], free: list[tuple[float, float]]) -> FusedGrid:
+    """A 10 × 5 m map whose frames saw the floor free but for the pieces' row, where they saw the
+    pieces (x from–to, m) occupied and ``free`` spans (x from–to, m) free; the rest of the row
+    unknown (the seam's gap at the tops' height)."""
+    grid = FusedGrid(GridParams(resolution_m=0.05, bounds=Window(0, 0, 200, 100)))
+    for window in (Window(0, 0, 200, 44), Window(0, 56, 200, 44)):
+        _measure(grid, window, -2.0)
+    for spans, logodds in ((pieces_m, 4.0), (free, -2.0)):
+        for x0, x1 in spans:
+            _measure(grid, Window(round(x0 / 0.05), 44, round((x1 - x0) / 0.05), 12), logodds)
+    return grid
+
+
+def _piece(pair: str, x0: float, x1: float, top: float = 1.0) -> tuple[str, DetectionRecord]:
+    """A pair's partial view of a top 0.6 m wide along y = 2.5 m, from x0 to x1."""
+    return pair, _record(((x0 + x1) / 2, 2.5), (x1 - x0, 0.6), partial=True, top=top)
+
+
 @pytest.mark.parametrize(
     ("case", "objects"),
-    [("gap unseen", 1), ("floor seen between", 2), ("a lower top", 2), ("longer than a rack", 2)],
+    [
+        ("gap unseen", 1),
+        ("floor seen between", 2),
+        ("a third of the gap seen free", 2),
+        ("a lower top", 2),
+        ("map not measured yet", 2),
+        ("a mover's piece", 2),
+        ("together longer than a rack", 2),
+        ("a chain longer than a rack", 2),
+        ("a pair's two pieces", 2),
+        ("beside a complete view", 2),
+    ],
 )
-def test_pieces_of_two_pairs_a_seams_gap_keeps_apart_are_one_object(
-    case: str, objects: int
-) -> None:
+def test_pieces_of_pairs_a_seams_gap_keeps_apart_are_one_object(case: str, objects: int) -> None:
     """A 1.0 × 0.6 m box from x = 2.0 to 3.0, 1 m high, at a seam: pair p0 sees its top to x = 2.3,
     pair p1 from x = 2.7; the 0.4 m between is in neither view at that height (unknown in the
     map, the floor around it free). One object, 1 m long; two where the map saw the floor
-    between, where one piece stands half as high, or where together they would be longer than a
-    rack (a wall's pieces, one per pair along it)."""
-    length = 1.9 if case == "longer than a rack" else 0.3
-    left = 2.3 - length / 2
-    pieces = [
-        ("p0", _record((left, 2.5), (length, 0.6), partial=True)),
-        (
-            "p1",
-            _record((2.7 + length / 2, 2.5), (length, 0.6), partial=True, top=0.5)
-            if case == "a lower top"
-            else _record((2.7 + length / 2, 2.5), (length, 0.6), partial=True),
-        ),
-    ]
-    resolution = 0.05
-    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
-    floor = Window(0, 0, 200, 100)
-    gap = Window(46, 44, 8, 12)  # x 2.3–2.7 m, y 2.2–2.8 m
-    for part in (floor,) if case == "floor seen between" else _around_window(floor, gap):
-        _measure(grid, part, -2.0)
-    cells = round(length / resolution)
-    for i0 in (46 - cells, 54):  # the pieces' tops: occupied
-        _measure(grid, Window(i0, 44, cells, 12), 4.0)
-    tracker = ObjectTracker()
-    for k in range(4):
-        for pair, record in pieces:
-            tracker.add(pair, T0_NS + k * FRAME_NS, [record], now_s=0.0)
-        tracker.flush(now_s=0.0, live_pairs={"p0", "p1"}, cells=grid)
-    found = tracker.objects()
-    assert len(found) == objects
-    if objects == 1:
-        assert found[0].pairs == ["p0", "p1"] and found[0].partial
-        assert abs(found[0].size_m[0] - 1.0) < 1e-6 and abs(found[0].center_m[0] - 2.5) < 1e-6
-    # Without the map's evidence no gap is judged: two objects.
-    assert len(merge_capture(pieces, gap_m=0.1)) == 2
+    between (all of it, or a third), where one piece stands half as high, where the map has
+    measured nothing yet, where one piece is a mover's, and where the pieces would make an object
+    longer than a rack (a wall's pieces, one per pair along it): two pieces 1.9 m long, or three
+    1 m long in a row, p0's, p1's and p2's (two neighbours joined, not the third); p0's two
+    pieces with p1's between them join p1's once; and a piece beside another pair's complete
+    view is no part of it (the complete view would win, and the piece's object go unseen)."""
+    pieces = [_piece("p0", 2.0, 2.3), _piece("p1", 2.7, 3.0)]
+    free: list[tuple[float, float]] = []
+    movers: list[np.ndarray] = []
+    if case == "floor seen between":
+        free = [(2.3, 2.7)]
+    elif case == "a third of the gap seen free":
+        free = [(2.3, 2.45)]  # 3 of the gap's 8 columns
+    elif case == "a lower top":
+        pieces[1] = _piece("p1", 2.7, 3.0, top=0.5)
+    elif case == "a mover's piece":
+        movers = [corners((2.85, 2.5), (0.3, 0.6), 0.0)]
+    elif case == "together longer than a rack":
+        pieces = [_piece("p0", 0.4, 2.3), _piece("p1", 2.7, 4.6)]
+    elif case == "a chain longer than a rack":
+        pieces = [_piece("p0", 0.2, 1.2), _piece("p1", 1.6, 2.6), _piece("p2", 3.0, 4.0)]
+    elif case == "a pair's two pieces":
+        pieces = [_piece("p0", 1.0, 1.6), _piece("p1", 2.0, 2.3), _piece("p0", 2.7, 3.3)]
+    elif case == "beside a complete view":
+        pieces[1] = ("p1", _record((2.85, 2.5), (0.3, 0.6)))
+    spans = [(r.center_m[0] - r.size_m[0] / 2, r.center_m[0] + r.size_m[0] / 2) for _, r in pieces]
+    grid = _seam_map([] if case == "map not measured yet" else spans, free)
+    if case == "map not measured yet":
+        grid = FusedGrid(GridParams(resolution_m=0.05, bounds=Window(0, 0, 200, 100)))
+    merged = merge_capture(pieces, 0.1, SeamJoin(grid, SeamConfig(), movers))
+    assert len(merged) == objects
+    if case == "gap unseen":
+        (found,) = merged
+        assert found.pairs == ("p0", "p1") and found.partial
+        assert abs(found.size_m[0] - 1.0) < 1e-6 and abs(found.center_m[0] - 2.5) < 1e-6
+    if case == "a chain longer than a rack":
+        assert sorted(len(o.pairs) for o in merged) == [1, 2]  # two neighbours, not all three
+    if case == "a pair's two pieces":
+        assert sorted(o.pairs for o in merged) == [("p0",), ("p0", "p1")]
+    # Without the map's evidence no gap is judged.
+    assert len(merge_capture(pieces, gap_m=0.1)) == len(pieces)
 
 
-def _around_window(outer: Window, hole: Window) -> list[Window]:
-    """``outer`` less ``hole``, as up to four windows."""
-    return [
-        w
-        for w in (
-            Window(outer.i0, outer.j0, hole.i0 - outer.i0, outer.rows),
-            Window(hole.i1, outer.j0, outer.i1 - hole.i1, outer.rows),
-            Window(hole.i0, outer.j0, hole.cols, hole.j0 - outer.j0),
-            Window(hole.i0, hole.j1, hole.cols, outer.j1 - hole.j1),
-        )
-        if not w.empty
-    ]
+def test_a_tracker_given_the_map_joins_pieces_across_a_seams_gap() -> None:
+    """The tracker hands the map to the merge: the box above, seen in two pieces four frames
+    running, is one object (two without the map)."""
+    pieces = [_piece("p0", 2.0, 2.3), _piece("p1", 2.7, 3.0)]
+    grid = _seam_map([(2.0, 2.3), (2.7, 3.0)], [])
+    for cells, objects in ((grid, 1), (None, 2)):
+        tracker = ObjectTracker()
+        for k in range(4):
+            for pair, record in pieces:
+                tracker.add(pair, T0_NS + k * FRAME_NS, [record], now_s=0.0)
+            tracker.flush(now_s=0.0, live_pairs={"p0", "p1"}, cells=cells)
+        assert len(tracker.objects()) == objects
+
+
+def test_a_diagonal_joins_length_is_its_rectangles() -> None:
+    """Two pieces along a diagonal, 3.4 m long together (2.4 m along either axis): longer than a
+    rack, not joined; 2.1 m long together, joined."""
+    grid = FusedGrid(GridParams(resolution_m=0.05, bounds=Window(0, 0, 200, 100)))
+    _measure(grid, Window(0, 0, 200, 100), 4.0)  # all measured, nothing free
+    yaw = math.pi / 4
+    along = np.array([math.cos(yaw), math.sin(yaw)])
+    for length, objects in ((1.5, 2), (0.85, 1)):
+        pieces = [
+            (
+                pair,
+                _record(
+                    tuple(np.array([5.0, 2.5]) + side * (0.2 + length / 2) * along),
+                    (length, 0.6),
+                    partial=True,
+                    yaw=yaw,
+                ),
+            )
+            for pair, side in (("p0", -1), ("p1", 1))
+        ]
+        assert len(merge_capture(pieces, 0.1, SeamJoin(grid, SeamConfig(), []))) == objects
 
 
 def test_a_complete_view_wins_over_a_partial_one() -> None:

@@ -1,8 +1,8 @@
 """Objects over time: every pair's detections of one capture merged (one object at a seam is one
-object, across the gap a seam leaves in the views at its top's height too:
-:mod:`services.fusion.seams`), associated with tracks (Hungarian on centre distance, in turns), each track a
-constant-velocity Kalman filter; the cells a moving track sweeps ahead (DESIGN.md, Objects) and
-those it left behind.
+object, across the gap a seam leaves in the views at its top's height too,
+:mod:`services.fusion.seams`), associated with tracks (Hungarian on centre distance, in turns),
+each track a constant-velocity Kalman filter; the cells a moving track sweeps ahead (DESIGN.md,
+Objects) and those it left behind.
 
 Pure numpy/scipy: no Zenoh, no threads. Fusion holds one :class:`ObjectTracker` behind its lock.
 
@@ -64,22 +64,15 @@ from common.footprints import (
 from common.lattice import Window
 from common.messages import DetectionRecord, TrackedObject
 from services.fusion.captures import CaptureGroups
-from services.fusion.seams import FreeCells, Piece, SeamConfig, one_object_across
+from services.fusion.seams import MapEvidence, Piece, SeamConfig, one_object_across
 
 F64 = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
 NOT_ALLOWED = 1e6
 
 
-class OccupiedCells(Protocol):
+class OccupiedCells(MapEvidence, Protocol):
     """The map's evidence as the tracker checks objects against it (``FusedGrid``)."""
-
-    @property
-    def resolution_m(self) -> float: ...
-
-    def occupied_in(self, window: Window) -> Mask: ...
-
-    def free_in(self, window: Window) -> Mask: ...
 
     def agrees(self, window: Window, mask: Mask) -> bool: ...
 
@@ -248,17 +241,25 @@ def _around(views: list[F64]) -> tuple[tuple[float, float], tuple[float, float],
     return (cx, cy), (length, width), yaw, hull
 
 
+@dataclass(frozen=True)
+class SeamJoin:
+    """What joining pieces across a seam's gap needs (:mod:`services.fusion.seams`): the map's
+    evidence, the rule's parameters, and the moving tracks' footprints at the capture (a mover's
+    piece beside a standing object's is no piece of it)."""
+
+    cells: MapEvidence
+    config: SeamConfig
+    movers_m: list[F64]
+
+
 def merge_capture(
-    detections: list[tuple[str, DetectionRecord]],
-    gap_m: float,
-    cells: FreeCells | None = None,
-    seam: SeamConfig | None = None,
+    detections: list[tuple[str, DetectionRecord]], gap_m: float, seam: SeamJoin | None = None
 ) -> list[Observation]:
     """Detections of one capture from every pair → one observation per object. Detections of
-    different pairs whose footprints overlap (within ``gap_m``), or, given the map's ``cells``,
-    two partial ones a seam's blind gap keeps apart (:mod:`services.fusion.seams`), are one
-    object: a complete view wins; partial views alone are joined into the rectangle around what
-    they all saw."""
+    different pairs whose footprints overlap (within ``gap_m``) are one object, and so, given a
+    ``seam`` join, are groups of partial ones a seam's blind gap keeps apart (:func:`_seam_joins`):
+    a complete view wins; partial views alone are joined into the rectangle around what they all
+    saw."""
     parent = list(range(len(detections)))
 
     def root(k: int) -> int:
@@ -268,20 +269,15 @@ def merge_capture(
         return k
 
     polygons = [_polygon(d) for _, d in detections]
-
-    def across_seam(a: DetectionRecord, b: DetectionRecord) -> bool:
-        if cells is None or not (a.partial and b.partial) or a.low or b.low:
-            return False
-        pieces = Piece(_seen(a), a.top_m), Piece(_seen(b), b.top_m)
-        return one_object_across(*pieces, cells, seam or SeamConfig())
-
     for a in range(len(detections)):
         for b in range(a + 1, len(detections)):
-            if detections[a][0] != detections[b][0] and (
-                polygons_overlap(polygons[a], polygons[b], gap_m)
-                or across_seam(detections[a][1], detections[b][1])
+            if detections[a][0] != detections[b][0] and polygons_overlap(
+                polygons[a], polygons[b], gap_m
             ):
                 parent[root(a)] = root(b)
+    if seam is not None:
+        for a, b in _seam_joins(detections, [root(k) for k in range(len(detections))], seam):
+            parent[root(a)] = root(b)
     groups: dict[int, list[int]] = {}
     for k in range(len(detections)):
         groups.setdefault(root(k), []).append(k)
@@ -314,6 +310,46 @@ def merge_capture(
             Observation(center, size, yaw, top, True, pairs, points, vertices(hull), low=low)
         )
     return out
+
+
+def _seam_joins(
+    detections: list[tuple[str, DetectionRecord]], roots: list[int], seam: SeamJoin
+) -> list[tuple[int, int]]:
+    """Which overlap groups (``roots``: each detection's) to join across a seam's gap, nearest
+    first, each join judged on the groups as joined so far: groups of partial views alone, none a
+    mover's, that share no pair (one pair's pieces are apart in its own view)."""
+    groups: dict[int, list[int]] = {}
+    for k, group in enumerate(roots):
+        groups.setdefault(group, []).append(k)
+
+    def joinable(members: list[int]) -> bool:
+        records = [detections[k][1] for k in members]
+        return all(r.partial and not r.low for r in records) and not any(
+            polygons_overlap(_seen(r), mover) for r in records for mover in seam.movers_m
+        )
+
+    def piece(members: list[int]) -> Piece:
+        top = max(detections[k][1].top_m for k in members)
+        return Piece.of([_seen(detections[k][1]) for k in members], top)
+
+    def pairs(members: list[int]) -> set[str]:
+        return {detections[k][0] for k in members}
+
+    candidates = [members for members in groups.values() if joinable(members)]
+    joins: list[tuple[int, int]] = []
+    while True:
+        found = [
+            (math.dist(piece(a).polygon_m.mean(axis=0), piece(b).polygon_m.mean(axis=0)), i, j)
+            for i, a in enumerate(candidates)
+            for j, b in enumerate(candidates[i + 1 :], i + 1)
+            if not pairs(a) & pairs(b)
+            and one_object_across(piece(a), piece(b), seam.cells, seam.config)
+        ]
+        if not found:
+            return joins
+        _, i, j = min(found)
+        joins.append((candidates[i][0], candidates[j][0]))
+        candidates[i] = candidates[i] + candidates.pop(j)
 
 
 def _join(pieces: list[Observation]) -> Observation:
@@ -511,15 +547,18 @@ class ObjectTracker:
         """One pair's detections of one frame (an empty list says it saw nothing: still counts)."""
         self.captures.add(pair, stamp_ns, detections, now_s)
 
-    def flush(self, now_s: float, live_pairs: set[str], cells: FreeCells | None = None) -> bool:
+    def flush(self, now_s: float, live_pairs: set[str], cells: MapEvidence | None = None) -> bool:
         """Process every complete (or waited-for) capture in stamp order; True if tracks changed.
         ``cells``: the map's evidence, to join the pieces of an object at a seam."""
         changed = False
         for group, detections in self.captures.ready(now_s, live_pairs):
             if group <= self.stamp_ns:
                 continue  # older than a capture already processed
-            merged = merge_capture(detections, self.config.merge_gap_m, cells, self.config.seam)
-            self.update(group, merged)
+            seam = None
+            if cells is not None:
+                movers = self._footprints(group, lambda track: track.moving)
+                seam = SeamJoin(cells, self.config.seam, movers)
+            self.update(group, merge_capture(detections, self.config.merge_gap_m, seam))
             changed = True
         return changed
 
@@ -901,13 +940,17 @@ class ObjectTracker:
         """Every track's footprint (its polygon) where it is at the newest capture, as predicted: a
         mover this capture missed, an object whose plain top frames rarely measure (without the
         moving tracks' unless ``with_movers``)."""
+        return self._footprints(self.stamp_ns, lambda track: with_movers or not track.moving)
+
+    def _footprints(self, stamp_ns: int, which: Callable[[Track], bool]) -> list[F64]:
+        """The footprints (polygons) of the tracks ``which`` picks, as predicted at ``stamp_ns``."""
         out = []
         for track in self.tracks:
-            if track.moving and not with_movers:
+            if not which(track):
                 continue
             length, width, yaw, *_, round_ = track.size(self.config)
             if max(length, width) <= self.config.max_size_m:
-                state, _ = self._predict(track, self.stamp_ns)
+                state, _ = self._predict(track, stamp_ns)
                 center = (float(state[0]), float(state[1]))
                 out.append(footprint_polygon(center, (length, width), yaw, round_))
         return out

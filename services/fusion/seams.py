@@ -2,12 +2,14 @@
 
 Two pairs' views overlap on the floor but shrink toward the ceiling, so a tall object at a seam
 can have part of its top in neither view: each pair sees a piece cut by its image's border, with
-a gap between the pieces that no pair saw. Two objects side by side at a seam leave floor between
-them that some camera sees free; one object leaves none. So two cut pieces of different pairs in
-one capture, as high as each other, whose gap holds (almost) no free cell of the map's evidence,
-are one object (:func:`one_object_across`).
+a gap between the pieces that no pair saw. Two objects side by side at a seam mostly leave floor
+between them that some camera sees free; one object leaves none. So two cut pieces of different
+pairs in one capture, as high as each other, on measured ground, whose gap holds few free cells of
+the map's evidence, are one object (:func:`one_object_across`). Two objects whose floor between no
+camera sees are joined too: their joined footprint covers that unseen floor, which a robot could
+not have driven through anyway without knowing it free.
 
-Pure numpy: the map's evidence comes in as an :class:`services.fusion.objects.OccupiedCells`.
+Pure numpy: the map's evidence comes in as a :class:`MapEvidence` (``FusedGrid``).
 """
 
 from __future__ import annotations
@@ -18,18 +20,20 @@ from typing import Protocol
 import numpy as np
 import numpy.typing as npt
 
-from common.footprints import convex_hull, polygon_cells, polygons_overlap
+from common.footprints import convex_hull, fit_rectangle, polygon_cells, polygons_overlap
 from common.lattice import Window
 
 F64 = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
 
 
-class FreeCells(Protocol):
-    """The map's free evidence, as the seam test reads it (``FusedGrid``)."""
+class MapEvidence(Protocol):
+    """The frames' evidence over a window of the map, not the served layers (``FusedGrid``)."""
 
     @property
     def resolution_m(self) -> float: ...
+
+    def occupied_in(self, window: Window) -> Mask: ...
 
     def free_in(self, window: Window) -> Mask: ...
 
@@ -37,28 +41,39 @@ class FreeCells(Protocol):
 @dataclass(frozen=True)
 class SeamConfig:
     reach_m: float = 1.5
-    """The widest gap joined. Offline (20 s), the gaps of tall objects at the default rig's seams:
-    a 0.68 m box 0.3 m (``--seed 2``), a 1.6 m shelf 1.2 m (``--seed 4 --floor plain``)."""
+    """The widest gap joined, as the separating-axis gap between the pieces' outlines. Offline
+    (20 s), the gaps of tall objects at the default rig's seams: a 0.68 m box's 0.3 m (``--seed
+    2``), a 1.6 m shelf's 1.2 m (``--seed 4``)."""
     top_share: float = 0.15
+    """The pieces' tops differ by at most this share of the higher one (or ``top_min_m``)."""
     top_min_m: float = 0.15
-    """The pieces' tops differ by at most this share of the higher, or ``top_min_m``: a piece's
-    top is where its points end, a few centimetres either way."""
+    """... or by this: a piece's top is where its points end, a few centimetres either way."""
+    covered_share: float = 0.5
+    """At least this share of each piece's cells is occupied in the map's evidence: the gap is
+    judged on measured ground (not on an empty map at start-up, nor beyond its bounds, where
+    every cell is unknown)."""
     free_share: float = 0.2
-    """At most this share of the gap's cells may read free (the map's evidence): floor seen past
-    a piece's aslant cut or noisy rim (a 0.68 m box: 13 of 114 cells; the gaps between distinct
-    objects on the same scenes, 40–80 %)."""
+    """At most this share of the gap's cells may read free: floor seen past a piece's aslant cut
+    or noisy rim (a 0.68 m box: 13 of its gap's 114 cells; the gaps between distinct objects on
+    the same scenes, 40–80 %)."""
     max_length_m: float = 3.0
-    """The longest object joined (a rack, a truck): a wall's pieces, one per pair along it, stay
-    pieces, each outlined (joined, ``--seed 1 --pairs 6``'s 12 m walls were served 18 % unknown
-    instead of 2 %)."""
+    """The longest object joined (a rack, a truck), measured on the rectangle around the pieces:
+    a wall's pieces, one per pair along it, stay pieces, each outlined (joined, ``--seed 1
+    --pairs 6``'s 12 m walls were served 18 % unknown instead of 2 %)."""
 
 
 @dataclass(frozen=True)
 class Piece:
-    """What one pair saw of an object's top: a convex polygon (N, 2) and the top's height."""
+    """What one pair (or several overlapping) saw of an object's top: a convex counter-clockwise
+    polygon (N, 2) and the top's height."""
 
     polygon_m: F64
     top_m: float
+
+    @staticmethod
+    def of(polygons_m: list[F64], top_m: float) -> Piece:
+        """The piece around several outlines (as the wire carries them: any order)."""
+        return Piece(convex_hull(np.vstack(polygons_m)), top_m)
 
 
 def gap_cells(a_m: F64, b_m: F64, resolution_m: float) -> tuple[Window, Mask]:
@@ -72,19 +87,29 @@ def gap_cells(a_m: F64, b_m: F64, resolution_m: float) -> tuple[Window, Mask]:
     return window, between
 
 
-def one_object_across(a: Piece, b: Piece, cells: FreeCells, config: SeamConfig) -> bool:
+def _covered(piece: Piece, cells: MapEvidence, share: float) -> bool:
+    """Whether the map's evidence calls at least ``share`` of the piece's cells occupied."""
+    if len(piece.polygon_m) < 3:
+        return False
+    window, own = polygon_cells(piece.polygon_m, cells.resolution_m)
+    count = int(np.count_nonzero(own))
+    return count > 0 and int(np.count_nonzero(cells.occupied_in(window) & own)) >= share * count
+
+
+def one_object_across(a: Piece, b: Piece, cells: MapEvidence, config: SeamConfig) -> bool:
     """Whether two cut pieces of different pairs' views are one object across a seam's gap:
-    within ``reach_m`` of each other, as high, no longer together than ``max_length_m``, and
-    nothing between them seen free."""
+    within ``reach_m`` of each other, as high, together no longer than ``max_length_m``, both
+    measured in the map, and at most ``free_share`` of the cells between them seen free."""
     higher = max(a.top_m, b.top_m)
     if abs(a.top_m - b.top_m) > max(config.top_min_m, config.top_share * higher):
         return False
     if not polygons_overlap(a.polygon_m, b.polygon_m, config.reach_m):
         return False
-    hull = np.vstack([a.polygon_m, b.polygon_m])
-    if float(np.ptp(hull, axis=0).max()) > config.max_length_m:
+    if fit_rectangle(np.vstack([a.polygon_m, b.polygon_m]))[2] > config.max_length_m:
+        return False
+    if not (_covered(a, cells, config.covered_share) and _covered(b, cells, config.covered_share)):
         return False
     window, between = gap_cells(a.polygon_m, b.polygon_m, cells.resolution_m)
     gap = int(np.count_nonzero(between))
     free = int(np.count_nonzero(cells.free_in(window) & between))
-    return free <= config.free_share * gap
+    return gap > 0 and free <= config.free_share * gap
