@@ -427,6 +427,8 @@ def _piece(pair: str, x0: float, x1: float, top: float = 1.0) -> tuple[str, Dete
         ("a mover's piece", 2),
         ("together longer than a rack", 2),
         ("a chain longer than a rack", 2),
+        ("a column of the gap seen free", 1),
+        ("a notched outline, clockwise", 1),
         ("a pair's two pieces", 2),
         ("beside a complete view", 2),
     ],
@@ -439,31 +441,36 @@ def test_pieces_of_pairs_a_seams_gap_keeps_apart_are_one_object(case: str, objec
     measured nothing yet, where one piece is a mover's, and where the pieces would make an object
     longer than a rack (a wall's pieces, one per pair along it): two pieces 1.9 m long, or three
     1 m long in a row, p0's, p1's and p2's (two neighbours joined, not the third); p0's two
-    pieces with p1's between them join p1's once; and a piece beside another pair's complete
-    view is no part of it (the complete view would win, and the piece's object go unseen)."""
+    pieces with p1's between them: p1's joins the nearer once; and a piece beside the group of
+    another pair's complete view is no part of it (the complete view would win, and the piece's
+    object go unseen). A free column past a piece's rim, or a piece's outline sent notched and
+    clockwise, joins all the same."""
     pieces = [_piece("p0", 2.0, 2.3), _piece("p1", 2.7, 3.0)]
     free: list[tuple[float, float]] = []
-    movers: list[np.ndarray] = []
+    movers: tuple[npt.NDArray[np.float64], ...] = ()
     if case == "floor seen between":
         free = [(2.3, 2.7)]
     elif case == "a third of the gap seen free":
         free = [(2.3, 2.45)]  # 3 of the gap's 8 columns
+    elif case == "a column of the gap seen free":
+        free = [(2.3, 2.35)]  # past a piece's rim
+    elif case == "a notched outline, clockwise":  # as another publisher may send it
+        outline = ((2.7, 2.2), (2.7, 2.8), (3.0, 2.8), (2.85, 2.5), (3.0, 2.2))
+        pieces[1] = ("p1", pieces[1][1].model_copy(update={"outline_m": outline}))
     elif case == "a lower top":
         pieces[1] = _piece("p1", 2.7, 3.0, top=0.5)
     elif case == "a mover's piece":
-        movers = [corners((2.85, 2.5), (0.3, 0.6), 0.0)]
+        movers = (corners((2.85, 2.5), (0.3, 0.6), 0.0),)
     elif case == "together longer than a rack":
         pieces = [_piece("p0", 0.4, 2.3), _piece("p1", 2.7, 4.6)]
     elif case == "a chain longer than a rack":
         pieces = [_piece("p0", 0.2, 1.2), _piece("p1", 1.6, 2.6), _piece("p2", 3.0, 4.0)]
     elif case == "a pair's two pieces":
-        pieces = [_piece("p0", 1.0, 1.6), _piece("p1", 2.0, 2.3), _piece("p0", 2.7, 3.3)]
-    elif case == "beside a complete view":
-        pieces[1] = ("p1", _record((2.85, 2.5), (0.3, 0.6)))
+        pieces = [_piece("p0", 1.1, 1.7), _piece("p1", 2.0, 2.3), _piece("p0", 2.7, 3.3)]
+    elif case == "beside a complete view":  # p2's complete view overlaps p1's piece
+        pieces.append(("p2", _record((2.85, 2.5), (0.3, 0.6))))
     spans = [(r.center_m[0] - r.size_m[0] / 2, r.center_m[0] + r.size_m[0] / 2) for _, r in pieces]
     grid = _seam_map([] if case == "map not measured yet" else spans, free)
-    if case == "map not measured yet":
-        grid = FusedGrid(GridParams(resolution_m=0.05, bounds=Window(0, 0, 200, 100)))
     merged = merge_capture(pieces, 0.1, SeamJoin(grid, SeamConfig(), movers))
     assert len(merged) == objects
     if case == "gap unseen":
@@ -472,10 +479,13 @@ def test_pieces_of_pairs_a_seams_gap_keeps_apart_are_one_object(case: str, objec
         assert abs(found.size_m[0] - 1.0) < 1e-6 and abs(found.center_m[0] - 2.5) < 1e-6
     if case == "a chain longer than a rack":
         assert sorted(len(o.pairs) for o in merged) == [1, 2]  # two neighbours, not all three
-    if case == "a pair's two pieces":
-        assert sorted(o.pairs for o in merged) == [("p0",), ("p0", "p1")]
+    if case == "a pair's two pieces":  # p1's joins the nearer of p0's, once
+        joined = next(o for o in merged if o.pairs == ("p0", "p1"))
+        assert abs(joined.center_m[0] - 1.7) < 1e-6
+    if case == "beside a complete view":  # p0's piece stays an object of its own
+        assert sorted(o.pairs for o in merged) == [("p0",), ("p1", "p2")]
     # Without the map's evidence no gap is judged.
-    assert len(merge_capture(pieces, gap_m=0.1)) == len(pieces)
+    assert len(merge_capture(pieces, gap_m=0.1)) == len(pieces) - (case == "beside a complete view")
 
 
 def test_a_tracker_given_the_map_joins_pieces_across_a_seams_gap() -> None:
@@ -492,8 +502,27 @@ def test_a_tracker_given_the_map_joins_pieces_across_a_seams_gap() -> None:
         assert len(tracker.objects()) == objects
 
 
+def test_a_movers_piece_beside_a_standing_objects_piece_stays_its_own() -> None:
+    """A mover at 1 m/s along y = 2.5 m, seen whole by p0 for nine frames; then p0 sees its rear
+    cut by the border and p1 a box's piece 0.4 m behind it, the gap unknown: the mover's piece
+    joins no box (two tracks; one if the moving tracks' footprints were not handed to the
+    merge)."""
+    tracker = ObjectTracker()
+    for k in range(9):
+        stamp = T0_NS + k * FRAME_NS
+        tracker.add("p0", stamp, [_record((1.0 + 0.5 * k, 2.5), (1.2, 0.6))], now_s=0.0)
+        tracker.add("p1", stamp, [], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0", "p1"})
+    pieces = [_piece("p0", 4.9, 5.3), _piece("p1", 4.2, 4.5)]
+    for pair, record in pieces:
+        tracker.add(pair, T0_NS + 9 * FRAME_NS, [record], now_s=0.0)
+    grid = _seam_map([(4.9, 5.3), (4.2, 4.5)], [])
+    tracker.flush(now_s=0.0, live_pairs={"p0", "p1"}, cells=grid)
+    assert len(tracker.tracks) == 2
+
+
 def test_a_diagonal_joins_length_is_its_rectangles() -> None:
-    """Two pieces along a diagonal, 3.4 m long together (2.4 m along either axis): longer than a
+    """Two pieces along a diagonal, 3.4 m long together (2.8 m along either axis): longer than a
     rack, not joined; 2.1 m long together, joined."""
     grid = FusedGrid(GridParams(resolution_m=0.05, bounds=Window(0, 0, 200, 100)))
     _measure(grid, Window(0, 0, 200, 100), 4.0)  # all measured, nothing free
@@ -512,7 +541,7 @@ def test_a_diagonal_joins_length_is_its_rectangles() -> None:
             )
             for pair, side in (("p0", -1), ("p1", 1))
         ]
-        assert len(merge_capture(pieces, 0.1, SeamJoin(grid, SeamConfig(), []))) == objects
+        assert len(merge_capture(pieces, 0.1, SeamJoin(grid, SeamConfig(), ()))) == objects
 
 
 def test_a_complete_view_wins_over_a_partial_one() -> None:

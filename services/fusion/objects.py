@@ -64,7 +64,7 @@ from common.footprints import (
 from common.lattice import Window
 from common.messages import DetectionRecord, TrackedObject
 from services.fusion.captures import CaptureGroups
-from services.fusion.seams import MapEvidence, Piece, SeamConfig, one_object_across
+from services.fusion.seams import MapEvidence, Piece, SeamConfig, measured, one_object_across
 
 F64 = npt.NDArray[np.float64]
 Mask = npt.NDArray[np.bool_]
@@ -249,7 +249,7 @@ class SeamJoin:
 
     cells: MapEvidence
     config: SeamConfig
-    movers_m: list[F64]
+    movers_m: tuple[F64, ...]
 
 
 def merge_capture(
@@ -316,16 +316,20 @@ def _seam_joins(
     detections: list[tuple[str, DetectionRecord]], roots: list[int], seam: SeamJoin
 ) -> list[tuple[int, int]]:
     """Which overlap groups (``roots``: each detection's) to join across a seam's gap, nearest
-    first, each join judged on the groups as joined so far: groups of partial views alone, none a
-    mover's, that share no pair (one pair's pieces are apart in its own view)."""
+    first, each join judged on the groups as joined so far: groups of partial views alone, each
+    view measured in the map and none on a mover's footprint, that share no pair (one pair's
+    pieces are apart in its own view)."""
     groups: dict[int, list[int]] = {}
     for k, group in enumerate(roots):
         groups.setdefault(group, []).append(k)
 
     def joinable(members: list[int]) -> bool:
         records = [detections[k][1] for k in members]
-        return all(r.partial and not r.low for r in records) and not any(
-            polygons_overlap(_seen(r), mover) for r in records for mover in seam.movers_m
+        outlines = [convex_hull(_seen(r)) for r in records]
+        return (
+            all(r.partial and not r.low for r in records)
+            and all(measured(outline, seam.cells, seam.config) for outline in outlines)
+            and not any(polygons_overlap(o, mover) for o in outlines for mover in seam.movers_m)
         )
 
     def piece(members: list[int]) -> Piece:
@@ -336,20 +340,30 @@ def _seam_joins(
         return {detections[k][0] for k in members}
 
     candidates = [members for members in groups.values() if joinable(members)]
+    pieces = [piece(members) for members in candidates]
+    judged: dict[tuple[int, int], float | None] = {}  # by the groups' first members
     joins: list[tuple[int, int]] = []
     while True:
-        found = [
-            (math.dist(piece(a).polygon_m.mean(axis=0), piece(b).polygon_m.mean(axis=0)), i, j)
-            for i, a in enumerate(candidates)
-            for j, b in enumerate(candidates[i + 1 :], i + 1)
-            if not pairs(a) & pairs(b)
-            and one_object_across(piece(a), piece(b), seam.cells, seam.config)
-        ]
+        found = []
+        for i, a in enumerate(candidates):
+            for j, b in enumerate(candidates[i + 1 :], i + 1):
+                key = (a[0], b[0])
+                if key not in judged:
+                    one = not pairs(a) & pairs(b) and one_object_across(
+                        pieces[i], pieces[j], seam.cells, seam.config
+                    )
+                    centres = (pieces[i].polygon_m.mean(axis=0), pieces[j].polygon_m.mean(axis=0))
+                    judged[key] = math.dist(*centres) if one else None
+                if judged[key] is not None:
+                    found.append((judged[key], i, j))
         if not found:
             return joins
         _, i, j = min(found)
         joins.append((candidates[i][0], candidates[j][0]))
         candidates[i] = candidates[i] + candidates.pop(j)
+        pieces.pop(j)
+        pieces[i] = piece(candidates[i])
+        judged = {key: d for key, d in judged.items() if candidates[i][0] not in key}
 
 
 def _join(pieces: list[Observation]) -> Observation:
@@ -556,7 +570,7 @@ class ObjectTracker:
                 continue  # older than a capture already processed
             seam = None
             if cells is not None:
-                movers = self._footprints(group, lambda track: track.moving)
+                movers = tuple(self._footprints(group, lambda track: track.moving))
                 seam = SeamJoin(cells, self.config.seam, movers)
             self.update(group, merge_capture(detections, self.config.merge_gap_m, seam))
             changed = True

@@ -4,8 +4,8 @@ Two pairs' views overlap on the floor but shrink toward the ceiling, so a tall o
 can have part of its top in neither view: each pair sees a piece cut by its image's border, with
 a gap between the pieces that no pair saw. Two objects side by side at a seam mostly leave floor
 between them that some camera sees free; one object leaves none. So two cut pieces of different
-pairs in one capture, as high as each other, on measured ground, whose gap holds few free cells of
-the map's evidence, are one object (:func:`one_object_across`). Two objects whose floor between no
+pairs in one capture, as high as each other, on measured ground (:func:`measured`), whose gap
+holds few free cells of the map's evidence, are one object (:func:`one_object_across`). Two objects whose floor between no
 camera sees are joined too: their joined footprint covers that unseen floor, which a robot could
 not have driven through anyway without knowing it free.
 
@@ -49,7 +49,7 @@ class SeamConfig:
     top_min_m: float = 0.15
     """... or by this: a piece's top is where its points end, a few centimetres either way."""
     covered_share: float = 0.5
-    """At least this share of each piece's cells is occupied in the map's evidence: the gap is
+    """At least this share of each view's cells is occupied in the map's evidence: the gap is
     judged on measured ground (not on an empty map at start-up, nor beyond its bounds, where
     every cell is unknown)."""
     free_share: float = 0.2
@@ -87,27 +87,28 @@ def gap_cells(a_m: F64, b_m: F64, resolution_m: float) -> tuple[Window, Mask]:
     return window, between
 
 
-def _covered(piece: Piece, cells: MapEvidence, share: float) -> bool:
-    """Whether the map's evidence calls at least ``share`` of the piece's cells occupied."""
-    if len(piece.polygon_m) < 3:
+def measured(polygon_m: F64, cells: MapEvidence, config: SeamConfig) -> bool:
+    """Whether the map's evidence calls ``covered_share`` or more of a view's cells (a convex
+    polygon's) occupied: a gap is judged on measured ground."""
+    if len(polygon_m) < 3:
         return False
-    window, own = polygon_cells(piece.polygon_m, cells.resolution_m)
+    window, own = polygon_cells(polygon_m, cells.resolution_m)
     count = int(np.count_nonzero(own))
-    return count > 0 and int(np.count_nonzero(cells.occupied_in(window) & own)) >= share * count
+    occupied = int(np.count_nonzero(cells.occupied_in(window) & own))
+    return count > 0 and occupied >= config.covered_share * count
 
 
 def one_object_across(a: Piece, b: Piece, cells: MapEvidence, config: SeamConfig) -> bool:
-    """Whether two cut pieces of different pairs' views are one object across a seam's gap:
-    within ``reach_m`` of each other, as high, together no longer than ``max_length_m``, both
-    measured in the map, and at most ``free_share`` of the cells between them seen free."""
+    """Whether two cut pieces of different pairs' views (each :func:`measured`) are one object
+    across a seam's gap: within ``reach_m`` of each other, as high, together no longer than
+    ``max_length_m``, with cells between them (pieces with none are one object already, or
+    none), at most ``free_share`` of them seen free."""
     higher = max(a.top_m, b.top_m)
     if abs(a.top_m - b.top_m) > max(config.top_min_m, config.top_share * higher):
         return False
     if not polygons_overlap(a.polygon_m, b.polygon_m, config.reach_m):
         return False
     if fit_rectangle(np.vstack([a.polygon_m, b.polygon_m]))[2] > config.max_length_m:
-        return False
-    if not (_covered(a, cells, config.covered_share) and _covered(b, cells, config.covered_share)):
         return False
     window, between = gap_cells(a.polygon_m, b.polygon_m, cells.resolution_m)
     gap = int(np.count_nonzero(between))
