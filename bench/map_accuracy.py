@@ -123,7 +123,7 @@ def run(
             pair = capture.calibration.pair
             found = detections_header(pipeline.detect_objects(result), pair, k, stamp_ns).detections
             tracker.add(pair, stamp_ns, list(found), k / rate_hz)
-        if tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures}, grid):
+        if tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures}):
             outlined, _ = serve_tracks(grid, tracker, outline_static)  # as the fusion service does
             grid.set_predicted(outlined)
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time
@@ -184,7 +184,7 @@ def object_sizes(
     """The tracker's static objects' sizes against the truth, as ``overgrid eval`` scores
     ``map/objects``: the mean and max of the length and width errors over the objects found."""
     pieces = tracker.check_against(grid).pieces
-    tracks = [t for t in tracker.objects(pieces) if t.object_class == "static"]
+    tracks = [t for t in tracker.objects(pieces, grid) if t.object_class == "static"]
     matches = object_scores.match_static(tracks, static)
     return {
         **object_scores.size_errors(matches, in_view),

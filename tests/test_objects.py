@@ -25,8 +25,7 @@ from services.depth.objects import (
 from services.depth.projection import WorldPoints
 from services.evaluation.objects import match_static, score_movers
 from services.fusion.grid import FusedGrid, GridParams
-from services.fusion.objects import ObjectTracker, SeamJoin, merge_capture
-from services.fusion.seams import SeamConfig
+from services.fusion.objects import ObjectTracker, merge_capture
 from tests.tiles import dirty_window
 
 PITCH_M = 0.02
@@ -398,150 +397,35 @@ def test_two_pairs_each_seeing_half_of_an_object_give_one_object() -> None:
     assert len(objects) == 1 and objects[0].pairs == ["p0", "p1"]
 
 
-def _seam_map(pieces_m: list[tuple[float, float]], free: list[tuple[float, float]]) -> FusedGrid:
-    """A 10 × 5 m map whose frames saw the floor free but for the pieces' row, where they saw the
-    pieces (x from–to, m) occupied and ``free`` spans (x from–to, m) free; the rest of the row
-    unknown (the seam's gap at the tops' height)."""
+def test_the_object_list_joins_static_pieces_a_seams_gap_keeps_apart() -> None:
+    """A 1.0 × 0.6 m box from x = 2.0 to 3.0, 1 m high, at a seam: pair p0 sees its top to
+    x = 2.3, pair p1 from x = 2.7, four frames running; the 0.4 m between is in neither view at
+    that height (unknown in the map, the floor around it free). Given the map, ``map/objects``
+    says one partial object 1 m long, with the older track's id, seen by both pairs; the tracks,
+    and so the map's outlines, stay two. Without the map, two objects. A box beside it that p2
+    sees whole is no part of it."""
     grid = FusedGrid(GridParams(resolution_m=0.05, bounds=Window(0, 0, 200, 100)))
-    for window in (Window(0, 0, 200, 44), Window(0, 56, 200, 44)):
-        _measure(grid, window, -2.0)
-    for spans, logodds in ((pieces_m, 4.0), (free, -2.0)):
-        for x0, x1 in spans:
-            _measure(grid, Window(round(x0 / 0.05), 44, round((x1 - x0) / 0.05), 12), logodds)
-    return grid
-
-
-def _piece(pair: str, x0: float, x1: float, top: float = 1.0) -> tuple[str, DetectionRecord]:
-    """A pair's partial view of a top 0.6 m wide along y = 2.5 m, from x0 to x1."""
-    return pair, _record(((x0 + x1) / 2, 2.5), (x1 - x0, 0.6), partial=True, top=top)
-
-
-@pytest.mark.parametrize(
-    ("case", "objects"),
-    [
-        ("gap unseen", 1),
-        ("floor seen between", 2),
-        ("a third of the gap seen free", 2),
-        ("a lower top", 2),
-        ("map not measured yet", 2),
-        ("a mover's piece", 2),
-        ("together longer than a rack", 2),
-        ("a chain longer than a rack", 2),
-        ("a column of the gap seen free", 1),
-        ("a notched outline, clockwise", 1),
-        ("a pair's two pieces", 2),
-        ("beside a complete view", 2),
-    ],
-)
-def test_pieces_of_pairs_a_seams_gap_keeps_apart_are_one_object(case: str, objects: int) -> None:
-    """A 1.0 × 0.6 m box from x = 2.0 to 3.0, 1 m high, at a seam: pair p0 sees its top to x = 2.3,
-    pair p1 from x = 2.7; the 0.4 m between is in neither view at that height (unknown in the
-    map, the floor around it free). One object, 1 m long; two where the map saw the floor
-    between (all of it, or a third), where one piece stands half as high, where the map has
-    measured nothing yet, where one piece is a mover's, and where the pieces would make an object
-    longer than a rack (a wall's pieces, one per pair along it): two pieces 1.9 m long, or three
-    1 m long in a row, p0's, p1's and p2's (two neighbours joined, not the third); p0's two
-    pieces with p1's between them: p1's joins the nearer once; and a piece beside the group of
-    another pair's complete view is no part of it (the complete view would win, and the piece's
-    object go unseen). A free column past a piece's rim, or a piece's outline sent notched and
-    clockwise, joins all the same."""
-    pieces = [_piece("p0", 2.0, 2.3), _piece("p1", 2.7, 3.0)]
-    free: list[tuple[float, float]] = []
-    movers: tuple[npt.NDArray[np.float64], ...] = ()
-    if case == "floor seen between":
-        free = [(2.3, 2.7)]
-    elif case == "a third of the gap seen free":
-        free = [(2.3, 2.45)]  # 3 of the gap's 8 columns
-    elif case == "a column of the gap seen free":
-        free = [(2.3, 2.35)]  # past a piece's rim
-    elif case == "a notched outline, clockwise":  # as another publisher may send it
-        outline = ((2.7, 2.2), (2.7, 2.8), (3.0, 2.8), (2.85, 2.5), (3.0, 2.2))
-        pieces[1] = ("p1", pieces[1][1].model_copy(update={"outline_m": outline}))
-    elif case == "a lower top":
-        pieces[1] = _piece("p1", 2.7, 3.0, top=0.5)
-    elif case == "a mover's piece":
-        movers = (corners((2.85, 2.5), (0.3, 0.6), 0.0),)
-    elif case == "together longer than a rack":
-        pieces = [_piece("p0", 0.4, 2.3), _piece("p1", 2.7, 4.6)]
-    elif case == "a chain longer than a rack":
-        pieces = [_piece("p0", 0.2, 1.2), _piece("p1", 1.6, 2.6), _piece("p2", 3.0, 4.0)]
-    elif case == "a pair's two pieces":
-        pieces = [_piece("p0", 1.1, 1.7), _piece("p1", 2.0, 2.3), _piece("p0", 2.7, 3.3)]
-    elif case == "beside a complete view":  # p2's complete view overlaps p1's piece
-        pieces.append(("p2", _record((2.85, 2.5), (0.3, 0.6))))
-    spans = [(r.center_m[0] - r.size_m[0] / 2, r.center_m[0] + r.size_m[0] / 2) for _, r in pieces]
-    grid = _seam_map([] if case == "map not measured yet" else spans, free)
-    merged = merge_capture(pieces, 0.1, SeamJoin(grid, SeamConfig(), movers))
-    assert len(merged) == objects
-    if case == "gap unseen":
-        (found,) = merged
-        assert found.pairs == ("p0", "p1") and found.partial
-        assert abs(found.size_m[0] - 1.0) < 1e-6 and abs(found.center_m[0] - 2.5) < 1e-6
-    if case == "a chain longer than a rack":
-        assert sorted(len(o.pairs) for o in merged) == [1, 2]  # two neighbours, not all three
-    if case == "a pair's two pieces":  # p1's joins the nearer of p0's, once
-        joined = next(o for o in merged if o.pairs == ("p0", "p1"))
-        assert abs(joined.center_m[0] - 1.7) < 1e-6
-    if case == "beside a complete view":  # p0's piece stays an object of its own
-        assert sorted(o.pairs for o in merged) == [("p0",), ("p1", "p2")]
-    # Without the map's evidence no gap is judged.
-    assert len(merge_capture(pieces, gap_m=0.1)) == len(pieces) - (case == "beside a complete view")
-
-
-def test_a_tracker_given_the_map_joins_pieces_across_a_seams_gap() -> None:
-    """The tracker hands the map to the merge: the box above, seen in two pieces four frames
-    running, is one object (two without the map)."""
-    pieces = [_piece("p0", 2.0, 2.3), _piece("p1", 2.7, 3.0)]
-    grid = _seam_map([(2.0, 2.3), (2.7, 3.0)], [])
-    for cells, objects in ((grid, 1), (None, 2)):
-        tracker = ObjectTracker()
-        for k in range(4):
-            for pair, record in pieces:
-                tracker.add(pair, T0_NS + k * FRAME_NS, [record], now_s=0.0)
-            tracker.flush(now_s=0.0, live_pairs={"p0", "p1"}, cells=cells)
-        assert len(tracker.objects()) == objects
-
-
-def test_a_movers_piece_beside_a_standing_objects_piece_stays_its_own() -> None:
-    """A mover at 1 m/s along y = 2.5 m, seen whole by p0 for nine frames; then p0 sees its rear
-    cut by the border and p1 a box's piece 0.4 m behind it, the gap unknown: the mover's piece
-    joins no box (two tracks; one if the moving tracks' footprints were not handed to the
-    merge)."""
+    for window, logodds in (
+        (Window(0, 0, 200, 44), -2.0),
+        (Window(0, 56, 200, 44), -2.0),
+        (Window(40, 44, 6, 12), 4.0),  # p0's piece
+        (Window(54, 44, 6, 12), 4.0),  # p1's piece
+        (Window(66, 44, 6, 12), 4.0),  # a box x 3.3–3.6 m, seen whole by p2
+    ):
+        _measure(grid, window, logodds)
     tracker = ObjectTracker()
-    for k in range(9):
+    for k in range(4):
         stamp = T0_NS + k * FRAME_NS
-        tracker.add("p0", stamp, [_record((1.0 + 0.5 * k, 2.5), (1.2, 0.6))], now_s=0.0)
-        tracker.add("p1", stamp, [], now_s=0.0)
-        tracker.flush(now_s=0.0, live_pairs={"p0", "p1"})
-    pieces = [_piece("p0", 4.9, 5.3), _piece("p1", 4.2, 4.5)]
-    for pair, record in pieces:
-        tracker.add(pair, T0_NS + 9 * FRAME_NS, [record], now_s=0.0)
-    grid = _seam_map([(4.9, 5.3), (4.2, 4.5)], [])
-    tracker.flush(now_s=0.0, live_pairs={"p0", "p1"}, cells=grid)
-    assert len(tracker.tracks) == 2
-
-
-def test_a_diagonal_joins_length_is_its_rectangles() -> None:
-    """Two pieces along a diagonal, 3.4 m long together (2.8 m along either axis): longer than a
-    rack, not joined; 2.1 m long together, joined."""
-    grid = FusedGrid(GridParams(resolution_m=0.05, bounds=Window(0, 0, 200, 100)))
-    _measure(grid, Window(0, 0, 200, 100), 4.0)  # all measured, nothing free
-    yaw = math.pi / 4
-    along = np.array([math.cos(yaw), math.sin(yaw)])
-    for length, objects in ((1.5, 2), (0.85, 1)):
-        pieces = [
-            (
-                pair,
-                _record(
-                    tuple(np.array([5.0, 2.5]) + side * (0.2 + length / 2) * along),
-                    (length, 0.6),
-                    partial=True,
-                    yaw=yaw,
-                ),
-            )
-            for pair, side in (("p0", -1), ("p1", 1))
-        ]
-        assert len(merge_capture(pieces, 0.1, SeamJoin(grid, SeamConfig(), ()))) == objects
+        tracker.add("p0", stamp, [_record((2.15, 2.5), (0.3, 0.6), partial=True)], now_s=0.0)
+        piece = [_record((2.85, 2.5), (0.3, 0.6), partial=True)]
+        tracker.add("p2", stamp, [_record((3.45, 2.5), (0.3, 0.6))], now_s=0.0)
+        tracker.add("p1", stamp, piece if k else [], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0", "p1", "p2"})
+    assert len(tracker.objects()) == 3 and len(tracker.tracks) == 3
+    joined, whole = sorted(tracker.objects(cells=grid), key=lambda o: o.center_m[0])
+    assert joined.partial and joined.pairs == ["p0", "p1"] and joined.id == 1
+    assert abs(joined.size_m[0] - 1.0) < 1e-6 and abs(joined.center_m[0] - 2.5) < 1e-6
+    assert not whole.partial and abs(whole.center_m[0] - 3.45) < 1e-6
 
 
 def test_a_complete_view_wins_over_a_partial_one() -> None:

@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import pytest
 
 from common.footprints import corners, polygon_cells
-from services.fusion.seams import Piece, gap_cells
+from common.lattice import Window
+from services.fusion.grid import FusedGrid, GridParams
+from services.fusion.seams import Piece, SeamConfig, SeamView, gap_cells, seam_groups
 
 
 def test_the_gap_between_two_pieces_is_their_hulls_cells_less_their_own() -> None:
@@ -28,3 +33,95 @@ def test_a_piece_sent_notched_and_clockwise_is_its_convex_hull() -> None:
     assert int(np.count_nonzero(own)) == 6 * 12
     x, y = piece.polygon_m[:, 0], piece.polygon_m[:, 1]
     assert 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)) > 0  # counter-clockwise
+
+
+def _map(pieces_m: list[tuple[float, float]], free: list[tuple[float, float]]) -> FusedGrid:
+    """A 10 × 5 m map whose frames saw the floor free but for the row y 2.2–2.8 m, where they saw
+    the pieces (x from–to, m) occupied and ``free`` spans free; the rest of the row unknown (the
+    seam's gap at the tops' height)."""
+    grid = FusedGrid(GridParams(resolution_m=0.05, bounds=Window(0, 0, 200, 100)))
+
+    def measure(window: Window, logodds: float) -> None:
+        shape = window.shape
+        grid.integrate(
+            window,
+            np.full(shape, logodds, np.float32),
+            np.full(shape, 1.0, np.float32),
+            np.full(shape, 20, np.uint16),
+            0,
+        )
+
+    for window in (Window(0, 0, 200, 44), Window(0, 56, 200, 44)):
+        measure(window, -2.0)
+    for spans, logodds in ((pieces_m, 4.0), (free, -2.0)):
+        for x0, x1 in spans:
+            measure(Window(round(x0 / 0.05), 44, round((x1 - x0) / 0.05), 12), logodds)
+    return grid
+
+
+def _view(pair: str, x0: float, x1: float, top: float = 1.0) -> SeamView:
+    """A pair's partial view of a top 0.6 m wide along y = 2.5 m, from x0 to x1."""
+    return SeamView(frozenset({pair}), corners(((x0 + x1) / 2, 2.5), (x1 - x0, 0.6), 0.0), top)
+
+
+@pytest.mark.parametrize(
+    ("case", "groups"),
+    [
+        ("gap unseen", [[0, 1]]),
+        ("floor seen between", [[0], [1]]),
+        ("half of the gap seen free", [[0], [1]]),
+        ("a column of the gap seen free", [[0, 1]]),
+        ("a lower top", [[0], [1]]),
+        ("map not measured yet", [[0], [1]]),
+        ("together longer than a rack", [[0], [1]]),
+        ("a chain longer than a rack", [[0], [1, 2]]),
+        ("a pair's two pieces", [[0, 1], [2]]),
+        ("a diagonal longer than a rack", [[0], [1]]),
+    ],
+)
+def test_views_a_seams_gap_keeps_apart_are_one_object(case: str, groups: list[list[int]]) -> None:
+    """A 1.0 × 0.6 m box from x = 2.0 to 3.0, 1 m high, at a seam: pair p0 sees its top to
+    x = 2.3, pair p1 from x = 2.7; the 0.4 m between is in neither view at that height (unknown in
+    the map, the floor around it free). One object; two where the map saw the floor between (all
+    of it, or half; a column past a piece's rim does not count), where one piece stands half as
+    high, where the map has measured nothing yet, or where the pieces would make an object longer
+    than a rack (a wall's pieces, one per pair along it): two pieces 1.9 m long, three in a row
+    3.2 m long (the nearer two joined, not the third, which the second alone would take), two
+    along a diagonal 3.4 m long together (2.8 m along either axis). p0's two pieces with p1's between: p1's joins the nearer, once."""
+    views = [_view("p0", 2.0, 2.3), _view("p1", 2.7, 3.0)]
+    free: list[tuple[float, float]] = []
+    if case == "floor seen between":
+        free = [(2.3, 2.7)]
+    elif case == "half of the gap seen free":
+        free = [(2.3, 2.5)]  # 4 of the gap's 8 columns
+    elif case == "a column of the gap seen free":
+        free = [(2.3, 2.35)]
+    elif case == "a lower top":
+        views[1] = _view("p1", 2.7, 3.0, top=0.5)
+    elif case == "together longer than a rack":
+        views = [_view("p0", 0.4, 2.3), _view("p1", 2.7, 4.6)]
+    elif case == "a chain longer than a rack":
+        views = [_view("p0", 0.2, 1.0), _view("p1", 1.3, 2.5), _view("p2", 2.8, 3.4)]
+    elif case == "a pair's two pieces":
+        views = [_view("p0", 1.1, 1.7), _view("p1", 2.0, 2.3), _view("p0", 2.7, 3.3)]
+    spans = [(float(v.polygon_m[:, 0].min()), float(v.polygon_m[:, 0].max())) for v in views]
+    grid = _map([] if case == "map not measured yet" else spans, free)
+    if case == "a diagonal longer than a rack":  # on ground measured occupied all over
+        grid = _map([(0.0, 10.0)], [])
+        grid.integrate(
+            Window(0, 0, 200, 100),
+            np.full((100, 200), 6.0, np.float32),
+            np.full((100, 200), 1.0, np.float32),
+            np.full((100, 200), 20, np.uint16),
+            0,
+        )
+        along = np.array([math.cos(math.pi / 4), math.sin(math.pi / 4)])
+        views = [
+            SeamView(
+                frozenset({pair}),
+                corners(tuple(np.array([5.0, 2.5]) + side * 0.95 * along), (1.5, 0.6), math.pi / 4),
+                1.0,
+            )
+            for pair, side in (("p0", -1), ("p1", 1))
+        ]
+    assert sorted(seam_groups(views, grid, SeamConfig())) == groups

@@ -224,7 +224,7 @@ class FusionState:
         changed."""
         now_ns = time.time_ns()
         resolution_m = self.grid.params.resolution_m
-        changed = self.tracker.flush(time.monotonic(), self.alive, self.grid)
+        changed = self.tracker.flush(time.monotonic(), self.alive)
         check = MapCheck()
         if changed:  # once a capture: tracks and evidence both moved
             self.outlined, check = serve_tracks(
@@ -241,7 +241,7 @@ class FusionState:
         self.objects_header = ObjectsHeader(
             version=self.tracker.version,
             stamp_ns=self.tracker.stamp_ns,
-            objects=self.tracker.objects(check.pieces),
+            objects=self.tracker.objects(check.pieces, self.grid),
         )
         return self.objects_header
 
