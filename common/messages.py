@@ -245,7 +245,7 @@ class TrackedObject(Footprint):
     pairs: list[str] = Field(description="pairs whose frames saw it last")
     partial: bool = Field(
         description="no pair has seen all of it, or the map's cells show it larger: its size is "
-        "a lower bound"
+        "a lower bound; or pieces across a seam's gap joined: the rectangle around them"
     )
     size_unsure: bool = Field(
         default=False,
@@ -256,7 +256,8 @@ class TrackedObject(Footprint):
 
 
 class ObjectsHeader(_Header):
-    """``map/objects`` reply and put: every current track at ``stamp_ns`` (newest capture)."""
+    """``map/objects`` reply and put: every current track at ``stamp_ns`` (newest capture), the
+    pieces of one object across a seam's gap as one."""
 
     version: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)

@@ -421,10 +421,11 @@ def test_the_object_list_joins_static_pieces_a_seams_gap_keeps_apart() -> None:
         tracker.add("p2", stamp, [_record((3.45, 2.5), (0.3, 0.6))], now_s=0.0)
         tracker.add("p1", stamp, piece if k else [], now_s=0.0)
         tracker.flush(now_s=0.0, live_pairs={"p0", "p1", "p2"})
-    assert len(tracker.objects()) == 3 and len(tracker.tracks) == 3
     joined, whole = sorted(tracker.objects(cells=grid), key=lambda o: o.center_m[0])
     assert joined.partial and joined.pairs == ["p0", "p1"] and joined.id == 1
     assert abs(joined.size_m[0] - 1.0) < 1e-6 and abs(joined.center_m[0] - 2.5) < 1e-6
+    assert abs(joined.size_m[1] - 0.6) < 1e-6 and joined.last_seen_ns == T0_NS + 3 * FRAME_NS
+    assert len(tracker.objects()) == 3 and len(tracker.tracks) == 3
     assert not whole.partial and abs(whole.center_m[0] - 3.45) < 1e-6
 
 

@@ -1,4 +1,4 @@
-"""The seam join's geometry: what lies between two pieces, and a piece as the wire sends it."""
+"""The seam join: what lies between two pieces, a group of them, and which views are one object."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from common.footprints import corners, polygon_cells
 from common.lattice import Window
 from services.fusion.grid import FusedGrid, GridParams
-from services.fusion.seams import Piece, SeamConfig, SeamView, gap_cells, seam_groups
+from services.fusion.seams import SeamConfig, SeamView, gap_cells, seam_groups
 
 
 def test_the_gap_between_two_pieces_is_their_hulls_cells_less_their_own() -> None:
@@ -24,14 +24,14 @@ def test_the_gap_between_two_pieces_is_their_hulls_cells_less_their_own() -> Non
     assert np.all((y_m[between] > 2.2) & (y_m[between] < 2.8))
 
 
-def test_a_piece_sent_notched_and_clockwise_is_its_convex_hull() -> None:
-    """An outline another publisher sends clockwise with a notch is read as its convex hull
-    (counter-clockwise), so its own cells are all those of its rectangle."""
-    outline = np.array([(2.7, 2.2), (2.7, 2.8), (3.0, 2.8), (2.85, 2.5), (3.0, 2.2)])
-    piece = Piece.of([outline], top_m=1.0)
-    _, own = polygon_cells(piece.polygon_m, 0.05)
-    assert int(np.count_nonzero(own)) == 6 * 12
-    x, y = piece.polygon_m[:, 0], piece.polygon_m[:, 1]
+def test_a_group_is_its_views_pairs_the_hull_of_their_footprints_and_the_highest_top() -> None:
+    """Two 0.3 × 0.6 m views 0.4 m apart: the group's footprint is the 1.0 × 0.6 m rectangle
+    around them, counter-clockwise, its cells all 20 × 12."""
+    group = SeamView.around([_view("p0", 2.0, 2.3), _view("p1", 2.7, 3.0, top=0.9)])
+    assert group.pairs == {"p0", "p1"} and group.top_m == 1.0
+    _, own = polygon_cells(group.polygon_m, 0.05)
+    assert int(np.count_nonzero(own)) == 20 * 12
+    x, y = group.polygon_m[:, 0], group.polygon_m[:, 1]
     assert 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)) > 0  # counter-clockwise
 
 
@@ -82,12 +82,13 @@ def _view(pair: str, x0: float, x1: float, top: float = 1.0) -> SeamView:
 def test_views_a_seams_gap_keeps_apart_are_one_object(case: str, groups: list[list[int]]) -> None:
     """A 1.0 × 0.6 m box from x = 2.0 to 3.0, 1 m high, at a seam: pair p0 sees its top to
     x = 2.3, pair p1 from x = 2.7; the 0.4 m between is in neither view at that height (unknown in
-    the map, the floor around it free). One object; two where the map saw the floor between (all
-    of it, or half; a column past a piece's rim does not count), where one piece stands half as
-    high, where the map has measured nothing yet, or where the pieces would make an object longer
-    than a rack (a wall's pieces, one per pair along it): two pieces 1.9 m long, three in a row
-    3.2 m long (the nearer two joined, not the third, which the second alone would take), two
-    along a diagonal 3.4 m long together (2.8 m along either axis). p0's two pieces with p1's between: p1's joins the nearer, once."""
+    the map, the floor around it free). One object (one column of eight free, past a piece's rim,
+    still joins); two where the map saw the floor between (all of it, or half), where one piece
+    stands half as high, where the map has measured nothing yet, or where the pieces would make an
+    object longer than a rack (a wall's pieces, one per pair along it): two pieces 1.9 m long,
+    three in a row 3.2 m long (the nearer two joined, not the third, which the second alone would
+    take), two along a diagonal 3.4 m long together (2.8 m along either axis). p0's two pieces
+    with p1's between: p1's joins the nearer, once."""
     views = [_view("p0", 2.0, 2.3), _view("p1", 2.7, 3.0)]
     free: list[tuple[float, float]] = []
     if case == "floor seen between":

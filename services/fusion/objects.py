@@ -34,7 +34,10 @@ Rules that shape the tracks:
   footprint (less every track's footprint) are handed over as its fringe (of a ``partial`` one,
   those with free floor beyond them; of a ``size_unsure`` one, none);
 - a size is the median of the views seen whole; fewer than four of them, or views that disagree,
-  make it ``size_unsure`` (:func:`_views_unsure`).
+  make it ``size_unsure`` (:func:`_views_unsure`);
+- the object list (not the tracks, nor the map's outlines) joins static partial tracks a seam's
+  blind gap keeps apart into one object, the rectangle around their footprints
+  (:func:`_across_seams`, :mod:`services.fusion.seams`).
 """
 
 from __future__ import annotations
@@ -316,7 +319,7 @@ def _across_seams(
         cx, cy, length, width, yaw = fit_rectangle(
             convex_hull(np.vstack([polygons[k] for k in group]))
         )
-        first = min(members, key=lambda o: o.first_seen_ns)
+        first = min(members, key=lambda o: (o.first_seen_ns, o.id))
         out.append(
             first.model_copy(
                 update={

@@ -59,32 +59,27 @@ class SeamConfig:
     (``--seed 4``) 0 %; the gaps between distinct objects passing the other tests 60–93 %."""
     max_length_m: float = 3.0
     """The longest object joined (a rack, a truck), measured on the rectangle around the pieces:
-    a wall's pieces, one per pair along it, stay pieces, each outlined (joined, ``--seed 1
-    --pairs 6``'s 12 m walls were served 18 % unknown instead of 2 %)."""
+    longer, a row of distinct objects at a seam chains into one, and a wall's pieces, one per
+    pair along it, into a wall (no object: fusion outlines nothing over ``max_size_m``)."""
 
 
 @dataclass(frozen=True)
 class SeamView:
-    """A partial view of a standing object (a track's footprint): the pairs that saw it, its
-    footprint (a convex polygon, N × 2) and its top's height."""
+    """A partial view of a standing object (a track's footprint), or a group of them: the pairs
+    that saw it, its footprint (a convex counter-clockwise polygon, N × 2) and its top's height."""
 
     pairs: frozenset[str]
     polygon_m: F64
     top_m: float
 
-
-@dataclass(frozen=True)
-class Piece:
-    """What one pair (or several overlapping) saw of an object's top: a convex counter-clockwise
-    polygon (N, 2) and the top's height."""
-
-    polygon_m: F64
-    top_m: float
-
     @staticmethod
-    def of(polygons_m: list[F64], top_m: float) -> Piece:
-        """The piece around several outlines (as the wire carries them: any order)."""
-        return Piece(convex_hull(np.vstack(polygons_m)), top_m)
+    def around(views: list[SeamView]) -> SeamView:
+        """The group of ``views``: their pairs, the hull of their footprints, the highest top."""
+        return SeamView(
+            frozenset().union(*(v.pairs for v in views)),
+            convex_hull(np.vstack([v.polygon_m for v in views])),
+            max(v.top_m for v in views),
+        )
 
 
 def gap_cells(a_m: F64, b_m: F64, resolution_m: float) -> tuple[Window, Mask]:
@@ -109,11 +104,13 @@ def measured(polygon_m: F64, cells: MapEvidence, config: SeamConfig) -> bool:
     return count > 0 and occupied >= config.covered_share * count
 
 
-def one_object_across(a: Piece, b: Piece, cells: MapEvidence, config: SeamConfig) -> bool:
-    """Whether two cut pieces of different pairs' views (each :func:`measured`) are one object
-    across a seam's gap: within ``reach_m`` of each other, as high, together no longer than
-    ``max_length_m``, with cells between them (pieces with none are one object already, or
-    none), at most ``free_share`` of them seen free."""
+def one_object_across(a: SeamView, b: SeamView, cells: MapEvidence, config: SeamConfig) -> bool:
+    """Whether two cut pieces (each :func:`measured`) are one object across a seam's gap: seen
+    by different pairs (one pair's pieces are apart in its own view), within ``reach_m`` of each
+    other, as high, together no longer than ``max_length_m``, with cells between them (pieces
+    with none are one object already, or none), at most ``free_share`` of them seen free."""
+    if a.pairs & b.pairs:
+        return False
     higher = max(a.top_m, b.top_m)
     if abs(a.top_m - b.top_m) > max(config.top_min_m, config.top_share * higher):
         return False
@@ -129,19 +126,12 @@ def one_object_across(a: Piece, b: Piece, cells: MapEvidence, config: SeamConfig
 
 def seam_groups(views: list[SeamView], cells: MapEvidence, config: SeamConfig) -> list[list[int]]:
     """The views grouped into objects across seams' gaps (indices; a view alone, a group of
-    one): joins nearest first, each judged on the groups as joined so far (:func:`one_object_across`
-    on the hulls of their views), of groups that share no pair (one pair's pieces are apart in
-    its own view), each view :func:`measured` in the map."""
-    groups = [[k] for k, view in enumerate(views) if measured(view.polygon_m, cells, config)]
-    alone = [[k] for k in range(len(views)) if [k] not in groups]
-
-    def piece(group: list[int]) -> Piece:
-        return Piece.of([views[k].polygon_m for k in group], max(views[k].top_m for k in group))
-
-    def pairs(group: list[int]) -> frozenset[str]:
-        return frozenset().union(*(views[k].pairs for k in group))
-
-    pieces = [piece(group) for group in groups]
+    one): each view :func:`measured` in the map, joins nearest first, each judged
+    (:func:`one_object_across`) on the groups as joined so far."""
+    measured_views = [measured(view.polygon_m, cells, config) for view in views]
+    groups = [[k] for k, ok in enumerate(measured_views) if ok]
+    alone = [[k] for k, ok in enumerate(measured_views) if not ok]
+    pieces = [views[k] for k, ok in enumerate(measured_views) if ok]
     judged: dict[tuple[int, int], float | None] = {}  # by the groups' first views
     while True:
         found = []
@@ -149,11 +139,9 @@ def seam_groups(views: list[SeamView], cells: MapEvidence, config: SeamConfig) -
             for j, b in enumerate(groups[i + 1 :], i + 1):
                 key = (a[0], b[0])
                 if key not in judged:
-                    one = not pairs(a) & pairs(b) and one_object_across(
-                        pieces[i], pieces[j], cells, config
-                    )
-                    centres = (pieces[i].polygon_m.mean(axis=0), pieces[j].polygon_m.mean(axis=0))
-                    judged[key] = float(np.linalg.norm(centres[0] - centres[1])) if one else None
+                    one = one_object_across(pieces[i], pieces[j], cells, config)
+                    gap_m = pieces[i].polygon_m.mean(axis=0) - pieces[j].polygon_m.mean(axis=0)
+                    judged[key] = float(np.linalg.norm(gap_m)) if one else None
                 distance = judged[key]
                 if distance is not None:
                     found.append((distance, i, j))
@@ -162,5 +150,5 @@ def seam_groups(views: list[SeamView], cells: MapEvidence, config: SeamConfig) -
         _, i, j = min(found)
         groups[i] = groups[i] + groups.pop(j)
         pieces.pop(j)
-        pieces[i] = piece(groups[i])
+        pieces[i] = SeamView.around([views[k] for k in groups[i]])
         judged = {key: d for key, d in judged.items() if groups[i][0] not in key}
