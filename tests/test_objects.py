@@ -26,7 +26,7 @@ from services.depth.projection import WorldPoints
 from services.evaluation.objects import match_static, score_movers
 from services.fusion.grid import FusedGrid, GridParams
 from services.fusion.objects import ObjectTracker, merge_capture
-from tests.tiles import dirty_window
+from tests.tiles import dirty_window, measure
 
 PITCH_M = 0.02
 """Floor spacing of the synthetic pixels (about a half-resolution pixel at an object's top)."""
@@ -412,7 +412,7 @@ def test_the_object_list_joins_static_pieces_a_seams_gap_keeps_apart() -> None:
         (Window(54, 44, 6, 12), 4.0),  # p1's piece
         (Window(66, 44, 6, 12), 4.0),  # a box x 3.3–3.6 m, seen whole by p2
     ):
-        _measure(grid, window, logodds)
+        measure(grid, window, logodds, T0_NS)
     tracker = ObjectTracker()
     for k in range(4):
         stamp = T0_NS + k * FRAME_NS
@@ -760,18 +760,6 @@ def test_a_view_of_a_piece_of_what_the_map_shows_occupied_says_partial() -> None
         assert not unchecked.partial and checked.size_m == unchecked.size_m
 
 
-def _measure(grid: FusedGrid, window: Window, logodds: float) -> None:
-    """One tile of ``logodds`` over ``window`` (20 pixels a cell, 1 m tops)."""
-    shape = window.shape
-    grid.integrate(
-        window,
-        np.full(shape, logodds, np.float32),
-        np.full(shape, 1.0, np.float32),
-        np.full(shape, 20, np.uint16),
-        T0_NS,
-    )
-
-
 def test_the_cells_a_plain_tops_measured_rim_encloses_are_not_served_free() -> None:
     """The frames call the floor free, and measure plain tops of the floor's grey at their edges
     alone (the rest of each top free, like the floor):
@@ -784,19 +772,19 @@ def test_the_cells_a_plain_tops_measured_rim_encloses_are_not_served_free() -> N
     resolution = 0.05
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
 
-    def measure(window: Window, logodds: float) -> None:
-        _measure(grid, window, logodds)
+    def put(window: Window, logodds: float) -> None:
+        measure(grid, window, logodds, T0_NS)
 
-    measure(Window(0, 0, 200, 100), -2.0)  # the floor: free
+    put(Window(0, 0, 200, 100), -2.0)  # the floor: free
     for rim in (Window(140, 56, 12, 1), Window(140, 63, 12, 1)):  # x 7.0–7.6 m, y 2.8–3.2 m
-        measure(rim, 4.0)
+        put(rim, 4.0)
     for rim in (Window(140, 57, 1, 6), Window(151, 57, 1, 6)):
-        measure(rim, 4.0)
-    measure(Window(60, 40, 10, 12), 4.0)  # a box's near half: x 3.0–3.5 m, y 2.0–2.6 m …
+        put(rim, 4.0)
+    put(Window(60, 40, 10, 12), 4.0)  # a box's near half: x 3.0–3.5 m, y 2.0–2.6 m …
     for rim in (Window(70, 40, 14, 1), Window(70, 51, 14, 1), Window(83, 41, 1, 10)):
-        measure(rim, 4.0)  # … and its far half's rim, to x = 4.2 m
-    measure(Window(20, 24, 12, 8), 4.0)  # a textured box, x 1.0–1.6 m, y 1.2–1.6 m …
-    measure(Window(32, 24, 1, 10), 4.0)  # … and a strip touching it, x 1.6–1.65 m, y 1.2–1.7 m
+        put(rim, 4.0)  # … and its far half's rim, to x = 4.2 m
+    put(Window(20, 24, 12, 8), 4.0)  # a textured box, x 1.0–1.6 m, y 1.2–1.6 m …
+    put(Window(32, 24, 1, 10), 4.0)  # … and a strip touching it, x 1.6–1.65 m, y 1.2–1.7 m
     tracker = ObjectTracker()
     views = [
         _record((7.3, 3.0), (0.6, 0.4)),
@@ -830,14 +818,14 @@ def test_the_cells_just_outside_a_static_objects_footprint_are_its_fringe() -> N
     resolution = 0.05
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
 
-    def measure(window: Window, logodds: float) -> None:
-        _measure(grid, window, logodds)
+    def put(window: Window, logodds: float) -> None:
+        measure(grid, window, logodds, T0_NS)
 
-    measure(Window(0, 0, 200, 100), -2.0)  # the floor: free
-    measure(Window(19, 23, 14, 10), 4.0)  # whole box x 1.0–1.6, y 1.2–1.6, and a cell round it
-    measure(Window(31, 25, 6, 6), 4.0)  # a small box against it: x 1.6–1.8, y 1.3–1.5, and ring
-    measure(Window(99, 23, 14, 10), 4.0)  # partial box x 5.0–5.6, y 1.2–1.6, and a cell round it
-    measure(Window(113, 24, 3, 8), 4.0)  # … going on past its cut side to x = 5.8
+    put(Window(0, 0, 200, 100), -2.0)  # the floor: free
+    put(Window(19, 23, 14, 10), 4.0)  # whole box x 1.0–1.6, y 1.2–1.6, and a cell round it
+    put(Window(31, 25, 6, 6), 4.0)  # a small box against it: x 1.6–1.8, y 1.3–1.5, and ring
+    put(Window(99, 23, 14, 10), 4.0)  # partial box x 5.0–5.6, y 1.2–1.6, and a cell round it
+    put(Window(113, 24, 3, 8), 4.0)  # … going on past its cut side to x = 5.8
     tracker = ObjectTracker()
     views = [
         _record((1.3, 1.4), (0.6, 0.4)),
@@ -882,11 +870,11 @@ def test_the_cells_just_outside_a_movers_measured_footprint_are_its_fringe(cut: 
         tracker.add("p0", T0_NS + k * FRAME_NS, [forklift, person], now_s=0.0)
         tracker.flush(now_s=0.0, live_pairs={"p0"})
     assert [t.object_class for t in tracker.objects()] == ["moving", "moving"]
-    _measure(grid, Window(0, 0, 200, 100), -2.0)  # the floor: free
-    _measure(grid, Window(148, 32, 24, 16), 4.0)  # the forklift: x 7.4–8.6, y 1.6–2.4
-    _measure(grid, Window(145, 32, 3, 16), 4.0)  # its rear face's hits: x 7.25–7.4
-    _measure(grid, Window(143, 38, 2, 2), 4.0)  # x 7.15–7.25, y 1.9–2.0: over 0.2 m behind it
-    _measure(grid, Window(155, 21, 11, 11), 4.0)  # the person: x 7.75–8.3, y 1.05–1.6
+    measure(grid, Window(0, 0, 200, 100), -2.0, T0_NS)  # the floor: free
+    measure(grid, Window(148, 32, 24, 16), 4.0, T0_NS)  # the forklift: x 7.4–8.6, y 1.6–2.4
+    measure(grid, Window(145, 32, 3, 16), 4.0, T0_NS)  # its rear face's hits: x 7.25–7.4
+    measure(grid, Window(143, 38, 2, 2), 4.0, T0_NS)  # x 7.15–7.25, y 1.9–2.0: 0.2 m behind it
+    measure(grid, Window(155, 21, 11, 11), 4.0, T0_NS)  # the person: x 7.75–8.3, y 1.05–1.6
 
     def served(x: float, y: float) -> int:
         return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
@@ -912,8 +900,8 @@ def test_a_round_objects_outline_and_fringe_follow_its_circle(round_: bool) -> N
     own cells and stay occupied."""
     resolution = 0.05
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 100, 100)))
-    _measure(grid, Window(0, 0, 100, 100), -2.0)  # the floor: free
-    _measure(grid, Window(35, 35, 10, 10), 4.0)  # x, y 1.75–2.25: the square around the drum
+    measure(grid, Window(0, 0, 100, 100), -2.0, T0_NS)  # the floor: free
+    measure(grid, Window(35, 35, 10, 10), 4.0, T0_NS)  # x, y 1.75–2.25: the square round the drum
     tracker = ObjectTracker()
     for k in range(9):  # 4 s at 2 Hz: static
         view = _record((2.0, 2.0), (0.5, 0.5), round_=round_)
@@ -1157,7 +1145,7 @@ def test_free_cells_under_a_mover_now_are_served_unknown() -> None:
     not touched."""
     resolution = 0.05
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
-    _measure(grid, Window(0, 0, 200, 100), -2.0)  # the floor: free
+    measure(grid, Window(0, 0, 200, 100), -2.0, T0_NS)  # the floor: free
     tracker = ObjectTracker()
     _run_mover(tracker, (1.0, 2.0), (1.0, 0.0), 8, np.random.default_rng(3))
     (mover,) = [t for t in tracker.objects() if t.object_class == "moving"]
@@ -1179,7 +1167,7 @@ def test_free_cells_under_a_track_starting_off_are_served_unknown() -> None:
     detection) keep the frames' verdict."""
     resolution = 0.05
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
-    _measure(grid, Window(0, 0, 200, 100), -2.0)  # the floor: free
+    measure(grid, Window(0, 0, 200, 100), -2.0, T0_NS)  # the floor: free
     tracker = ObjectTracker()
     for k in range(3):
         views = [

@@ -11,6 +11,7 @@ from common.footprints import corners, polygon_cells
 from common.lattice import Window
 from services.fusion.grid import FusedGrid, GridParams
 from services.fusion.seams import SeamConfig, SeamView, gap_cells, seam_groups
+from tests.tiles import measure
 
 
 def test_the_gap_between_two_pieces_is_their_hulls_cells_less_their_own() -> None:
@@ -40,22 +41,11 @@ def _map(pieces_m: list[tuple[float, float]], free: list[tuple[float, float]]) -
     the pieces (x from–to, m) occupied and ``free`` spans free; the rest of the row unknown (the
     seam's gap at the tops' height)."""
     grid = FusedGrid(GridParams(resolution_m=0.05, bounds=Window(0, 0, 200, 100)))
-
-    def measure(window: Window, logodds: float) -> None:
-        shape = window.shape
-        grid.integrate(
-            window,
-            np.full(shape, logodds, np.float32),
-            np.full(shape, 1.0, np.float32),
-            np.full(shape, 20, np.uint16),
-            0,
-        )
-
     for window in (Window(0, 0, 200, 44), Window(0, 56, 200, 44)):
-        measure(window, -2.0)
+        measure(grid, window, -2.0)
     for spans, logodds in ((pieces_m, 4.0), (free, -2.0)):
         for x0, x1 in spans:
-            measure(Window(round(x0 / 0.05), 44, round((x1 - x0) / 0.05), 12), logodds)
+            measure(grid, Window(round(x0 / 0.05), 44, round((x1 - x0) / 0.05), 12), logodds)
     return grid
 
 
@@ -109,13 +99,7 @@ def test_views_a_seams_gap_keeps_apart_are_one_object(case: str, groups: list[li
     grid = _map([] if case == "map not measured yet" else spans, free)
     if case == "a diagonal longer than a rack":  # on ground measured occupied all over
         grid = _map([(0.0, 10.0)], [])
-        grid.integrate(
-            Window(0, 0, 200, 100),
-            np.full((100, 200), 6.0, np.float32),
-            np.full((100, 200), 1.0, np.float32),
-            np.full((100, 200), 20, np.uint16),
-            0,
-        )
+        measure(grid, Window(0, 0, 200, 100), 6.0)
         along = np.array([math.cos(math.pi / 4), math.sin(math.pi / 4)])
         views = [
             SeamView(

@@ -53,3 +53,9 @@ def dirty_window(grid: FusedGrid) -> Window:
     for cells in grid.take_dirty_parts().values():
         bounding = bounding.union(cells)
     return bounding
+
+
+def measure(grid: FusedGrid, window: Window, logodds: float, stamp_ns: int = 0) -> None:
+    """One tile of ``logodds`` over ``window`` into ``grid`` (20 pixels a cell, 1 m tops)."""
+    arrays = tile_arrays(window, logodds, height_m=1.0, count=20)
+    grid.integrate(window, arrays["logodds"], arrays["height_m"], arrays["count"], stamp_ns)
