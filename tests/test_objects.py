@@ -873,7 +873,7 @@ def test_the_cells_just_outside_a_movers_measured_footprint_are_its_fringe(cut: 
     measure(grid, Window(0, 0, 200, 100), -2.0, T0_NS)  # the floor: free
     measure(grid, Window(148, 32, 24, 16), 4.0, T0_NS)  # the forklift: x 7.4–8.6, y 1.6–2.4
     measure(grid, Window(145, 32, 3, 16), 4.0, T0_NS)  # its rear face's hits: x 7.25–7.4
-    measure(grid, Window(143, 38, 2, 2), 4.0, T0_NS)  # x 7.15–7.25, y 1.9–2.0: 0.2 m behind it
+    measure(grid, Window(143, 38, 2, 2), 4.0, T0_NS)  # x 7.15–7.25, y 1.9–2.0: past 0.2 m behind
     measure(grid, Window(155, 21, 11, 11), 4.0, T0_NS)  # the person: x 7.75–8.3, y 1.05–1.6
 
     def served(x: float, y: float) -> int:
