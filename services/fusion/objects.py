@@ -304,10 +304,9 @@ def _across_seams(
     alone: the map keeps each piece's outline, as measured (its cells, joined, paid: offline
     ``--seed 2`` IoU −0.005, live −0.011 over four runs)."""
     candidates = [o for o in objects if o.object_class == "static" and o.partial]
-    polygons = [corners(o.center_m, o.size_m, o.yaw_rad) for o in candidates]
     views = [
-        SeamView(frozenset(o.pairs), polygon, o.top_m)
-        for o, polygon in zip(candidates, polygons, strict=True)
+        SeamView(frozenset(o.pairs), corners(o.center_m, o.size_m, o.yaw_rad), o.top_m)
+        for o in candidates
     ]
     joined = [group for group in seam_groups(views, cells, config) if len(group) > 1]
     if not joined:
@@ -316,9 +315,8 @@ def _across_seams(
     out = [o for o in objects if o.id not in gone]
     for group in joined:
         members = [candidates[k] for k in group]
-        cx, cy, length, width, yaw = fit_rectangle(
-            convex_hull(np.vstack([polygons[k] for k in group]))
-        )
+        around = SeamView.around([views[k] for k in group])
+        cx, cy, length, width, yaw = fit_rectangle(around.polygon_m)
         first = min(members, key=lambda o: (o.first_seen_ns, o.id))
         out.append(
             first.model_copy(
@@ -326,9 +324,9 @@ def _across_seams(
                     "center_m": (cx, cy),
                     "size_m": (length, width),
                     "yaw_rad": yaw,
-                    "top_m": max(o.top_m for o in members),
+                    "top_m": around.top_m,
                     "last_seen_ns": max(o.last_seen_ns for o in members),
-                    "pairs": sorted({pair for o in members for pair in o.pairs}),
+                    "pairs": sorted(around.pairs),
                     "size_unsure": any(o.size_unsure for o in members),
                     "round": False,
                     "detections": max(o.detections for o in members),
