@@ -1091,13 +1091,16 @@ FORKLIFT_OVER_LEARNING_S = 1796458581.9718442
 second learning frame, two seconds on, the forklift passes over open floor near (2.2, 1.9)."""
 
 
-def test_a_background_learnt_from_a_passing_forklift_starts_again() -> None:
+def test_a_passing_forklift_grown_into_at_a_learning_frame_is_never_its_background() -> None:
     """The forklift's floor-grey top was grown into as floor at the pair's second learning frame,
-    among floor learnt at the first; the floor it left matched that mixed background in grey but
-    not in texture, and a modelled pixel learns only while it matches. It departed for good:
-    hidden, and filled as an obstacle whenever the forklift's edge came near (rule 8; on a live
-    run, a blob at the map's clamp). The same frames through a pipeline without the restart
-    (``stale_learning_frames`` never reached) show that this instant still meets the case."""
+    among floor confirmed at the first, and became those pixels' background: the floor it left
+    matched that mixed background in grey but not in texture, and a modelled pixel learns only
+    while it matches. It departed: hidden, and filled as an obstacle whenever the forklift's edge
+    came near (rule 8; on a live run, a blob at the map's clamp). Now a pixel not yet modelled
+    whose image departs from what it was confirmed as starts again at that learning frame, and
+    again when the forklift has gone: with and without the stale restart
+    (``stale_learning_frames`` never reached), about 55 obstacle cells over the 52 frames where
+    the code before left 164 and 257."""
     sim = CameraSimParams.model_validate({})
     scene = sim.scene_spec()
     calibration = next(c for c in layout_pairs(sim.rig, scene.floor_size_m) if c.pair == "p0")
@@ -1132,9 +1135,7 @@ def test_a_background_learnt_from_a_passing_forklift_starts_again() -> None:
             there = (np.abs(x_m - 2.225) < 0.33) & (np.abs(y_m - 1.875) < 0.28)
             phantoms[which] += int(np.count_nonzero(there))
     pair.close()
-    with_restart, without = phantoms
-    assert without > 150, phantoms  # the instant still puts the forklift over the learning
-    assert with_restart < 0.75 * without, phantoms
+    assert max(phantoms) < 100, phantoms
 
 
 def test_a_floor_reading_where_the_floors_texture_is_gone_is_no_floor_but_under_a_shadow_is() -> (

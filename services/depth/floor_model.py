@@ -126,8 +126,15 @@ Learning (never from pixels where something stands), every ``learn_every`` frame
   The edge is not found in every frame, so each learning frame that finds it also takes a
   confirmation back from the run (long-learnt floor, confirmed hundreds of times, keeps its model
   when a mover passes).
-- A pixel is modelled once confirmed in ``confirm_frames`` learning frames; later it is updated
-  (running mean and variance) only while it is confirmed and still matches.
+- A pixel is modelled once confirmed in ``confirm_frames`` learning frames that agree: one whose
+  image departs from what it was confirmed as before it is modelled starts again from the image,
+  its count at one. Its first confirmation may have seen something since gone: at the floor's
+  height, a forklift's forks standing there at start-up (seeds, grown into as floor), or a passing
+  forklift's floor-grey top grown into at a learning frame. Modelled on it, the floor that came
+  back departed for good: hidden, and filled as an obstacle whenever an edge came near (rule 8;
+  offline, ``--floor plain --seed 1 --pairs 6``: a 150–380-cell false obstacle where the forklift
+  started, through the run). Later it is updated (running mean and variance) only while it is
+  confirmed and still matches.
 - When most modelled pixels depart at once after gain normalisation (a lighting change the gain
   field does not take off), the model re-learns from that frame: confirmed pixels restart from it,
   the rest is forgotten; in that frame rule 8 fills no departed region.
@@ -2250,17 +2257,28 @@ class FloorModel:
                 self.restarted += int(np.count_nonzero(restart))
                 self._stale[restart] = 0
                 fresh |= restart
+        normalised = [
+            _gain_normalised(image, gain) for image, gain in zip((left, warped), gains, strict=True)
+        ]
+        if not relearn:
+            # Confirmations that disagree (module docstring, Learning): start again from the image.
+            pending = confirmed & ~fresh & ~self._modelled
+            for side in (0, 1):
+                moved = pending & (
+                    np.abs(normalised[side] - self.mean[side]) > self.tolerance[side]
+                )
+                self.confirmed[moved] = 0
+                fresh |= moved
         # Modelled pixels learn only while they still match: a pixel under something never does.
         learning = confirmed & ~fresh & (matches | ~modelled)
         rate = learning.astype(np.float32) * np.float32(cfg.learn_rate)
         var_start = np.float32(cfg.match_min_gray**2 / cfg.match_sigmas**2)
-        for side, image in ((0, left), (1, warped)):
-            normalised = _gain_normalised(image, gains[side])
+        for side in (0, 1):
             mean, var = self.mean[side], self.var[side]
-            delta = normalised - mean
+            delta = normalised[side] - mean
             mean += rate * delta
             var += rate * (delta * delta - var)
-            np.copyto(mean, normalised, where=fresh)
+            np.copyto(mean, normalised[side], where=fresh)
             np.copyto(var, var_start, where=fresh)
             np.maximum(
                 np.maximum(np.sqrt(var) * np.float32(cfg.match_sigmas), cfg.match_min_gray),
