@@ -998,28 +998,65 @@ def test_the_coarse_offset_takes_no_plane_from_one_row_of_blocks() -> None:
         assert floor_model.coarse_floor_offset(offset, usable, basis) is None
 
 
-def _blocks(above_px: list[float]) -> floor_model.CoarseOffset:
-    """A coarse fit whose blocks' modes lie ``above_px`` over a current floor at zero."""
-    basis = np.column_stack([np.ones(len(above_px)), np.linspace(-0.9, 0.9, len(above_px))])
-    basis = np.column_stack([basis, np.zeros(len(above_px))])
-    return floor_model.CoarseOffset(np.zeros(3), np.asarray(above_px, np.float64), basis)
+BLOCKS_MEASURING = ((0, 1), (0, 2), (0, 3), (1, 3), (2, 3))
+"""``--floor plain --seed 2``'s p1 in the coarse fit's 4 × 3 blocks (40 × 40 on the step-2 grid):
+the right column's three on a wall's foot at the floor, and two at the top with a pallet's deck."""
 
 
-def test_the_fine_fits_begin_again_from_the_blocks_unless_a_few_stand_above_the_floor() -> None:
+def _decks_on_a_plain_floor(
+    decks: tuple[tuple[int, int], ...], floor_share: float
+) -> tuple[floor_model.CoarseOffset, npt.NDArray[np.float64], np.ndarray, np.ndarray, np.ndarray]:
+    """The blocks of BLOCKS_MEASURING as the coarse fit reports them, ``decks`` among them (a
+    textured deck 18 × 18, 0.57 px up, each its block's mode) with ``floor_share`` of the other
+    pixels measuring the floor (0.2: about as many as the deck's); and the floor's plane, the
+    offsets, what is usable, the basis."""
+    rng = np.random.default_rng(3)
+    truth = np.array([0.12, -0.36, 0.06])
+    basis, offset = _coarse_floor(truth, 0.03, rng)
+    usable = np.zeros(offset.shape, np.bool_)
+    for row, col in BLOCKS_MEASURING:
+        share = floor_share if (row, col) in decks else 0.2
+        usable[row * 40 : row * 40 + 40, col * 40 : col * 40 + 40] = rng.random((40, 40)) < share
+    for row, col in decks:
+        deck = (slice(row * 40 + 10, row * 40 + 28), slice(col * 40 + 11, col * 40 + 29))
+        offset[deck] += 0.57
+        usable[deck] = True
+    slices = tuple(
+        (slice(r * 40, r * 40 + 40), slice(c * 40, c * 40 + 40)) for r, c in BLOCKS_MEASURING
+    )
+    places = np.array([[1.0, float(basis[1][s].mean()), float(basis[2][s].mean())] for s in slices])
+    modes = places @ truth + np.array([0.57 * (b in decks) for b in BLOCKS_MEASURING])
+    coarse = floor_model.CoarseOffset(np.zeros(3), modes, places, slices)
+    return coarse, truth, offset, usable, basis
+
+
+def test_the_fine_fits_restart_from_the_blocks_unless_something_stands_on_the_floor() -> None:
     """Blocks off the current floor restart the fine fits from the blocks' plane, but not where
-    they are a minority lying above it: a pallet's deck on a plain floor, two of the five blocks
-    that measured (``--floor plain --seed 2``). One block below the floor, or most blocks off it,
-    or the first fit (its start is no estimate), still restart."""
-    zero, tolerance = np.zeros(3), 0.25
-    deck = _blocks([0.57, 0.57, -0.01, 0.0, 0.01])
-    assert not floor_model.restarts_from_blocks(deck, zero, tolerance, first=False)
-    assert floor_model.restarts_from_blocks(deck, zero, tolerance, first=True)
-    below = _blocks([0.57, 0.57, -0.4, 0.0, 0.01])
-    assert floor_model.restarts_from_blocks(below, zero, tolerance, first=False)
-    most = _blocks([0.57, 0.57, 0.5, 0.0, 0.01])
-    assert floor_model.restarts_from_blocks(most, zero, tolerance, first=False)
-    one = _blocks([-0.5, 0.0, 0.01, 0.0, 0.02])  # fewer than two blocks never restart
-    assert not floor_model.restarts_from_blocks(one, zero, tolerance, first=True)
+    they lie above it and are half the blocks or fewer (two pallets' decks of five blocks
+    measuring, on a plain floor: ``--floor plain --seed 2``), nor where each still shows the
+    current floor (three decks, the floor's texture beside each). A floor gone from the blocks
+    (knocked askew, a wrong start) or the first comparison (the start is no estimate) restarts."""
+
+    def restarts(
+        decks: tuple[tuple[int, int], ...],
+        floor_share: float,
+        shift: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        started: bool = True,
+    ) -> bool:
+        coarse, truth, offset, usable, basis = _decks_on_a_plain_floor(decks, floor_share)
+        current = truth + np.asarray(shift)
+        return floor_model.restarts_from_blocks(
+            coarse, current, offset, usable, basis, 0.25, started
+        )
+
+    two, three = ((0, 1), (0, 2)), ((0, 1), (0, 2), (0, 3))
+    assert not restarts(two, 0.0)  # the fewer, above: no floor beside them needed
+    assert not restarts(three, 0.2)  # the most, each showing the floor beside it
+    assert restarts(three, 0.0)  # the most, and no floor seen in them
+    assert restarts(two, 0.2, started=False)
+    assert restarts(two, 0.2, shift=(0.0, 0.4, 0.0))  # tilted: the wall's foot 0.3 px under it
+    assert restarts(two, 0.2, shift=(-0.45, 0.0, 0.0))  # all 0.45 px above, the floor gone
+    assert not restarts(((0, 1),), 0.0, started=False)  # one block never restarts
 
 
 def test_a_pallet_on_a_plain_floor_is_never_read_as_floor_after_a_refit() -> None:
@@ -1042,13 +1079,14 @@ def test_a_pallet_on_a_plain_floor_is_never_read_as_floor_after_a_refit() -> Non
     pair.t_s = 1_700_000_000.0 - 0.5
     pallet = next(o for o in scene.truth_objects(pair.t_s) if o.name == "pallet_1")
     pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
-    floor_shares = []
+    floor_shares, seen = [], []
     for _ in range(16):
         tile = pipeline.process(*pair.next()).tile
         inside = footprint_mask(pallet, tile.window, tile.resolution_m) & (tile.count > 0)
+        seen.append(int(inside.sum()))
         floor_shares.append(float(np.mean(tile.logodds[inside] < 0)))
     pair.close()
-    assert inside.sum() > 200
+    assert min(seen) > 200, seen
     assert max(floor_shares) < 0.2, np.round(floor_shares, 2)
 
 
@@ -1099,8 +1137,9 @@ def test_a_passing_forklift_grown_into_at_a_learning_frame_is_never_its_backgrou
     came near (rule 8; on a live run, a blob at the map's clamp). Now a pixel not yet modelled
     whose image departs from what it was confirmed as starts again at that learning frame, and
     again when the forklift has gone: with and without the stale restart
-    (``stale_learning_frames`` never reached), about 55 obstacle cells over the 52 frames where
-    the code before left 164 and 257."""
+    (``stale_learning_frames`` never reached), 53 and 60 obstacle cells over the 52 frames where
+    the code before left 164 and 257. A twin modelled on one confirmation, without the stale
+    restart, shows that this instant still meets the case (153)."""
     sim = CameraSimParams.model_validate({})
     scene = sim.scene_spec()
     calibration = next(c for c in layout_pairs(sim.rig, scene.floor_size_m) if c.pair == "p0")
@@ -1119,8 +1158,14 @@ def test_a_passing_forklift_grown_into_at_a_learning_frame_is_never_its_backgrou
             pair.capture.calibration,
             replace(config, floor=replace(config.floor, stale_learning_frames=255)),
         ),
+        DepthPipeline(
+            pair.capture.calibration,
+            replace(
+                config, floor=replace(config.floor, stale_learning_frames=255, confirm_frames=1)
+            ),
+        ),
     ]
-    phantoms = [0, 0]  # obstacle cells where the forklift passed, over 3.5 cells from anything
+    phantoms = [0, 0, 0]  # obstacle cells where the forklift passed, over 3.5 cells from anything
     for _ in range(52):
         left, right = pair.next()
         for which, pipeline in enumerate(pipelines):
@@ -1135,7 +1180,9 @@ def test_a_passing_forklift_grown_into_at_a_learning_frame_is_never_its_backgrou
             there = (np.abs(x_m - 2.225) < 0.33) & (np.abs(y_m - 1.875) < 0.28)
             phantoms[which] += int(np.count_nonzero(there))
     pair.close()
-    assert max(phantoms) < 100, phantoms
+    agreeing, without_stale, one_confirmation = phantoms
+    assert one_confirmation > 120, phantoms  # the instant still puts the forklift over the learning
+    assert max(agreeing, without_stale) < 100, phantoms
 
 
 def test_a_floor_reading_where_the_floors_texture_is_gone_is_no_floor_but_under_a_shadow_is() -> (

@@ -237,6 +237,7 @@ class DepthPipeline:
             "frames": model.frames,
             "relearned": model.relearned,
             "restarted_px": model.restarted,
+            "disagreed_px": model.disagreed,
             "disparity_offset_px": round(float(model.residual_coef[0, 0]), 3),
             "row_offset_px": round(float(model.residual_coef[1, 0]), 3),
             "matcher_offset_px": round(float(model.matcher_offset_coef[0]), 3),
