@@ -93,6 +93,24 @@ class Pair:
         self.renderer.close()
 
 
+def _site_pair(settings: dict[str, object], name: str) -> tuple[Pair, SceneSpec]:
+    """Pair ``name`` of the simulated site ``settings`` describe (camera_sim's settings), as
+    camera_sim shows it (its shadows, cameras, published calibration, lighting and seed), and the
+    site's scene."""
+    sim = CameraSimParams.model_validate(settings)
+    scene = sim.scene_spec()
+    calibration = next(c for c in layout_pairs(sim.rig, scene.floor_size_m) if c.pair == name)
+    pair = Pair(
+        scene,
+        shadows=sim.shadows,
+        calibration=calibration,
+        camera=sim.camera_model(),
+        lighting=sim.lighting(),
+        seed=sim.seed,
+    )
+    return pair, scene
+
+
 def _eroded(mask: np.ndarray, px: int = 4) -> np.ndarray:
     return cv2.erode(mask.astype(np.uint8), np.ones((2 * px + 1, 2 * px + 1), np.uint8)) > 0
 
@@ -1063,19 +1081,9 @@ def test_a_pallet_on_a_plain_floor_is_never_read_as_floor_after_a_refit() -> Non
     """``--floor plain --seed 2``, pair p1 (the realistic cameras, their published calibration):
     the coarse offset fit's blocks that measure are a pallet's deck (two) and the east wall's foot
     (three), and the plane through them put the floor 0.5 px up at the pallet. Restarted onto it
-    at the second fit, the pair read the pallet's cells as floor for the next eight frames (250–
-    310 of them a frame, against under 10 as obstacles); the next restart put it back."""
-    sim = CameraSimParams.model_validate({"seed": 2, "floor": "plain"})
-    scene = sim.scene_spec()
-    calibration = next(c for c in layout_pairs(sim.rig, scene.floor_size_m) if c.pair == "p1")
-    pair = Pair(
-        scene,
-        shadows=sim.shadows,
-        calibration=calibration,
-        camera=sim.camera_model(),
-        lighting=sim.lighting(),
-        seed=sim.seed,
-    )
+    at the second fit, the pair read the pallet's cells as floor for the next eight frames (up to
+    0.97 of them in a frame); the next restart put it back."""
+    pair, scene = _site_pair({"seed": 2, "floor": "plain"}, "p1")
     pair.t_s = 1_700_000_000.0 - 0.5
     pallet = next(o for o in scene.truth_objects(pair.t_s) if o.name == "pallet_1")
     pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
@@ -1140,16 +1148,7 @@ def test_a_passing_forklift_grown_into_at_a_learning_frame_is_never_its_backgrou
     (``stale_learning_frames`` never reached), 53 and 60 obstacle cells over the 52 frames where
     the code before left 164 and 257. A twin modelled on one confirmation, without the stale
     restart, shows that this instant still meets the case (153)."""
-    sim = CameraSimParams.model_validate({})
-    scene = sim.scene_spec()
-    calibration = next(c for c in layout_pairs(sim.rig, scene.floor_size_m) if c.pair == "p0")
-    pair = Pair(
-        scene,
-        shadows=sim.shadows,
-        calibration=calibration,
-        camera=sim.camera_model(),
-        lighting=sim.lighting(),
-    )
+    pair, scene = _site_pair({}, "p0")
     pair.t_s = FORKLIFT_OVER_LEARNING_S - 0.5
     config = PipelineConfig()
     pipelines = [
