@@ -1068,13 +1068,14 @@ def test_the_fine_fits_restart_from_the_blocks_unless_something_stands_on_the_fl
         )
 
     two, three = ((0, 1), (0, 2)), ((0, 1), (0, 2), (0, 3))
-    assert not restarts(two, 0.0)  # the fewer, above: no floor beside them needed
+    assert not restarts(two, 0.0)  # half or fewer, above: no floor beside them needed
     assert not restarts(three, 0.2)  # the most, each showing the floor beside it
     assert restarts(three, 0.0)  # the most, and no floor seen in them
     assert restarts(two, 0.2, started=False)
     assert restarts(two, 0.2, shift=(0.0, 0.4, 0.0))  # tilted: the wall's foot 0.3 px under it
     assert restarts(two, 0.2, shift=(-0.45, 0.0, 0.0))  # all 0.45 px above, the floor gone
     assert not restarts(((0, 1),), 0.0, started=False)  # one block never restarts
+    assert restarts(((0, 1),), 0.2, shift=(0.177, 0.0, 0.2625))  # the floor 0.35 px under one
 
 
 def test_a_pallet_on_a_plain_floor_is_never_read_as_floor_after_a_refit() -> None:
@@ -1180,6 +1181,7 @@ def test_a_passing_forklift_grown_into_at_a_learning_frame_is_never_its_backgrou
             phantoms[which] += int(np.count_nonzero(there))
     pair.close()
     agreeing, without_stale, one_confirmation = phantoms
+    assert pipelines[0].floor_model is not None and pipelines[0].floor_model.disagreed > 0
     assert one_confirmation > 120, phantoms  # the instant still puts the forklift over the learning
     assert max(agreeing, without_stale) < 100, phantoms
 

@@ -134,7 +134,7 @@ Learning (never from pixels where something stands), every ``learn_every`` frame
   back departed for good: hidden, and filled as an obstacle whenever an edge came near (rule 8;
   offline, ``--floor plain --seed 1 --pairs 6``: a 150–380-cell false obstacle where the forklift
   started, through the run). (A re-learning frame, below, starts every confirmed pixel from its
-  image.) Later it is updated (running mean and variance) only while it is confirmed and still
+  image and keeps its count.) Later it is updated (running mean and variance) only while it is confirmed and still
   matches.
 - When most modelled pixels depart at once after gain normalisation (a lighting change the gain
   field does not take off), the model re-learns from that frame: confirmed pixels restart from it,
@@ -309,8 +309,9 @@ class FloorModelConfig:
     offset_rate: float = 0.5
 
     def __post_init__(self) -> None:
-        if not 1 <= self.stale_learning_frames <= 255:  # a uint8 count per pixel
-            raise ValueError(f"stale_learning_frames {self.stale_learning_frames} is not in 1–255")
+        for name in ("stale_learning_frames", "confirm_frames"):  # uint8 counts per pixel
+            if not 1 <= getattr(self, name) <= 255:
+                raise ValueError(f"{name} {getattr(self, name)} is not in 1–255")
 
 
 ROW_REACH_PX = 40
@@ -1069,7 +1070,7 @@ class CoarseOffset:
     modes_px: npt.NDArray[np.float64]
     """Each block's mode (the floor's offset there), and where it is in (u', v')."""
     basis: npt.NDArray[np.float64]
-    blocks: tuple[tuple[slice, slice], ...] = ()
+    blocks: tuple[tuple[slice, slice], ...]
     """Each block's rows and columns in the offsets the fit was given."""
 
 
@@ -1175,9 +1176,11 @@ def restarts_from_blocks(
     0.5 px up, through the deck (``--floor plain --seed 2``: 0.97 of the deck's cells read as floor
     in a frame, 347 of its 384 free in the map, until the next restart 3.5 s on). Either test
     alone missed cases the other caught on the plain floors (the floor beside a plain top has no
-    texture to show). A camera knocked askew restarts where the floor has gone from a block below
-    the current floor or from most of them; where it rose in fewer than half the blocks and fell
-    in none, the fine fits follow it, 0.02–0.03 px a fit."""
+    texture to show). A camera knocked askew restarts where its floor fell in a block or rose in
+    most of them and left them; where it rose in half the blocks or fewer and fell in none, this
+    declines, and the fine fits, which see only pixels within ``floor_tolerance_px`` of their
+    floor, follow no rise beyond it: a limit, untested (telling a deck from a risen floor by where
+    its pixels lie, a compact patch or spread over the block, is untried)."""
     off_px = coarse.modes_px - coarse.basis @ current_coef
     off = np.abs(off_px) > tolerance_px
     if np.count_nonzero(off) < max(2, off.size // 4):
