@@ -134,8 +134,8 @@ Learning (never from pixels where something stands), every ``learn_every`` frame
   back departed for good: hidden, and filled as an obstacle whenever an edge came near (rule 8;
   offline, ``--floor plain --seed 1 --pairs 6``: a 150–380-cell false obstacle where the forklift
   started, through the run). (A re-learning frame, below, starts every confirmed pixel from its
-  image and keeps its count.) Later it is updated (running mean and variance) only while it is confirmed and still
-  matches.
+  image and keeps its count.) Later it is updated (running mean and variance) only while it is
+  confirmed and still matches.
 - When most modelled pixels depart at once after gain normalisation (a lighting change the gain
   field does not take off), the model re-learns from that frame: confirmed pixels restart from it,
   the rest is forgotten; in that frame rule 8 fills no departed region.
