@@ -1063,8 +1063,9 @@ def test_the_fine_fits_restart_from_the_blocks_unless_something_stands_on_the_fl
     ) -> bool:
         coarse, truth, offset, usable, basis = _decks_on_a_plain_floor(decks, floor_share)
         current = truth + np.asarray(shift)
+        current_px = np.tensordot(current.astype(np.float32), basis, axes=1)
         return floor_model.restarts_from_blocks(
-            coarse, current, offset, usable, basis, 0.25, started
+            coarse, current, current_px, offset, usable, 0.25, started
         )
 
     two, three = ((0, 1), (0, 2)), ((0, 1), (0, 2), (0, 3))

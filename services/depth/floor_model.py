@@ -1156,15 +1156,15 @@ as many of its offsets lie near the floor as near its mode."""
 def restarts_from_blocks(
     coarse: CoarseOffset,
     current_coef: npt.NDArray[np.float64],
+    current_px: F32,
     offset_px: F32,
     usable: Mask,
-    basis: npt.NDArray[np.float32],
     tolerance_px: float,
     started: bool,
 ) -> bool:
     """Whether the fine fits begin again from the coarse fit's plane: where a quarter of its
     blocks (two at least) lie further than ``tolerance_px`` from the current floor
-    (``current_coef``). Eager: the blocks' fit is robust, and starting again from it beat waiting
+    (``current_coef``; ``current_px`` at each of ``offset_px``'s pixels). Eager: the blocks' fit is robust, and starting again from it beat waiting
     for a third of the blocks by 0.02 of IoU on the poorly calibrated seeds 2, 4 and 5.
 
     But not, once ``started`` (the blocks have been compared with the current floor before: at
@@ -1183,13 +1183,13 @@ def restarts_from_blocks(
     its pixels lie, a compact patch or spread over the block, is untried)."""
     off_px = coarse.modes_px - coarse.basis @ current_coef
     off = np.abs(off_px) > tolerance_px
-    if np.count_nonzero(off) < max(2, off.size // 4):
+    off_count = int(np.count_nonzero(off))
+    if off_count < max(2, off.size // 4):
         return False
     if not started:
         return True
-    if not np.any(off_px < -tolerance_px) and 2 * np.count_nonzero(off) <= off.size:
+    if not np.any(off_px < -tolerance_px) and 2 * off_count <= off.size:
         return False
-    current_px = np.tensordot(current_coef.astype(np.float32), basis, axes=1)
     with np.errstate(invalid="ignore"):
         for k in np.flatnonzero(off):
             rows, cols = coarse.blocks[k]
@@ -1757,9 +1757,9 @@ class FloorModel:
         if coarse is not None and restarts_from_blocks(
             coarse,
             self.matcher_offset_coef,
+            self.matcher_offset_px[::step, ::step],
             beyond,
             test.matchable[::step, ::step],
-            self._basis[:, ::step, ::step],
             self.config.floor_tolerance_px,
             started,
         ):
