@@ -241,7 +241,9 @@ of the simulated site) is the top it bounds; one that does not is floor (on a te
 plain one, see :meth:`FloorModel._plain_tops`)."""
 THIN_TOP_PX = 10.0
 """A strip measured in the obstacle band thinner than twice this along the ray (from the nadir)
-is a plain top's edge: the matcher measures its window's width of the top and nothing beyond."""
+is a plain top's edge: the matcher measures its window's width of the top and nothing beyond.
+Inward, nothing of its surface from this to twice this: a textured top's far edge beyond a gap
+in its measurement (a shelf's speckled top) is no strip."""
 MIN_STRIP_PX = 20
 """Fewer pixels than this of such a strip are a corner of something, not a top's edge."""
 STRIP_TILTS_DEG = (0.0, -30.0, 30.0, -60.0, 60.0)
@@ -1355,7 +1357,7 @@ def _thin_across(
     across_probes: npt.NDArray[np.int64],
     strip: Mask,
 ) -> None:
-    """Flat arrays, per ``obstacle`` pixel: whether no obstacle pixel at either ``thin_probes``
+    """Flat arrays, per ``obstacle`` pixel: whether no obstacle pixel at any of ``thin_probes``
     (along the ray) stands within SAME_SURFACE_M below it or higher, and, in one direction of
     ``across_probes`` (direction, either way, pixel), both pixels are ``near`` an obstacle pixel
     (FloorModel._top_edges). Only at the obstacle's pixels, a few in a hundred."""
@@ -1634,7 +1636,11 @@ class FloorModel:
 
         self._outward_probe = probe(SEED_PROBE_PX)
         self._inward_probe = probe(-SEED_PROBE_PX)
-        self._thin_probes = np.stack([probe(-THIN_TOP_PX).ravel(), probe(THIN_TOP_PX).ravel()])
+        self._thin_probes = np.stack(
+            [probe(THIN_TOP_PX).ravel()]
+            + [probe(-THIN_TOP_PX * (1.0 + step / 4)).ravel() for step in range(5)]
+        )
+        """Along the ray: THIN_TOP_PX outward, and 1–2 times it inward in quarters."""
         self._across_probes = np.stack(
             [
                 np.stack(
