@@ -242,8 +242,8 @@ plain one, see :meth:`FloorModel._plain_tops`)."""
 THIN_TOP_PX = 10.0
 """A strip measured in the obstacle band thinner than twice this along the ray (from the nadir)
 is a plain top's edge: the matcher measures its window's width of the top and nothing beyond.
-Inward, nothing of its surface from this to twice this: a textured top's far edge beyond a gap
-in its measurement (a shelf's speckled top) is no strip."""
+Inward, from this to twice this, no top measured across at its height either: a textured top's
+far edge beyond a gap in its measurement (a shelf's speckled top) is no strip."""
 MIN_STRIP_PX = 20
 """Fewer pixels than this of such a strip are a corner of something, not a top's edge."""
 STRIP_TILTS_DEG = (0.0, -30.0, 30.0, -60.0, 60.0)
@@ -1322,30 +1322,52 @@ def _march_outward(
     """From each ``start`` pixel, one pixel at a time straight away from the nadir: the pixels
     passed over, passable ones (any for the first ``grace_px``, and a lone other one), up to two
     others in a row or ``reach_px``. In the image, not on polar bins: near the nadir a bin spans
-    a wide angle, and a start there would fan out over the floor beside its top."""
+    a wide angle, and a start there would fan out over the floor beside its top. Starts nearest
+    the nadir first: one a run has met (the pixels about where it met it, through the strip
+    along the ray) starts none, for it is the far edge of that run's top, and the floor lies
+    beyond it; the near edge of a top beyond it of the same height still starts its own."""
     rows, cols = start.shape
     cx, cy = nadir_px
-    for v0 in range(rows):
-        for u0 in range(cols):
-            if not start[v0, u0]:
-                continue
-            du, dv = u0 - cx, v0 - cy
-            norm = math.sqrt(du * du + dv * dv)
-            if norm < 1.0:
-                continue
-            du, dv = du / norm, dv / norm
-            misses = 0
-            for k in range(1, reach_px + 1):
-                u, v = round(u0 + k * du), round(v0 + k * dv)
-                if u < 0 or v < 0 or u >= cols or v >= rows:
+    starts_v, starts_u = np.nonzero(start)
+    met = np.zeros((rows, cols), np.bool_)
+    order = np.argsort((starts_u - cx) ** 2 + (starts_v - cy) ** 2)
+    for index in order:
+        v0, u0 = starts_v[index], starts_u[index]
+        if met[v0, u0]:
+            continue
+        du, dv = u0 - cx, v0 - cy
+        norm = math.sqrt(du * du + dv * dv)
+        if norm < 1.0:
+            continue
+        du, dv = du / norm, dv / norm
+        misses = 0
+        for k in range(1, reach_px + 1):
+            u, v = round(u0 + k * du), round(v0 + k * dv)
+            if u < 0 or v < 0 or u >= cols or v >= rows:
+                break
+            if k > grace_px and start[v, u]:
+                _meet_strip(start, met, u, v, du, dv)
+            if passable[v, u] or k <= grace_px:
+                misses = 0
+            else:
+                misses += 1
+                if misses == 2:
                     break
-                if passable[v, u] or k <= grace_px:
-                    misses = 0
-                else:
-                    misses += 1
-                    if misses == 2:
-                        break
-                runs[v, u] = 1
+            runs[v, u] = 1
+
+
+@compiled
+def _meet_strip(start: Mask, met: Mask, u: int, v: int, du: float, dv: float) -> None:
+    """Marks ``met`` the ``start`` pixels about (u, v) (3 × 3) and on along the ray while it
+    stays in the strip: the rays of a run leave gaps between them at its far edge."""
+    rows, cols = start.shape
+    for k in range(rows + cols):
+        uk, vk = round(u + k * du), round(v + k * dv)
+        if uk < 0 or vk < 0 or uk >= cols or vk >= rows or not start[vk, uk]:
+            return
+        for nv in range(max(vk - 1, 0), min(vk + 2, rows)):
+            for nu in range(max(uk - 1, 0), min(uk + 2, cols)):
+                met[nv, nu] = start[nv, nu]
 
 
 @compiled
@@ -1357,10 +1379,14 @@ def _thin_across(
     across_probes: npt.NDArray[np.int64],
     strip: Mask,
 ) -> None:
-    """Flat arrays, per ``obstacle`` pixel: whether no obstacle pixel at any of ``thin_probes``
-    (along the ray) stands within SAME_SURFACE_M below it or higher, and, in one direction of
-    ``across_probes`` (direction, either way, pixel), both pixels are ``near`` an obstacle pixel
-    (FloorModel._top_edges). Only at the obstacle's pixels, a few in a hundred."""
+    """Flat arrays, per ``obstacle`` pixel: whether no obstacle pixel at the first two
+    ``thin_probes`` (along the ray: outward and inward, THIN_TOP_PX) stands within SAME_SURFACE_M
+    below it or higher, nor at the others (further inward) one of its surface (within
+    SAME_SURFACE_M) with its surface again at its own inward probe: a top measured across, whose
+    far edge this is beyond a gap in its measurement (a top's thin far edge there, of the next
+    box in a row, is not one); and, in one direction of ``across_probes`` (direction, either
+    way, pixel), both pixels are ``near`` an obstacle pixel (FloorModel._top_edges). Only at the
+    obstacle's pixels, a few in a hundred."""
     same = np.float32(SAME_SURFACE_M)
     for pixel in range(obstacle.size):
         if not obstacle[pixel]:
@@ -1368,8 +1394,18 @@ def _thin_across(
         thin = True
         for probe in range(thin_probes.shape[0]):
             at = thin_probes[probe, pixel]
-            if at >= 0 and obstacle[at] and height_m[at] > height_m[pixel] - same:
-                thin = False
+            if at < 0 or not obstacle[at]:
+                continue
+            if probe < 2:
+                thin = thin and height_m[at] <= height_m[pixel] - same
+                continue
+            beyond = thin_probes[1, at]  # a top measured across there: its surface inward again
+            thin = thin and not (
+                abs(height_m[at] - height_m[pixel]) < same
+                and beyond >= 0
+                and obstacle[beyond]
+                and abs(height_m[beyond] - height_m[pixel]) < same
+            )
         runs_on = False
         for direction in range(across_probes.shape[0]):
             both = True
@@ -1640,7 +1676,8 @@ class FloorModel:
             [probe(THIN_TOP_PX).ravel()]
             + [probe(-THIN_TOP_PX * (1.0 + step / 4)).ravel() for step in range(5)]
         )
-        """Along the ray: THIN_TOP_PX outward, and 1–2 times it inward in quarters."""
+        """Along the ray: THIN_TOP_PX outward, then 1–2 times it inward in quarters (the first
+        of those, THIN_TOP_PX inward, also serves each pixel as its own inward probe)."""
         self._across_probes = np.stack(
             [
                 np.stack(
@@ -2259,9 +2296,12 @@ class FloorModel:
         live, ``--floor plain --plain-objects``: a 1.3 m box's top 39 % free, 12 % with this
         rule and the contested footprints of fusion). The edge is a
         strip measured in the band and thin along the ray; a textured top is measured across
-        and bounds no run, nor does its far edge. The floor beyond a plain top within the reach
-        is kept from the model too while its edge is found (nothing tells the two apart): that
-        is the rule's cost in unknown floor."""
+        and bounds no run, nor does its far edge. A plain top's far edge is a strip as well, but
+        the run from its near edge meets it (:func:`_march_outward`), so it bounds no run
+        either; where the near edge is not measured, the floor beyond the top within the reach
+        is kept from the model while the far edge is found (nothing tells the two apart): that
+        is the rule's cost in unknown floor. Where a top's far edge is not measured and its run
+        meets the next top's near edge within the reach, that top starts no run of its own."""
         runs = np.zeros(self.shape, np.uint8)
         _march_outward(
             self._top_edges(obstacle, height, tilted=False),
