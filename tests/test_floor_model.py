@@ -544,7 +544,7 @@ def test_a_textured_top_with_a_gap_in_its_measurement_holds_up_no_plain_run() ->
     beyond the gap is no thin strip (the top is measured across again 12–20 pixels inward), so
     the floor beyond the top is learned; one probe 10 pixels inward, in the gap, found it thin,
     and the run kept up to 1.5 m of floor beyond such a top from the model (offline, plain
-    ``--seed 5 --pairs 6``, 20 s: unknown 5.75 % of the seen floor, 4.68 % with the probes)."""
+    ``--seed 5 --pairs 6``, 20 s: unknown 5.75 % of the seen floor, 4.69 % with the probes)."""
     width, height = SYNTHETIC_SIZE
     textured = np.zeros((height, width), np.bool_)
     measured = np.full((height, width), np.nan, np.float32)
@@ -556,41 +556,20 @@ def test_a_textured_top_with_a_gap_in_its_measurement_holds_up_no_plain_run() ->
     assert not blocked[105:135, 245:].any() and not withdrawn.any()
 
 
-def test_a_plain_tops_far_edge_holds_up_no_run_beyond_it() -> None:
-    """On a plain floor (nadir at (160, 120), reach 69 px): a plain top measured at both edges,
-    0.5 m up, a taller one inward of it. Both edges are thin strips; the run from the near edge
-    holds up the top and meets the far edge (6 px along the ray: met through, not only where the
-    run stops), which then starts none: the floor beyond it is learned.
-    Before, it was kept from the model up to the reach beyond every such top (offline, `--floor
-    plain --plain-objects`, 20 s: unknown 5.48 % of the seen floor, 4.90 % without)."""
-    width, height = SYNTHETIC_SIZE
-    textured = np.zeros((height, width), np.bool_)
-    measured = np.full((height, width), np.nan, np.float32)
-    for edge in (slice(200, 203), slice(230, 236)):  # near and far edge, right of the nadir
-        textured[100:140, edge] = True
-        measured[100:140, edge] = 0.5
-    textured[100:140, 165:185] = True  # inward of the near edge, a taller textured top
-    measured[100:140, 165:185] = 1.5
-    blocked, withdrawn = _blocked_on_synthetic_floor(textured, measured)
-    assert blocked[108:132, 205:229].all() and withdrawn[108:132, 205:229].all()
-    assert not blocked[105:135, 240:].any()
-
-
 def test_plain_tops_in_a_row_each_hold_up_their_own_top() -> None:
     """On a plain floor (nadir at (160, 120)): two plain tops of one height in a row along the
     ray, 12 px between the first's far edge and the second's near edge (cartons in a row, their
-    gap and the second's face). The second's near edge finds the first's far edge inward, a thin
-    strip, not a top measured across, and no run of the first met it: both tops are kept from the
-    model, and the floor beyond the second is learned."""
+    gap and the second's face). The second's near edge finds the first's far edge 12.5–20 px
+    inward, a thin strip, not a top measured across, so it stays a strip: both tops are kept
+    from the model."""
     width, height = SYNTHETIC_SIZE
     textured = np.zeros((height, width), np.bool_)
     measured = np.full((height, width), np.nan, np.float32)
     for edge in (slice(185, 188), slice(205, 208), slice(220, 223), slice(240, 243)):
         textured[100:140, edge] = True
         measured[100:140, edge] = 0.5
-    blocked, _ = _blocked_on_synthetic_floor(textured, measured)
-    assert blocked[108:132, 190:204].all() and blocked[108:132, 225:239].all()
-    assert not blocked[105:135, 250:].any()
+    _, withdrawn = _blocked_on_synthetic_floor(textured, measured)
+    assert withdrawn[108:132, 190:204].all() and withdrawn[108:132, 225:239].all()
 
 
 def test_a_learning_frame_that_finds_a_plain_tops_edge_takes_back_a_confirmation() -> None:

@@ -1322,52 +1322,30 @@ def _march_outward(
     """From each ``start`` pixel, one pixel at a time straight away from the nadir: the pixels
     passed over, passable ones (any for the first ``grace_px``, and a lone other one), up to two
     others in a row or ``reach_px``. In the image, not on polar bins: near the nadir a bin spans
-    a wide angle, and a start there would fan out over the floor beside its top. Starts nearest
-    the nadir first: one a run has met (the pixels about where it met it, through the strip
-    along the ray) starts none, for it is the far edge of that run's top, and the floor lies
-    beyond it; the near edge of a top beyond it of the same height still starts its own."""
+    a wide angle, and a start there would fan out over the floor beside its top."""
     rows, cols = start.shape
     cx, cy = nadir_px
-    starts_v, starts_u = np.nonzero(start)
-    met = np.zeros((rows, cols), np.bool_)
-    order = np.argsort((starts_u - cx) ** 2 + (starts_v - cy) ** 2)
-    for index in order:
-        v0, u0 = starts_v[index], starts_u[index]
-        if met[v0, u0]:
-            continue
-        du, dv = u0 - cx, v0 - cy
-        norm = math.sqrt(du * du + dv * dv)
-        if norm < 1.0:
-            continue
-        du, dv = du / norm, dv / norm
-        misses = 0
-        for k in range(1, reach_px + 1):
-            u, v = round(u0 + k * du), round(v0 + k * dv)
-            if u < 0 or v < 0 or u >= cols or v >= rows:
-                break
-            if k > grace_px and start[v, u]:
-                _meet_strip(start, met, u, v, du, dv)
-            if passable[v, u] or k <= grace_px:
-                misses = 0
-            else:
-                misses += 1
-                if misses == 2:
+    for v0 in range(rows):
+        for u0 in range(cols):
+            if not start[v0, u0]:
+                continue
+            du, dv = u0 - cx, v0 - cy
+            norm = math.sqrt(du * du + dv * dv)
+            if norm < 1.0:
+                continue
+            du, dv = du / norm, dv / norm
+            misses = 0
+            for k in range(1, reach_px + 1):
+                u, v = round(u0 + k * du), round(v0 + k * dv)
+                if u < 0 or v < 0 or u >= cols or v >= rows:
                     break
-            runs[v, u] = 1
-
-
-@compiled
-def _meet_strip(start: Mask, met: Mask, u: int, v: int, du: float, dv: float) -> None:
-    """Marks ``met`` the ``start`` pixels about (u, v) (3 × 3) and on along the ray while it
-    stays in the strip: the rays of a run leave gaps between them at its far edge."""
-    rows, cols = start.shape
-    for k in range(rows + cols):
-        uk, vk = round(u + k * du), round(v + k * dv)
-        if uk < 0 or vk < 0 or uk >= cols or vk >= rows or not start[vk, uk]:
-            return
-        for nv in range(max(vk - 1, 0), min(vk + 2, rows)):
-            for nu in range(max(uk - 1, 0), min(uk + 2, cols)):
-                met[nv, nu] = start[nv, nu]
+                if passable[v, u] or k <= grace_px:
+                    misses = 0
+                else:
+                    misses += 1
+                    if misses == 2:
+                        break
+                runs[v, u] = 1
 
 
 @compiled
@@ -1383,10 +1361,11 @@ def _thin_across(
     ``thin_probes`` (along the ray: outward and inward, THIN_TOP_PX) stands within SAME_SURFACE_M
     below it or higher, nor at the others (further inward) one of its surface (within
     SAME_SURFACE_M) with its surface again at its own inward probe: a top measured across, whose
-    far edge this is beyond a gap in its measurement (a top's thin far edge there, of the next
-    box in a row, is not one); and, in one direction of ``across_probes`` (direction, either
-    way, pixel), both pixels are ``near`` an obstacle pixel (FloorModel._top_edges). Only at the
-    obstacle's pixels, a few in a hundred."""
+    far edge this is beyond a gap in its measurement (the thin far edge of a plain box before it
+    in a row is not one; a printed box's top there is, and ends a plain box's near edge as the
+    first inward probe always did, closer in); and, in one direction of ``across_probes``
+    (direction, either way, pixel), both pixels are ``near`` an obstacle pixel
+    (FloorModel._top_edges). Only at the obstacle's pixels, a few in a hundred."""
     same = np.float32(SAME_SURFACE_M)
     for pixel in range(obstacle.size):
         if not obstacle[pixel]:
@@ -2296,12 +2275,9 @@ class FloorModel:
         live, ``--floor plain --plain-objects``: a 1.3 m box's top 39 % free, 12 % with this
         rule and the contested footprints of fusion). The edge is a
         strip measured in the band and thin along the ray; a textured top is measured across
-        and bounds no run, nor does its far edge. A plain top's far edge is a strip as well, but
-        the run from its near edge meets it (:func:`_march_outward`), so it bounds no run
-        either; where the near edge is not measured, the floor beyond the top within the reach
-        is kept from the model while the far edge is found (nothing tells the two apart): that
-        is the rule's cost in unknown floor. Where a top's far edge is not measured and its run
-        meets the next top's near edge within the reach, that top starts no run of its own."""
+        and bounds no run, nor does its far edge. The floor beyond a plain top within the reach
+        is kept from the model too while its edge is found (nothing tells the two apart): that
+        is the rule's cost in unknown floor."""
         runs = np.zeros(self.shape, np.uint8)
         _march_outward(
             self._top_edges(obstacle, height, tilted=False),
