@@ -544,7 +544,7 @@ def test_a_textured_top_with_a_gap_in_its_measurement_holds_up_no_plain_run() ->
     beyond the gap is no thin strip (the top is measured across again 12–20 pixels inward), so
     the floor beyond the top is learned; one probe 10 pixels inward, in the gap, found it thin,
     and the run kept up to 1.5 m of floor beyond such a top from the model (offline, plain
-    ``--seed 5 --pairs 6``, 20 s: unknown 5.75 % of the seen floor, 4.69 % with the probes)."""
+    ``--seed 5 --pairs 6``, 20 s: unknown 5.75 % of the seen floor, 4.75 % with the probes)."""
     width, height = SYNTHETIC_SIZE
     textured = np.zeros((height, width), np.bool_)
     measured = np.full((height, width), np.nan, np.float32)
@@ -556,20 +556,34 @@ def test_a_textured_top_with_a_gap_in_its_measurement_holds_up_no_plain_run() ->
     assert not blocked[105:135, 245:].any() and not withdrawn.any()
 
 
-def test_plain_tops_in_a_row_each_hold_up_their_own_top() -> None:
+@pytest.mark.parametrize(
+    "edges_px",
+    [
+        ((185, 188), (205, 208), (220, 223), (240, 243)),
+        ((200, 203), (210, 213), (225, 228), (245, 248)),
+    ],
+    ids=["row", "narrow-first"],
+)
+def test_plain_tops_in_a_row_each_hold_up_their_own_top(
+    edges_px: tuple[tuple[int, int], ...],
+) -> None:
     """On a plain floor (nadir at (160, 120)): two plain tops of one height in a row along the
-    ray, 12 px between the first's far edge and the second's near edge (cartons in a row, their
-    gap and the second's face). The second's near edge finds the first's far edge 12.5–20 px
-    inward, a thin strip, not a top measured across, so it stays a strip: both tops are kept
-    from the model."""
+    ray, their edges measured (columns), 12 px between the first's far edge and the second's near
+    edge (cartons in a row, their gap and the second's face). The second's near edge finds the
+    first's edges 12.5–20 px inward, not a top measured across (its top between is not
+    measured), so it stays a strip and holds up its top. The first holds up its own where it is
+    deeper than THIN_TOP_PX (row); a narrower one (7 px) is no strip (its far edge 10 px outward),
+    as before."""
     width, height = SYNTHETIC_SIZE
     textured = np.zeros((height, width), np.bool_)
     measured = np.full((height, width), np.nan, np.float32)
-    for edge in (slice(185, 188), slice(205, 208), slice(220, 223), slice(240, 243)):
-        textured[100:140, edge] = True
-        measured[100:140, edge] = 0.5
+    for first, last in edges_px:
+        textured[100:140, first:last] = True
+        measured[100:140, first:last] = 0.5
     _, withdrawn = _blocked_on_synthetic_floor(textured, measured)
-    assert withdrawn[108:132, 190:204].all() and withdrawn[108:132, 225:239].all()
+    (_, first_near), (first_far, _), (_, second_near), (second_far, _) = edges_px
+    assert withdrawn[108:132, second_near + 2 : second_far - 1].all()
+    assert withdrawn[108:132, first_near + 2 : first_far - 1].all() == (first_far - first_near > 10)
 
 
 def test_a_learning_frame_that_finds_a_plain_tops_edge_takes_back_a_confirmation() -> None:

@@ -242,8 +242,9 @@ plain one, see :meth:`FloorModel._plain_tops`)."""
 THIN_TOP_PX = 10.0
 """A strip measured in the obstacle band thinner than twice this along the ray (from the nadir)
 is a plain top's edge: the matcher measures its window's width of the top and nothing beyond.
-Inward, from this to twice this, no top measured across at its height either: a textured top's
-far edge beyond a gap in its measurement (a shelf's speckled top) is no strip."""
+Inward, from this to twice this, no top measured across at its height either (its surface half
+and whole this further in): a textured top's far edge beyond a gap in its measurement (a
+shelf's speckled top) is no strip."""
 MIN_STRIP_PX = 20
 """Fewer pixels than this of such a strip are a corner of something, not a top's edge."""
 STRIP_TILTS_DEG = (0.0, -30.0, 30.0, -60.0, 60.0)
@@ -1359,32 +1360,32 @@ def _thin_across(
 ) -> None:
     """Flat arrays, per ``obstacle`` pixel: whether no obstacle pixel at the first two
     ``thin_probes`` (along the ray: outward and inward, THIN_TOP_PX) stands within SAME_SURFACE_M
-    below it or higher, nor at the others (further inward) one of its surface (within
-    SAME_SURFACE_M) with its surface again at its own inward probe: a top measured across, whose
-    far edge this is beyond a gap in its measurement (the thin far edge of a plain box before it
-    in a row is not one; a printed box's top there is, and ends a plain box's near edge as the
-    first inward probe always did, closer in); and, in one direction of ``across_probes``
-    (direction, either way, pixel), both pixels are ``near`` an obstacle pixel
-    (FloorModel._top_edges). Only at the obstacle's pixels, a few in a hundred."""
+    below it or higher, nor at the next ones (further inward) one of its surface (within
+    SAME_SURFACE_M) with its surface again at its own probes half and whole THIN_TOP_PX inward
+    (rows -1 and 1): a top measured across, whose far edge this is beyond a gap in its
+    measurement. A plain box before it in a row, its edges measured and its top not, is not one;
+    a printed box's top there is, and ends a plain box's near edge, as the first inward probe
+    always did closer in. And, in one direction of ``across_probes`` (direction, either way,
+    pixel), both pixels are ``near`` an obstacle pixel (FloorModel._top_edges). Only at the
+    obstacle's pixels, a few in a hundred."""
     same = np.float32(SAME_SURFACE_M)
     for pixel in range(obstacle.size):
         if not obstacle[pixel]:
             continue
         thin = True
-        for probe in range(thin_probes.shape[0]):
+        for probe in range(thin_probes.shape[0] - 1):  # the last: each pixel's own, half inward
             at = thin_probes[probe, pixel]
             if at < 0 or not obstacle[at]:
                 continue
             if probe < 2:
                 thin = thin and height_m[at] <= height_m[pixel] - same
                 continue
-            beyond = thin_probes[1, at]  # a top measured across there: its surface inward again
-            thin = thin and not (
-                abs(height_m[at] - height_m[pixel]) < same
-                and beyond >= 0
-                and obstacle[beyond]
-                and abs(height_m[beyond] - height_m[pixel]) < same
-            )
+            # A top measured across there: its surface half and whole THIN_TOP_PX inward again.
+            across = abs(height_m[at] - height_m[pixel]) < same
+            for inner in (thin_probes[-1, at], thin_probes[1, at]):
+                across = across and inner >= 0 and obstacle[inner]
+                across = across and abs(height_m[inner] - height_m[pixel]) < same
+            thin = thin and not across
         runs_on = False
         for direction in range(across_probes.shape[0]):
             both = True
@@ -1654,9 +1655,10 @@ class FloorModel:
         self._thin_probes = np.stack(
             [probe(THIN_TOP_PX).ravel()]
             + [probe(-THIN_TOP_PX * (1.0 + step / 4)).ravel() for step in range(5)]
+            + [probe(-THIN_TOP_PX / 2).ravel()]
         )
-        """Along the ray: THIN_TOP_PX outward, then 1–2 times it inward in quarters (the first
-        of those, THIN_TOP_PX inward, also serves each pixel as its own inward probe)."""
+        """Along the ray: THIN_TOP_PX outward, 1–2 times it inward in quarters, and half of it
+        inward (:func:`_thin_across`)."""
         self._across_probes = np.stack(
             [
                 np.stack(
