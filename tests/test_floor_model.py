@@ -541,7 +541,7 @@ def test_on_a_plain_floor_only_a_thin_edge_holds_up_a_top() -> None:
 def test_a_textured_top_with_a_gap_in_its_measurement_holds_up_no_plain_run() -> None:
     """On a plain floor (nadir at (160, 120)): a textured top the matcher measured with a gap
     across it, 10 pixels wide near its far edge, as a shelf's speckled top is. Its far edge
-    beyond the gap is no thin strip (the top is measured across again 12–20 pixels inward), so
+    beyond the gap is no thin strip (the top is measured across again 12.5–20 pixels inward), so
     the floor beyond the top is learned; one probe 10 pixels inward, in the gap, found it thin,
     and the run kept up to 1.5 m of floor beyond such a top from the model (offline, plain
     ``--seed 5 --pairs 6``, 20 s: unknown 5.75 % of the seen floor, 4.75 % with the probes)."""
