@@ -1167,8 +1167,9 @@ def restarts_from_blocks(
 ) -> bool:
     """Whether the fine fits begin again from the coarse fit's plane: where a quarter of its
     blocks (two at least) lie further than ``tolerance_px`` from the current floor
-    (``current_coef``; ``current_px`` at each of ``offset_px``'s pixels). Eager: the blocks' fit is robust, and starting again from it beat waiting
-    for a third of the blocks by 0.02 of IoU on the poorly calibrated seeds 2, 4 and 5.
+    (``current_coef``; ``current_px`` at each of ``offset_px``'s pixels). Eager: the blocks'
+    fit is robust, and starting again from it beat waiting for a third of the blocks by 0.02 of
+    IoU on the poorly calibrated seeds 2, 4 and 5.
 
     But not, once ``started`` (the blocks have been compared with the current floor before: at
     first it is no estimate), where those blocks all lie above the current floor and are half
@@ -1355,34 +1356,35 @@ def _thin_across(
     height_m: F32,
     near: Mask,
     thin_probes: npt.NDArray[np.int64],
+    further_probes: npt.NDArray[np.int64],
     across_probes: npt.NDArray[np.int64],
     strip: Mask,
 ) -> None:
-    """Flat arrays, per ``obstacle`` pixel: whether no obstacle pixel at the first two
-    ``thin_probes`` (along the ray: outward and inward, THIN_TOP_PX) stands within SAME_SURFACE_M
-    below it or higher, nor at the next ones (further inward) one of its surface (within
-    SAME_SURFACE_M) with its surface again at its own probes half and whole THIN_TOP_PX inward
-    (rows -1 and 1): a top measured across, whose far edge this is beyond a gap in its
-    measurement. A plain box before it in a row, its edges measured and its top not, is not one;
-    a printed box's top there is, and ends a plain box's near edge, as the first inward probe
-    always did closer in. And, in one direction of ``across_probes`` (direction, either way,
-    pixel), both pixels are ``near`` an obstacle pixel (FloorModel._top_edges). Only at the
-    obstacle's pixels, a few in a hundred."""
+    """Flat arrays, per ``obstacle`` pixel: whether no obstacle pixel at either ``thin_probes``
+    (along the ray: inward and outward, THIN_TOP_PX) stands within SAME_SURFACE_M below it or
+    higher, nor at ``further_probes`` (further inward) one of its surface (within SAME_SURFACE_M)
+    with its surface again at its own probes half and whole THIN_TOP_PX inward (the last row of
+    ``further_probes``, and ``thin_probes``' first): a top measured across, whose far edge this
+    is beyond a gap in its measurement. A plain box before it in a row, its edges measured and
+    its top not, is not one; a printed box's top there is, and ends a plain box's near edge, as
+    the inward probe always did closer in. And, in one direction of ``across_probes``
+    (direction, either way, pixel), both pixels are ``near`` an obstacle pixel
+    (FloorModel._top_edges). Only at the obstacle's pixels, a few in a hundred."""
     same = np.float32(SAME_SURFACE_M)
     for pixel in range(obstacle.size):
         if not obstacle[pixel]:
             continue
         thin = True
-        for probe in range(thin_probes.shape[0] - 1):  # the last: each pixel's own, half inward
+        for probe in range(thin_probes.shape[0]):
             at = thin_probes[probe, pixel]
+            if at >= 0 and obstacle[at] and height_m[at] > height_m[pixel] - same:
+                thin = False
+        for probe in range(further_probes.shape[0] - 1):
+            at = further_probes[probe, pixel]
             if at < 0 or not obstacle[at]:
                 continue
-            if probe < 2:
-                thin = thin and height_m[at] <= height_m[pixel] - same
-                continue
-            # A top measured across there: its surface half and whole THIN_TOP_PX inward again.
             across = abs(height_m[at] - height_m[pixel]) < same
-            for inner in (thin_probes[-1, at], thin_probes[1, at]):
+            for inner in (further_probes[-1, at], thin_probes[0, at]):
                 across = across and inner >= 0 and obstacle[inner]
                 across = across and abs(height_m[inner] - height_m[pixel]) < same
             thin = thin and not across
@@ -1652,13 +1654,13 @@ class FloorModel:
 
         self._outward_probe = probe(SEED_PROBE_PX)
         self._inward_probe = probe(-SEED_PROBE_PX)
-        self._thin_probes = np.stack(
-            [probe(THIN_TOP_PX).ravel()]
-            + [probe(-THIN_TOP_PX * (1.0 + step / 4)).ravel() for step in range(5)]
+        self._thin_probes = np.stack([probe(-THIN_TOP_PX).ravel(), probe(THIN_TOP_PX).ravel()])
+        self._further_probes = np.stack(
+            [probe(-THIN_TOP_PX * (1.0 + step / 4)).ravel() for step in range(1, 5)]
             + [probe(-THIN_TOP_PX / 2).ravel()]
         )
-        """Along the ray: THIN_TOP_PX outward, 1–2 times it inward in quarters, and half of it
-        inward (:func:`_thin_across`)."""
+        """Along the ray, inward: 1.25–2 times THIN_TOP_PX in quarters, and half of it last
+        (:func:`_thin_across`)."""
         self._across_probes = np.stack(
             [
                 np.stack(
@@ -2261,6 +2263,7 @@ class FloorModel:
             height_m.ravel(),
             near.ravel(),
             self._thin_probes,
+            self._further_probes,
             self._across_probes if tilted else self._across_probes[:1],
             strip.ravel(),
         )
