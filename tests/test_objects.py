@@ -25,6 +25,7 @@ from services.depth.objects import (
 from services.depth.projection import WorldPoints
 from services.evaluation.objects import match_static, score_movers
 from services.fusion.grid import FusedGrid, GridParams
+from services.fusion.object_layers import serve_tracks
 from services.fusion.objects import ObjectTracker, merge_capture
 from tests.tiles import dirty_window, measure
 
@@ -849,6 +850,35 @@ def test_the_cells_just_outside_a_static_objects_footprint_are_its_fringe() -> N
     assert [served(*cell) for cell in fringe] == [-1] * len(fringe)
     assert all(served(*cell) >= OCCUPIED_MIN for cell in tops + partial_ring)
     assert all(0 <= served(*cell) <= 25 for cell in floor)
+
+
+def test_a_cell_within_a_static_footprints_error_outside_it_is_never_served_free() -> None:
+    """A box stands at x 1.0–1.63 m; the frames call its cells occupied up to x = 1.6 and the
+    column beyond free (its rim cells, whose centres at x 1.625 the box holds, read mostly floor)
+    but for two cells of it; its views measure it to x = 1.62. That column's centres lie 0.5 cm
+    outside the footprint, within its error: served unknown where free, occupied where occupied.
+    The floor 5.5 cm out (x 1.675) and the cell beside the box's long side 2.5 cm out (y 1.625)
+    stay free; the box's cells stay occupied."""
+    resolution = 0.05
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 100, 100)))
+    measure(grid, Window(0, 0, 100, 100), -2.0, T0_NS)  # the floor: free
+    measure(grid, Window(20, 24, 12, 8), 4.0, T0_NS)  # x 1.0–1.6, y 1.2–1.6
+    measure(grid, Window(32, 24, 1, 2), 4.0, T0_NS)  # x 1.6–1.65, y 1.2–1.3
+    tracker = ObjectTracker()
+    for k in range(9):  # 4 s at 2 Hz: static
+        tracker.add("p0", T0_NS + k * FRAME_NS, [_record((1.31, 1.4), (0.62, 0.4))], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+
+    def served(x: float, y: float) -> int:
+        return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
+
+    rim, floor, top = (1.625, 1.4), [(1.675, 1.4), (1.3, 1.625)], (1.3, 1.4)
+    assert 0 <= served(*rim) <= 25  # the frames' verdict
+    outlined, _ = serve_tracks(grid, tracker, outline_static=True)
+    grid.set_predicted(outlined)
+    assert served(*rim) == -1
+    assert all(0 <= served(*cell) <= 25 for cell in floor)
+    assert all(served(*cell) >= OCCUPIED_MIN for cell in (top, (1.625, 1.225), (1.625, 1.275)))
 
 
 @pytest.mark.parametrize("cut", [False, True])

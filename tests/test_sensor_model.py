@@ -73,16 +73,18 @@ def test_floor_is_free_and_box_top_is_occupied() -> None:
 
 
 def test_a_cell_an_edge_only_clips_is_evidence_of_free_and_its_rim_of_nothing() -> None:
-    # Share of band pixels 0 … 1 over 20 pixels: neutral where an edge runs through the centre.
+    # Share of band pixels 0 … 1 over 20 pixels: neutral at 0.6, where a rim cell whose centre
+    # an edge passes through reads (half the cell, and the fattening and side faces beside it).
     shares = np.arange(21, dtype=np.float64)
     p = cell_occupancy_probability(shares, np.full(21, 20.0), PARAMS)
     assert np.all(np.diff(p) >= 0)
-    assert p[10] == pytest.approx(0.5)  # half the cell: the edge passes through its centre
-    assert np.all(p[11:] > 0.5) and p[15] == pytest.approx(PARAMS.p_hit)
-    # An edge clipping under a quarter of the cell: free. From a quarter up to half (an object's
-    # rim whose top the side faces partly hide): no evidence, or the rim adds up to free.
+    assert p[12] == pytest.approx(0.5)
+    assert np.all(p[13:] > 0.5) and p[17] == pytest.approx(PARAMS.p_hit)
+    # An edge clipping under a quarter of the cell: free. From a quarter up to 0.6 (an object's
+    # rim, half of it or less, or whose top the side faces partly hide): no evidence, or the rim
+    # adds up to free, or the fattening beside an object to occupied.
     assert np.all(p[:5] == pytest.approx(PARAMS.p_miss))
-    assert np.all(p[5:11] == pytest.approx(0.5))
+    assert np.all(p[5:13] == pytest.approx(0.5))
 
 
 def test_free_evidence_never_reaches_above_the_neutral_share() -> None:

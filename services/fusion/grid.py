@@ -465,7 +465,8 @@ class FusedGrid:
 
     def set_contested(self, footprints: CellMasks) -> bool:
         """Replace the contested layer by these cells: static objects' footprints the frames'
-        evidence does not agree with (see :meth:`by_agreement`); True if it changed."""
+        evidence does not agree with (see :meth:`by_agreement`), their rims, the movers'
+        footprints; True if it changed."""
         return self._set_mask_layer("contested", footprints)
 
     def set_fringe(self, fringes: CellMasks) -> bool:

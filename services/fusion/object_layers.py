@@ -13,7 +13,8 @@ def serve_tracks(
 ) -> tuple[CellMasks, MapCheck]:
     """Forget the movers' wakes, and set the contested layer (moving and unsettled tracks'
     footprints now: ``ObjectTracker.movers_now``; with ``outline_static`` also the static
-    footprints the frames disagree with and the rims' enclosures) and the fringe layer; returns
+    footprints the frames disagree with, the rims' enclosures and the static footprints' own rims,
+    the cells just outside them) and the fringe layer; returns
     the static footprints the frames agree with (for the predicted layer) and the map check
     (whose pieces the object list reports)."""
     resolution_m = grid.params.resolution_m
@@ -23,7 +24,7 @@ def serve_tracks(
     outlined: CellMasks = []
     if outline_static:
         outlined, disagreed = grid.by_agreement(tracker.outlines(resolution_m))
-        contested += disagreed + check.enclosures
+        contested += disagreed + check.enclosures + check.rims
         grid.set_fringe(check.fringes)
     grid.set_contested(contested)
     return outlined, check

@@ -32,7 +32,8 @@ Rules that shape the tracks:
   rectangle its connected cells span is handed to the grid as contested (:meth:`check_against`);
   around a static object the frames agree with, its connected cells 1–10 cm outside its
   footprint (less every track's footprint) are handed over as its fringe (of a ``partial`` one,
-  those with free floor beyond them; of a ``size_unsure`` one, none);
+  those with free floor beyond them; of a ``size_unsure`` one, none); the cells within 1 cm
+  outside any static object's footprint, its rim, as contested (:func:`rim_cells`);
 - a size is the median of the views seen whole; fewer than four of them, or views that disagree,
   make it ``size_unsure`` (:func:`_views_unsure`);
 - the object list (not the tracks, nor the map's outlines) joins static partial tracks a seam's
@@ -163,8 +164,10 @@ class TrackerConfig:
     """… those cells are looked for this far around the footprint."""
     fringe_margin_m: float = 0.01
     fringe_reach_m: float = 0.1
-    """A static object's connected cells whose centres lie more than ``fringe_margin_m`` and at
-    most ``fringe_reach_m`` outside its footprint are its fringe (:meth:`ConnectedCells.fringe`):
+    """A static object's cells whose centres lie outside its footprint by ``fringe_margin_m`` at
+    most are its rim (:func:`rim_cells`: never served free); its connected cells whose
+    centres lie more than ``fringe_margin_m`` and at most ``fringe_reach_m`` outside it are its
+    fringe (:meth:`ConnectedCells.fringe`):
     the cells its side faces and the matcher's fattening make occupied, that its footprint,
     measured to a centimetre or two, does not hold. Offline, nine scenes (20 s), served unknown:
     IoU +0.007 to +0.025 on eight, false-free unchanged (README, "How good is the map"). A
@@ -975,14 +978,21 @@ class ObjectTracker:
         its fringe instead (:meth:`ConnectedCells.fringe`, less every track's footprint; of a
         partial one, only where free floor lies beyond; an unsure one hands over none), which
         fusion serves unknown (the fringe layer); so does each whole view of a moving track in
-        the newest capture (:meth:`_mover_fringes`)."""
+        the newest capture (:meth:`_mover_fringes`). Every static track hands over its rim as well
+        (:func:`rim_cells`, within ``fringe_margin_m``), for the contested layer."""
         config, resolution_m = self.config, cells.resolution_m
-        pieces, enclosures, fringes = set(), [], []
+        pieces, enclosures, fringes, rims = set(), [], [], []
         for track in self.tracks:
             if track.moving or track.detections < config.confirm_detections:
                 continue
             length, width, yaw, _, partial, unsure, round_ = track.size(config)
             footprint = (*track.center_m, length, width, yaw)
+            if (
+                track.static
+                and not (round_ or track.low)
+                and max(length, width) <= config.max_size_m
+            ):
+                rims.append(rim_cells(footprint, config.fringe_margin_m, resolution_m))
             connected = connected_cells(cells, footprint, config, round_)
             if connected is None:
                 continue
@@ -1005,6 +1015,7 @@ class ObjectTracker:
             frozenset(pieces),
             enclosures,
             self._outside_tracks(fringes, resolution_m) + self._mover_fringes(cells),
+            rims,
         )
 
     def _mover_fringes(self, cells: OccupiedCells) -> list[tuple[Window, Mask]]:
@@ -1044,6 +1055,24 @@ class ObjectTracker:
         return self.frame_interval_s or self.config.default_frame_interval_s
 
 
+def rim_cells(footprint: Rectangle, margin_m: float, resolution_m: float) -> tuple[Window, Mask]:
+    """The cells whose centres the footprint grown by ``margin_m`` holds and the footprint does
+    not. A footprint is measured to a centimetre or so, so such a cell is the object's as often as
+    not, and its pixels (a rim's top, side face and floor) decide it either way: with the band
+    share neutral at ``SensorModelParams.edge_fraction`` (0.6), one whose centre the object holds
+    may keep the free belief of the floor seen there before. Fusion serves these unknown where the
+    frames do not call them occupied (the contested layer). (A round or low track's outline is
+    grown by as much or more already.)"""
+    x, y, length, width, yaw = footprint
+    grow_m = 2 * margin_m
+    window, rim = polygon_cells(
+        corners((x, y), (length + grow_m, width + grow_m), yaw), resolution_m
+    )
+    cells = [(window, rim)]
+    subtract_cells(cells, polygon_cells(corners((x, y), (length, width), yaw), resolution_m))
+    return cells[0]
+
+
 def subtract_cells(cells: list[tuple[Window, Mask]], cut: tuple[Window, Mask]) -> None:
     """Clear ``cut``'s cells from each of ``cells`` (in place)."""
     cut_window, cut_mask = cut
@@ -1064,6 +1093,9 @@ class MapCheck:
     fringes: list[tuple[Window, Mask]] = field(default_factory=list)
     """Occupied cells just outside static tracks' footprints (a partial one's: with free floor
     beyond), for the fringe layer."""
+    rims: list[tuple[Window, Mask]] = field(default_factory=list)
+    """Cells whose centres lie just outside static tracks' footprints, within their error, for
+    the contested layer (:func:`rim_cells`)."""
 
 
 @dataclass(frozen=True)

@@ -111,7 +111,8 @@ def unknown_where_contested(
     (a copy; served map only): a static object stands there whose footprint the frames call
     mostly free. A top of the floor's grey, held up by its measured edge, that the floor model
     took for floor; or a floor marking tracked as an object: unknown either way, never free
-    floor under an object nor a false obstacle."""
+    floor under an object nor a false obstacle. So is a rim cell whose centre lies within a
+    static footprint's error outside it, and a mover's footprint now."""
     return np.where(contested & (occupancy < OCCUPIED_MIN), np.int8(UNKNOWN), occupancy)
 
 

@@ -56,8 +56,9 @@ class FusionParams(OvergridParams):
         "where the frames agree (the rim cells their pixels decide either way); where the frames "
         "call under 3/4 of a footprint occupied, its cells not occupied are served unknown (a "
         "plain top the floor model took for floor), and so are those of the rectangle a plain "
-        "or piecewise-measured top's occupied rim encloses, and the occupied cells just outside "
-        "a whole object's footprint (its side faces' and fattening's)",
+        "or piecewise-measured top's occupied rim encloses, the cells within 1 cm outside a "
+        "footprint the frames do not call occupied, and the occupied cells just outside a whole "
+        "object's footprint (its side faces' and fattening's)",
     )
     predict_movers: bool = Field(
         False,
