@@ -84,8 +84,9 @@ def test_fusion_serves_tracked_objects(bus: Bus, tmp_path: Path) -> None:
 def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path) -> None:
     """Frames that read a box's rim free (its tile: occupied 3 cm inside its outline, free
     elsewhere) do not make its rim free in the map once its track is static: the cells whose
-    centres its measured footprint holds are served occupied, in the predicted layer. An object
-    the frames call free (a floor marking tracked for a while) is not outlined: its footprint is
+    centres its measured footprint holds are served occupied, in the predicted layer, and those
+    within a centimetre outside it (its rim, within the footprint's error) unknown. An object the
+    frames call free (a floor marking tracked for a while) is not outlined: its footprint is
     served unknown, neither an obstacle nor free floor; the floor around both stays free."""
     bus.start("fusion", "--state-dir", str(tmp_path / "state"), "--publish-interval-s", "0.05")
     tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
@@ -96,6 +97,7 @@ def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path)
     c, s = math.cos(0.3), math.sin(0.3)
     along, across = c * (x - 3.0) + s * (y - 2.0), -s * (x - 3.0) + c * (y - 2.0)
     inside = (np.abs(along) <= 0.4) & (np.abs(across) <= 0.25)
+    rim = (np.abs(along) <= 0.41) & (np.abs(across) <= 0.26) & ~inside
     core = (np.abs(along) <= 0.37) & (np.abs(across) <= 0.22)
     arrays = tile_arrays(floor, -1.0)
     arrays["logodds"][core] = 1.0
@@ -133,6 +135,7 @@ def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path)
     marked_core = (np.abs(x - 1.0) <= 0.45) & (np.abs(y - 0.5) <= 0.05)
     assert not predicted[~inside].any()
     assert (occupancy[marked_core] == -1).all()  # contested: unknown
-    elsewhere = ~inside & ~marked
+    assert rim.any() and (occupancy[rim] == -1).all()  # contested: unknown
+    elsewhere = ~inside & ~rim & ~marked
     free = (occupancy[elsewhere] >= 0) & (occupancy[elsewhere] <= 25)  # map.yaml's free_thresh
     assert free.all()
