@@ -219,9 +219,9 @@ class FusionState:
         """Merge and track the captures that are complete; the predicted layer holds the static
         objects' footprints the frames agree with (the contested layer the others, the cells
         within a centimetre outside every static one, and the moving and unsettled tracks'
-        footprints now; the fringe layer the occupied cells just outside static ones) and, with ``predict_movers``, the moving tracks' paths up to one frame
-        interval past now (the map's visible time); returns the new object list if the tracks
-        changed."""
+        footprints now; the fringe layer the occupied cells just outside static ones) and, with
+        ``predict_movers``, the moving tracks' paths up to one frame interval past now (the map's
+        visible time); returns the new object list if the tracks changed."""
         now_ns = time.time_ns()
         resolution_m = self.grid.params.resolution_m
         changed = self.tracker.flush(time.monotonic(), self.alive)
