@@ -257,7 +257,7 @@ def test_a_fringe_is_served_unknown_where_the_frames_call_it_occupied_but_not_ov
 
 
 def test_a_contested_footprint_is_served_unknown_where_the_frames_call_it_free() -> None:
-    """A static object's footprint the frames call mostly free (:meth:`FusedGrid.by_agreement`):
+    """A static object's footprint the frames call mostly free (:meth:`FusedGrid.agrees`):
     its free cells are served unknown, its occupied ones stay occupied, the evidence stays as
     measured, and the cells show it again once the footprint is gone."""
     grid = FusedGrid(P)
@@ -266,8 +266,8 @@ def test_a_contested_footprint_is_served_unknown_where_the_frames_call_it_free()
     footprint = (Window(4, 4, 4, 4), np.ones((4, 4), np.bool_))
     solid = (Window(10, 10, 2, 2), np.ones((2, 2), np.bool_))
     _integrate(grid, Window(10, 10, 2, 2), 3.0)
-    agree, disagree = grid.by_agreement([footprint, solid])
-    assert agree == [solid] and disagree == [footprint]
+    assert grid.agrees(*solid) and not grid.agrees(*footprint)
+    disagree = [footprint]
     assert grid.set_contested(disagree)
     served, evidence = grid.served_occupancy(), grid.layer("occupancy")
     free = int(evidence[3, 3])

@@ -677,15 +677,26 @@ def test_only_static_objects_are_outlined() -> None:
         tracker.flush(now_s=0.0, live_pairs={"p0"})
         if k == 2:
             assert tracker.outlines(resolution) == []  # confirmed, not yet static
-    outlines = sorted(tracker.outlines(resolution), key=lambda cells: cells[0].i0)
+    outlines = sorted(tracker.outlines(resolution), key=lambda outline: outline.window.i0)
     assert len(outlines) == 2
-    for (window, mask), (center, size, yaw) in zip(
+    for outline, (center, size, yaw) in zip(
         outlines, [((3.0, 2.0), (0.8, 0.5), 0.3), ((6.0, 5.0), (0.5, 0.4), 0.0)], strict=True
     ):
         track = next(t for t in tracker.objects() if abs(t.center_m[0] - center[0]) < 0.5)
         assert track.center_m == pytest.approx(center, abs=1e-6)
         expected_window, expected = polygon_cells(corners(center, size, yaw), resolution)
-        assert window == expected_window and np.array_equal(mask, expected)
+        assert outline.window == expected_window and np.array_equal(outline.cells, expected)
+        # Its edge: the cells whose centres lie within half a cell inside a side.
+        x, y = outline.window.cell_centers(resolution)
+        c, s = math.cos(yaw), math.sin(yaw)
+        along, across = (
+            (x - center[0]) * c + (y - center[1]) * s,
+            (y - center[1]) * c - (x - center[0]) * s,
+        )
+        inside_m = np.minimum(size[0] / 2 - np.abs(along), size[1] / 2 - np.abs(across))
+        clear = np.abs(inside_m - resolution / 2) > 1e-6
+        assert np.array_equal(outline.edge[clear], (expected & (inside_m < resolution / 2))[clear])
+        assert outline.edge.any() and (outline.cells & ~outline.edge).any()
 
 
 def test_polygon_cells_are_the_cells_whose_centres_it_holds() -> None:
@@ -881,6 +892,37 @@ def test_a_cell_within_a_static_footprints_error_outside_it_is_never_served_free
     assert all(served(*cell) >= OCCUPIED_MIN for cell in (top, (1.625, 1.225), (1.625, 1.275)))
 
 
+def test_an_edge_cell_of_a_static_footprint_the_frames_call_free_is_served_unknown() -> None:
+    """A box measured 4 cm too long at x 1.0–1.64 m (a piece joined from two pairs' views),
+    whose frames call x 1.0–1.6 occupied and the column beyond free: that column's cells, whose
+    centres (x 1.625) lie within half a cell inside the footprint's edge, are the box's or the
+    floor's by the footprint's error; the frames saw floor there, so they are served unknown,
+    not occupied. An edge cell the frames call occupied stays occupied; so does a cell deep
+    inside that they call free (a plain top the floor model took for floor), which the outline
+    holds up."""
+    resolution = 0.05
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 100, 100)))
+    measure(grid, Window(0, 0, 100, 100), -2.0, T0_NS)  # the floor: free
+    measure(grid, Window(20, 24, 12, 8), 4.0, T0_NS)  # x 1.0–1.6, y 1.2–1.6
+    measure(grid, Window(26, 28, 1, 1), -6.0, T0_NS)  # x 1.3–1.35, y 1.4–1.45: read as floor
+    measure(grid, Window(32, 24, 1, 1), 4.0, T0_NS)  # x 1.6–1.65, y 1.2–1.25
+    tracker = ObjectTracker()
+    for k in range(9):  # 4 s at 2 Hz: static
+        tracker.add("p0", T0_NS + k * FRAME_NS, [_record((1.32, 1.4), (0.64, 0.4))], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+
+    def served(x: float, y: float) -> int:
+        return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
+
+    free_edge, occupied_edge, plain_top = (1.625, 1.4), (1.625, 1.225), (1.325, 1.425)
+    assert all(0 <= served(*cell) <= 25 for cell in (free_edge, plain_top))  # the frames' verdict
+    outlined, _ = serve_tracks(grid, tracker, outline_static=True)
+    grid.set_predicted(outlined)
+    assert served(*free_edge) == -1
+    assert all(served(*cell) >= OCCUPIED_MIN for cell in (occupied_edge, plain_top, (1.3, 1.3)))
+    assert 0 <= served(1.675, 1.4) <= 25  # the floor beyond the footprint
+
+
 @pytest.mark.parametrize("cut", [False, True])
 def test_the_cells_just_outside_a_movers_measured_footprint_are_its_fringe(cut: bool) -> None:
     """A forklift at 2 m/s, seen whole, a person walking beside it against its flank: the
@@ -939,7 +981,7 @@ def test_a_round_objects_outline_and_fringe_follow_its_circle(round_: bool) -> N
         tracker.flush(now_s=0.0, live_pairs={"p0"})
     (obj,) = tracker.objects()
     assert obj.round is round_
-    ((window, outline),) = tracker.outlines(resolution)
+    ((window, outline, _),) = [(o.window, o.cells, o.edge) for o in tracker.outlines(resolution)]
     if round_:  # the circle, grown by a centimetre (its radius is measured to about one)
         x, y = window.cell_centers(resolution)
         distance = np.hypot(x - 2.0, y - 2.0)
@@ -1146,7 +1188,8 @@ def test_a_low_tracks_outline_is_grown_by_its_sides_uncertainty(low: bool) -> No
         view = _record((2.03, 2.0), (1.18, 0.78), top=0.15, low=low)
         tracker.add("p0", T0_NS + k * FRAME_NS, [view], now_s=0.0)
         tracker.flush(now_s=0.0, live_pairs={"p0"})
-    ((window, outline),) = tracker.outlines(0.05)
+    (outline_cells,) = tracker.outlines(0.05)
+    window, outline = outline_cells.window, outline_cells.cells
     x, y = window.cell_centers(0.05)
     half = np.array([0.59, 0.39]) + (margin if low else 0.0)
     inside = (np.abs(x - 2.03) <= half[0]) & (np.abs(y - 2.0) <= half[1])

@@ -83,11 +83,13 @@ def test_fusion_serves_tracked_objects(bus: Bus, tmp_path: Path) -> None:
 
 def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path) -> None:
     """Frames that read a box's rim free (its tile: occupied 3 cm inside its outline, free
-    elsewhere) do not make its rim free in the map once its track is static: the cells whose
-    centres its measured footprint holds are served occupied, in the predicted layer, and those
-    within a centimetre outside it (its rim, within the footprint's error) unknown. An object the
-    frames call free (a floor marking tracked for a while) is not outlined: its footprint is
-    served unknown, neither an obstacle nor free floor; the floor around both stays free."""
+    elsewhere and in one cell at its centre, a plain top read as floor) do not make its rim free
+    in the map once its track is static: the cells whose centres its measured footprint holds
+    are served occupied, in the predicted layer, but for its edge's (centres within half a cell
+    inside it) that the frames call free, served unknown; so are those within a centimetre
+    outside it (its rim, within the footprint's error). An object the frames call free (a floor
+    marking tracked for a while) is not outlined: its footprint is served unknown, neither an
+    obstacle nor free floor; the floor around both stays free."""
     bus.start("fusion", "--state-dir", str(tmp_path / "state"), "--publish-interval-s", "0.05")
     tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
     detections = bus.session.declare_publisher(keys.objects("p0"), encoding=WIRE_ENCODING)
@@ -101,6 +103,8 @@ def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path)
     core = (np.abs(along) <= 0.37) & (np.abs(across) <= 0.22)
     arrays = tile_arrays(floor, -1.0)
     arrays["logodds"][core] = 1.0
+    plain = (np.abs(x - 3.025) < 0.01) & (np.abs(y - 2.025) < 0.01)
+    arrays["logodds"][plain] = -1.0
     marking = DetectionRecord(
         center_m=(1.0, 0.5), size_m=(1.0, 0.2), yaw_rad=0.0, top_m=0.15, points=300, partial=False
     )
@@ -129,8 +133,12 @@ def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path)
     assert grid.predicted is not None
     where = floor.slices_in(grid.window)
     occupancy, predicted = grid.occupancy[where], grid.predicted[where]
-    assert (inside & ~core).sum() > 20  # the rim the frames call free
-    assert predicted[inside].all() and (occupancy[inside] == 100).all()
+    inside_m = np.minimum(0.4 - np.abs(along), 0.25 - np.abs(across))
+    edge_free = inside & ~core & (inside_m < 0.025)  # the edge cells the frames call free
+    held = inside & ~edge_free
+    assert edge_free.sum() > 20 and plain.sum() == 1 and held[plain].all()
+    assert predicted[held].all() and (occupancy[held] == 100).all()
+    assert not predicted[edge_free].any() and (occupancy[edge_free] == -1).all()
     marked = (np.abs(x - 1.0) <= 0.5) & (np.abs(y - 0.5) <= 0.1)
     marked_core = (np.abs(x - 1.0) <= 0.45) & (np.abs(y - 0.5) <= 0.05)
     assert not predicted[~inside].any()

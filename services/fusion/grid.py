@@ -465,8 +465,8 @@ class FusedGrid:
 
     def set_contested(self, footprints: CellMasks) -> bool:
         """Replace the contested layer by these cells: static objects' footprints the frames'
-        evidence does not agree with (see :meth:`by_agreement`), their rims, the movers'
-        footprints; True if it changed."""
+        evidence does not agree with (see :meth:`agrees`), the edge cells it calls free of those
+        it agrees with, their rims, the movers' footprints; True if it changed."""
         return self._set_mask_layer("contested", footprints)
 
     def set_fringe(self, fringes: CellMasks) -> bool:
@@ -497,16 +497,6 @@ class FusedGrid:
         if changed:
             self.version += 1
         return changed
-
-    def by_agreement(self, cells: CellMasks) -> tuple[CellMasks, CellMasks]:
-        """``cells`` (an object's footprint each) split in two: those whose known cells the
-        frames' evidence calls occupied for OUTLINE_OCCUPIED_SHARE or more (the map agrees there
-        is an object), and the others."""
-        agree: CellMasks = []
-        disagree: CellMasks = []
-        for window, mask in cells:
-            (agree if self.agrees(window, mask) else disagree).append((window, mask))
-        return agree, disagree
 
     def agrees(self, window: Window, mask: npt.NDArray[np.bool_]) -> bool:
         """Whether the frames' evidence calls OUTLINE_OCCUPIED_SHARE or more of the known cells of

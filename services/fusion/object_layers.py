@@ -13,18 +13,26 @@ def serve_tracks(
 ) -> tuple[CellMasks, MapCheck]:
     """Forget the movers' wakes, and set the contested layer (moving and unsettled tracks'
     footprints now: ``ObjectTracker.movers_now``; with ``outline_static`` also the static
-    footprints the frames disagree with, the rims' enclosures and the static footprints' own rims,
-    the cells just outside them) and the fringe layer; returns
-    the static footprints the frames agree with (for the predicted layer) and the map check
-    (whose pieces the object list reports)."""
+    footprints the frames disagree with, the edge cells the frames call free of those they agree
+    with (:class:`Outline`), the rims' enclosures and the static footprints' own rims, the cells
+    just outside them) and the fringe layer; returns the rest of the static footprints the frames
+    agree with (for the predicted layer) and the map check (whose pieces the object list
+    reports)."""
     resolution_m = grid.params.resolution_m
     grid.forget_occupied(*tracker.wake(resolution_m))
     check = tracker.check_against(grid)
     contested = tracker.movers_now(resolution_m)
     outlined: CellMasks = []
     if outline_static:
-        outlined, disagreed = grid.by_agreement(tracker.outlines(resolution_m))
-        contested += disagreed + check.enclosures + check.rims
+        for outline in tracker.outlines(resolution_m):
+            window = outline.window
+            if not grid.agrees(window, outline.cells):
+                contested.append((window, outline.cells))
+                continue
+            seen_free = outline.edge & grid.free_in(window)
+            outlined.append((window, outline.cells & ~seen_free))
+            contested.append((window, seen_free))
+        contested += check.enclosures + check.rims
         grid.set_fringe(check.fringes)
     grid.set_contested(contested)
     return outlined, check

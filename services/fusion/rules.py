@@ -98,9 +98,10 @@ def occupied_where_predicted(
     occupancy: npt.NDArray[np.int8], predicted: npt.NDArray[np.bool_]
 ) -> npt.NDArray[np.int8]:
     """Overwrite with occupied where the predicted layer holds the cell (a copy): a static
-    object's footprint the frames agree with, or a moving object's path, so the map a robot
-    reads covers where a mover is by the time the map is read, not where a frame saw it.
-    Applied to the served map only; the evidence layers stay as measured."""
+    object's footprint the frames agree with (less its edge cells they call free), or a moving
+    object's path, so the map a robot reads covers where a mover is by the time the map is read,
+    not where a frame saw it. Applied to the served map only; the evidence layers stay as
+    measured."""
     return np.where(predicted, np.int8(OCCUPIED), occupancy)
 
 
@@ -112,7 +113,8 @@ def unknown_where_contested(
     mostly free. A top of the floor's grey, held up by its measured edge, that the floor model
     took for floor; or a floor marking tracked as an object: unknown either way, never free
     floor under an object nor a false obstacle. So is a rim cell whose centre lies within a
-    static footprint's error outside it, and a mover's footprint now."""
+    static footprint's error outside it, an edge cell within half a cell inside it that the
+    frames call free, and a mover's footprint now."""
     return np.where(contested & (occupancy < OCCUPIED_MIN), np.int8(UNKNOWN), occupancy)
 
 
