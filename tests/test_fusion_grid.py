@@ -267,8 +267,7 @@ def test_a_contested_footprint_is_served_unknown_where_the_frames_call_it_free()
     solid = (Window(10, 10, 2, 2), np.ones((2, 2), np.bool_))
     _integrate(grid, Window(10, 10, 2, 2), 3.0)
     assert grid.agrees(*solid) and not grid.agrees(*footprint)
-    disagree = [footprint]
-    assert grid.set_contested(disagree)
+    assert grid.set_contested([footprint])
     served, evidence = grid.served_occupancy(), grid.layer("occupancy")
     free = int(evidence[3, 3])
     others = np.ones((4, 4), np.bool_)
@@ -276,7 +275,7 @@ def test_a_contested_footprint_is_served_unknown_where_the_frames_call_it_free()
     assert (served[4:8, 4:8][others] == UNKNOWN).all() and served[6, 6] == evidence[6, 6]
     assert evidence[6, 6] >= OCCUPIED_MIN and 0 <= free < 50 and served[3, 3] == free
     assert (evidence[4:8, 4:8][others] == free).all()  # the evidence stays as measured
-    assert not grid.set_contested(disagree)  # unchanged
+    assert not grid.set_contested([footprint])  # unchanged
     assert grid.set_contested([]) and grid.served_occupancy()[5, 5] == free
 
 

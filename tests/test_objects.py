@@ -26,7 +26,7 @@ from services.depth.projection import WorldPoints
 from services.evaluation.objects import match_static, score_movers
 from services.fusion.grid import FusedGrid, GridParams
 from services.fusion.object_layers import serve_tracks
-from services.fusion.objects import ObjectTracker, merge_capture
+from services.fusion.objects import ObjectTracker, Outline, merge_capture
 from tests.tiles import dirty_window, measure
 
 PITCH_M = 0.02
@@ -699,6 +699,15 @@ def test_only_static_objects_are_outlined() -> None:
         assert outline.edge.any() and (outline.cells & ~outline.edge).any()
 
 
+def test_an_outline_under_a_cell_across_is_all_edge() -> None:
+    """A footprint smaller than a cell both ways holds at most the cell its centre lies in, and
+    that cell is its edge: the footprint's error decides it."""
+    outline = Outline.of((1.025, 1.025), (0.04, 0.04), 0.3, False, 0.05)
+    assert outline.cells.sum() == 1 and np.array_equal(outline.edge, outline.cells)
+    wide = Outline.of((1.0, 1.025), (0.3, 0.04), 0.0, False, 0.05)
+    assert wide.cells.sum() == 6 and np.array_equal(wide.edge, wide.cells)
+
+
 def test_polygon_cells_are_the_cells_whose_centres_it_holds() -> None:
     window, mask = polygon_cells(corners((1.0, 1.0), (0.5, 0.3), 0.0), 0.05)
     assert mask.sum() == 10 * 6
@@ -981,12 +990,17 @@ def test_a_round_objects_outline_and_fringe_follow_its_circle(round_: bool) -> N
         tracker.flush(now_s=0.0, live_pairs={"p0"})
     (obj,) = tracker.objects()
     assert obj.round is round_
-    ((window, outline, _),) = [(o.window, o.cells, o.edge) for o in tracker.outlines(resolution)]
+    (cells,) = tracker.outlines(resolution)
+    window, outline = cells.window, cells.cells
     if round_:  # the circle, grown by a centimetre (its radius is measured to about one)
         x, y = window.cell_centers(resolution)
         distance = np.hypot(x - 2.0, y - 2.0)
         clear = np.abs(distance - 0.26) > 0.002  # the polygon's sides leave a millimetre or two
         assert np.array_equal(outline[clear], (distance <= 0.26)[clear])
+        # Its edge: the ring of cells whose centres lie within half a cell inside the circle.
+        ring = (distance > 0.26 - resolution / 2) & (distance <= 0.26)
+        clear &= np.abs(distance - (0.26 - resolution / 2)) > 0.002
+        assert np.array_equal(cells.edge[clear], ring[clear]) and ring.any()
     centre, corner = (40, 40), (35, 35)  # cells (i, j): x, y 2.025 and 1.775
     assert outline[centre[1] - window.j0, centre[0] - window.i0]
     corner_in_outline = 0 <= corner[1] - window.j0 < window.rows and bool(
@@ -1179,17 +1193,18 @@ def test_a_track_turns_at_most_two_frames_in_a_row() -> None:
 @pytest.mark.parametrize("low", [True, False])
 def test_a_low_tracks_outline_is_grown_by_its_sides_uncertainty(low: bool) -> None:
     """A pallet's sides are measured to a few centimetres either way: its outline, the cells fusion
-    serves occupied where the frames agree, is its footprint grown by ``low_margin_m``, so a rim
-    cell whose centre lies just outside the measured side is not left to the frames' free
-    readings. A box's outline is its footprint."""
+    serves occupied where the frames agree (but for its edge cells they call free, unknown), is
+    its footprint grown by ``low_margin_m``, so a rim cell whose centre lies just outside the
+    measured side is not served free on the frames' free readings. A box's outline is its
+    footprint."""
     tracker = ObjectTracker()
     margin = tracker.config.low_margin_m
     for k in range(9):  # 4 s at 2 Hz: static
         view = _record((2.03, 2.0), (1.18, 0.78), top=0.15, low=low)
         tracker.add("p0", T0_NS + k * FRAME_NS, [view], now_s=0.0)
         tracker.flush(now_s=0.0, live_pairs={"p0"})
-    (outline_cells,) = tracker.outlines(0.05)
-    window, outline = outline_cells.window, outline_cells.cells
+    (cells,) = tracker.outlines(0.05)
+    window, outline = cells.window, cells.cells
     x, y = window.cell_centers(0.05)
     half = np.array([0.59, 0.39]) + (margin if low else 0.0)
     inside = (np.abs(x - 2.03) <= half[0]) & (np.abs(y - 2.0) <= half[1])

@@ -465,8 +465,8 @@ class FusedGrid:
 
     def set_contested(self, footprints: CellMasks) -> bool:
         """Replace the contested layer by these cells: static objects' footprints the frames'
-        evidence does not agree with (see :meth:`agrees`), the edge cells it calls free of those
-        it agrees with, their rims, the movers' footprints; True if it changed."""
+        evidence does not agree with (see :meth:`agrees`) and, of those it agrees with, the edge
+        cells it calls free, their rims, the movers' footprints; True if it changed."""
         return self._set_mask_layer("contested", footprints)
 
     def set_fringe(self, fringes: CellMasks) -> bool:

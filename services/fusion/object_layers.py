@@ -31,7 +31,8 @@ def serve_tracks(
                 continue
             seen_free = outline.edge & grid.free_in(window)
             outlined.append((window, outline.cells & ~seen_free))
-            contested.append((window, seen_free))
+            if seen_free.any():
+                contested.append((window, seen_free))
         contested += check.enclosures + check.rims
         grid.set_fringe(check.fringes)
     grid.set_contested(contested)

@@ -941,11 +941,12 @@ class ObjectTracker:
         """Per static track, the cells whose centres its footprint holds: measured to a centimetre
         or two on its points and image edges, where the frames' evidence decides a rim cell (its
         centre 0–3 cm inside) by a share of pixels that a pixel of fattening or a side face's
-        noise tips either way; fusion serves them occupied where the frames agree, but for the
-        edge's cells they call free, and its free cells unknown where they do not (the contested
-        layer). A partial view's footprint is a lower
-        bound, so its cells lie inside the object as far as the track's views agree on where the
-        piece lies (the centre is filtered over them; the agreement test guards the rest).
+        noise tips either way; fusion serves them occupied where the frames agree, except the
+        edge cells (:attr:`Outline.edge`) they call free, which it serves unknown, as it does the
+        free cells of a footprint they do not agree with (the contested layer). A partial view's
+        footprint is a lower bound, so its cells lie inside the object as far as the track's views
+        agree on where the piece lies (the centre is filtered over them; the agreement test guards
+        the rest).
         Objects cut by an image's border or at a seam keep their rims so (offline static
         false-free 0.32 → 0.14 % on the default scene, 0.66 → 0.09 % on ``--seed 2``)."""
         out = []
@@ -1063,15 +1064,15 @@ class Outline:
     cells: Mask
     """The cells whose centres the footprint holds."""
     edge: Mask
-    """Those of them whose centres lie within half a cell of its edge: the cells the edge
-    crosses, the object's or the floor's by the footprint's error of a centimetre or more (the
-    pallets' sides up to 3 cm, a piece joined from two pairs' views more). Fusion serves those
-    the frames call free unknown, not occupied: offline, thirteen scenes (20 s), IoU +0.0004 to
-    +0.012 on eleven, −0.0006 and −0.0014 on two (a shelf's floor seen under it, beyond its
-    piece's cut side), false-free the same to the digit (README, "How good is the map")."""
+    """Those of them whose centres lie within half a cell inside its edge (all of them for a
+    footprint under a cell across): the object's or the floor's by the footprint's error of a
+    centimetre or more (the pallets' sides up to 3 cm, a piece joined from two pairs' views
+    more), and the frames' belief tells the two no better. Fusion serves those the frames call
+    free unknown, not occupied (README, "An outline's edge the frames call free")."""
 
-    @staticmethod
+    @classmethod
     def of(
+        cls,
         center_m: tuple[float, float],
         size_m: tuple[float, float],
         yaw_rad: float,
@@ -1082,13 +1083,12 @@ class Outline:
         window, cells = polygon_cells(
             footprint_polygon(center_m, size_m, yaw_rad, round_), resolution_m
         )
-        inner = [max(side - resolution_m, 0.0) for side in size_m]
-        core = polygon_cells(
-            footprint_polygon(center_m, (inner[0], inner[1]), yaw_rad, round_), resolution_m
-        )
-        edge = [(window, cells.copy())]
-        subtract_cells(edge, core)
-        return Outline(window, cells, edge[0][1])
+        edge = cells.copy()
+        inner = (size_m[0] - resolution_m, size_m[1] - resolution_m)
+        if min(inner) > 0:  # a point's polygon would hold the cell it lies in
+            core = polygon_cells(footprint_polygon(center_m, inner, yaw_rad, round_), resolution_m)
+            subtract_cells([(window, edge)], core)
+        return cls(window, cells, edge)
 
 
 def rim_cells(footprint: Rectangle, margin_m: float, resolution_m: float) -> tuple[Window, Mask]:

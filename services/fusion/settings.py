@@ -53,7 +53,9 @@ class FusionParams(OvergridParams):
     outline_static: bool = Field(
         True,
         description="serve the cells inside static objects' measured footprints as occupied "
-        "where the frames agree (the rim cells their pixels decide either way); where the frames "
+        "where the frames agree (the rim cells their pixels decide either way), but for the "
+        "cells within half a cell inside a footprint's edge that the frames call free (unknown); "
+        "where the frames "
         "call under 3/4 of a footprint occupied, its cells not occupied are served unknown (a "
         "plain top the floor model took for floor), and so are those of the rectangle a plain "
         "or piecewise-measured top's occupied rim encloses, the cells within 1 cm outside a "
