@@ -973,6 +973,44 @@ def test_the_cells_just_outside_a_movers_measured_footprint_are_its_fringe(cut: 
     assert all(0 <= served(*cell) <= 25 for cell in floor)
 
 
+@pytest.mark.parametrize("merged", [False, True])
+def test_a_movers_top_no_frame_measured_is_served_occupied(merged: bool) -> None:
+    """A forklift at 1 m/s whose frames measured its rim (a cell wide) but nothing on its plain
+    top, and one cell of the top as floor: the cells 10 cm or more inside its newest view that no
+    frame measured are its top, served occupied; those nearer its sides stay unknown, as does the
+    cell read as floor (its footprint now is contested). A view 2.5 m long (a mover merged with
+    something) has no top: unknown."""
+    resolution = 0.05
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
+    tracker = ObjectTracker()
+    size = (2.5, 0.8) if merged else (1.2, 0.8)
+    for k in range(7):
+        view = _record((2.0 + 1.0 * k, 2.0), size)
+        tracker.add("p0", T0_NS + k * FRAME_NS, [view], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+    assert [t.object_class for t in tracker.objects()] == ["moving"]
+    # The floor around x 7.4–8.6, y 1.6–2.4 (the forklift's cells now), its rim, a floor reading.
+    for window in (Window(0, 0, 148, 100), Window(172, 0, 28, 100)):
+        measure(grid, window, -2.0, T0_NS)
+    for window in (Window(148, 0, 24, 32), Window(148, 48, 24, 52), Window(155, 40, 1, 1)):
+        measure(grid, window, -2.0, T0_NS)
+    for window in (Window(148, 32, 24, 1), Window(148, 47, 24, 1)):
+        measure(grid, window, 4.0, T0_NS)
+    for window in (Window(148, 33, 1, 14), Window(171, 33, 1, 14)):
+        measure(grid, window, 4.0, T0_NS)
+
+    def served(x: float, y: float) -> int:
+        return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
+
+    top, near_side, read_free = [(8.025, 2.025), (7.525, 1.725)], (7.475, 2.025), (7.775, 2.025)
+    assert all(served(*cell) == -1 for cell in [*top, near_side])  # no frame measured them
+    outlined, _ = serve_tracks(grid, tracker, outline_static=True)
+    grid.set_predicted(outlined)
+    assert [served(*cell) for cell in top] == ([-1, -1] if merged else [100, 100])
+    assert served(*near_side) == -1 and served(*read_free) == -1
+    assert served(8.0, 1.625) >= OCCUPIED_MIN and 0 <= served(6.5, 2.0) <= 25
+
+
 @pytest.mark.parametrize("round_", [True, False])
 def test_a_round_objects_outline_and_fringe_follow_its_circle(round_: bool) -> None:
     """A drum 0.5 m across whose frames call the whole square around it occupied (its side

@@ -543,6 +543,11 @@ class FusedGrid:
         """Cells the frames' evidence calls free (not the served layers), over a window."""
         return free_cells(self.window_of("occupancy", window))
 
+    def unknown_in(self, window: Window) -> npt.NDArray[np.bool_]:
+        """Cells no frame has measured (or whose measurement was forgotten), over a window."""
+        unknown: npt.NDArray[np.bool_] = self.window_of("occupancy", window) == UNKNOWN
+        return unknown
+
     def layer(self, name: str) -> npt.NDArray[Any]:
         """One layer over the whole map (a copy: for tools and tests; the service uses snapshots)."""
         return self.window_of(name, self.window)

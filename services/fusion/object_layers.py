@@ -15,9 +15,9 @@ def serve_tracks(
     footprints now: ``ObjectTracker.movers_now``; with ``outline_static`` also the static
     footprints the frames disagree with, the edge cells the frames call free of those they agree
     with (:class:`Outline`), the rims' enclosures and the static footprints' own rims, the cells
-    just outside them) and the fringe layer; returns the rest of the static footprints the frames
-    agree with (for the predicted layer) and the map check (whose pieces the object list
-    reports)."""
+    just outside them) and the fringe layer; returns, for the predicted layer, the rest of the
+    static footprints the frames agree with and the movers' tops (``ObjectTracker.mover_tops``)
+    where no frame measured them, and the map check (whose pieces the object list reports)."""
     resolution_m = grid.params.resolution_m
     grid.forget_occupied(*tracker.wake(resolution_m))
     check = tracker.check_against(grid)
@@ -36,4 +36,7 @@ def serve_tracks(
         contested += check.enclosures + check.rims
         grid.set_fringe(check.fringes)
     grid.set_contested(contested)
-    return outlined, check
+    tops = [
+        (window, top & grid.unknown_in(window)) for window, top in tracker.mover_tops(resolution_m)
+    ]
+    return outlined + tops, check

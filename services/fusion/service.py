@@ -131,7 +131,8 @@ class FusionState:
         self.objects_header = ObjectsHeader(version=0, stamp_ns=0, objects=[])
         self.outlined: CellMasks = []
         """The static objects' footprints the map agrees with, less their edge cells the frames
-        call free (``serve_tracks``), as of the newest capture."""
+        call free, and the movers' tops no frame measured (``serve_tracks``), as of the newest
+        capture."""
         self.warn = RateLimitedLog(log)
         frozen, self.unsaved = grid.freeze()
         self.view = View(frozen)
@@ -221,9 +222,9 @@ class FusionState:
         objects' footprints the frames agree with, less their edge cells the frames call free (the
         contested layer those, the other footprints, the cells within a centimetre outside every
         static one, and the moving and unsettled tracks' footprints now; the fringe layer the
-        occupied cells just outside static ones) and, with ``predict_movers``, the moving tracks'
-        paths up to one frame interval past now (the map's visible time); returns the new object
-        list if the tracks changed."""
+        occupied cells just outside static ones), the movers' tops no frame measured and, with
+        ``predict_movers``, the moving tracks' paths up to one frame interval past now (the map's
+        visible time); returns the new object list if the tracks changed."""
         now_ns = time.time_ns()
         resolution_m = self.grid.params.resolution_m
         changed = self.tracker.flush(time.monotonic(), self.alive)
