@@ -124,8 +124,8 @@ def run(
             found = detections_header(pipeline.detect_objects(result), pair, k, stamp_ns).detections
             tracker.add(pair, stamp_ns, list(found), k / rate_hz)
         if tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures}):
-            outlined, _ = serve_tracks(grid, tracker, outline_static)  # as the fusion service does
-            grid.set_predicted(outlined)
+            outlined, tops, _ = serve_tracks(grid, tracker, outline_static)  # as fusion does
+            grid.set_predicted(outlined + tops)
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time
         scored = k == frames - 1 or (k >= frames // 3 and (frames - 1 - k) % every == 0)
         if scored or steps_s:

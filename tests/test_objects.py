@@ -894,8 +894,8 @@ def test_a_cell_within_a_static_footprints_error_outside_it_is_never_served_free
 
     rim, floor, top = (1.625, 1.4), [(1.675, 1.4), (1.3, 1.625)], (1.3, 1.4)
     assert 0 <= served(*rim) <= 25  # the frames' verdict
-    outlined, _ = serve_tracks(grid, tracker, outline_static=True)
-    grid.set_predicted(outlined)
+    outlined, tops, _ = serve_tracks(grid, tracker, outline_static=True)
+    grid.set_predicted(outlined + tops)
     assert served(*rim) == -1
     assert all(0 <= served(*cell) <= 25 for cell in floor)
     assert all(served(*cell) >= OCCUPIED_MIN for cell in (top, (1.625, 1.225), (1.625, 1.275)))
@@ -925,8 +925,8 @@ def test_an_edge_cell_of_a_static_footprint_the_frames_call_free_is_served_unkno
 
     free_edge, occupied_edge, plain_top = (1.625, 1.4), (1.625, 1.225), (1.325, 1.425)
     assert all(0 <= served(*cell) <= 25 for cell in (free_edge, plain_top))  # the frames' verdict
-    outlined, _ = serve_tracks(grid, tracker, outline_static=True)
-    grid.set_predicted(outlined)
+    outlined, tops, _ = serve_tracks(grid, tracker, outline_static=True)
+    grid.set_predicted(outlined + tops)
     assert served(*free_edge) == -1
     assert all(served(*cell) >= OCCUPIED_MIN for cell in (occupied_edge, plain_top, (1.3, 1.3)))
     assert 0 <= served(1.675, 1.4) <= 25  # the floor beyond the footprint
@@ -1004,8 +1004,8 @@ def test_a_movers_top_no_frame_measured_is_served_occupied(merged: bool) -> None
 
     top, near_side, read_free = [(8.025, 2.025), (7.525, 1.725)], (7.475, 2.025), (7.775, 2.025)
     assert all(served(*cell) == -1 for cell in [*top, near_side])  # no frame measured them
-    outlined, _ = serve_tracks(grid, tracker, outline_static=True)
-    grid.set_predicted(outlined)
+    outlined, tops, _ = serve_tracks(grid, tracker, outline_static=True)
+    grid.set_predicted(outlined + tops)
     assert [served(*cell) for cell in top] == ([-1, -1] if merged else [100, 100])
     assert served(*near_side) == -1 and served(*read_free) == -1
     assert served(8.0, 1.625) >= OCCUPIED_MIN and 0 <= served(6.5, 2.0) <= 25

@@ -147,3 +147,49 @@ def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path)
     elsewhere = ~inside & ~rim & ~marked
     free = (occupancy[elsewhere] >= 0) & (occupancy[elsewhere] <= 25)  # map.yaml's free_thresh
     assert free.all()
+
+
+def test_a_movers_top_is_served_occupied_until_captures_stop(bus: Bus, tmp_path: Path) -> None:
+    """A box 1.2 × 0.8 m crossing a corridor the tiles never measure (its plain top gives the
+    matcher nothing) at 2 m/s: once its track moves, its top, 10 cm inside its newest view, is in
+    the predicted layer and served occupied; the cells it left are not. When the pair stops
+    sending, the top goes within ``sweep_max_s`` (1.5 s): no ghost of a mover stays in the map."""
+    bus.start("fusion", "--state-dir", str(tmp_path / "state"), "--publish-interval-s", "0.05")
+    tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
+    detections = bus.session.declare_publisher(keys.objects("p0"), encoding=WIRE_ENCODING)
+    wait_for(lambda: bool(query_first(bus.session, keys.MAP_OBJECTS, 30)), 30, "map/objects")
+    floor = Window(0, 0, 120, 80)  # 6 × 4 m
+    arrays = tile_arrays(floor, -1.0)
+    corridor = np.zeros(floor.shape, np.bool_)
+    corridor[32:48] = True  # y 1.6–2.4: never measured
+    arrays["count"][corridor] = 0
+    arrays["logodds"][corridor] = 0.0
+    x_m = 1.0
+    for seq in range(8):
+        stamp_ns = time.time_ns()
+        x_m = 1.0 + 0.6 * seq
+        box = DetectionRecord(
+            center_m=(x_m, 2.0),
+            size_m=(1.2, 0.8),
+            yaw_rad=0.0,
+            top_m=1.1,
+            points=900,
+            partial=False,
+        )
+        tiles.put(tile_payload("p0", floor, 0.0, seq=seq, stamp_ns=stamp_ns, arrays=arrays))
+        header = DetectionsHeader(pair="p0", seq=seq, stamp_ns=stamp_ns, detections=[box])
+        detections.put(encode(DETECTIONS_KIND, header))
+        time.sleep(0.3)
+    top = (int(2.0 / 0.05), int(x_m / 0.05))  # (row, col) of the box's centre now
+    left = (int(2.0 / 0.05), int((x_m - 1.2) / 0.05))  # its centre two captures before
+
+    def at(cell: tuple[int, int]) -> tuple[bool, int]:
+        grid = latest(bus.session, layers=("predicted",), timeout_s=5)
+        assert grid.predicted is not None
+        row, col = cell[0] - grid.window.j0, cell[1] - grid.window.i0
+        return bool(grid.predicted[row, col]), int(grid.occupancy[row, col])
+
+    wait_for(lambda: at(top) == (True, 100), 1.0, "the top of the newest view occupied")
+    assert at(left) == (False, -1)
+    assert [t.object_class for t in _tracked(bus)] == ["moving"]
+    wait_for(lambda: at(top) == (False, -1), 10, "the top gone once captures stopped")

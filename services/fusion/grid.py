@@ -458,10 +458,11 @@ class FusedGrid:
                 target[sub.slices_in(cw)] |= mask[sub.slices_in(window)]
         return masks
 
-    def set_predicted(self, swept: CellMasks) -> bool:
-        """Replace the predicted layer by these swept cells (those outside the map are dropped);
-        True if it changed. The cells it no longer covers show the frames' evidence again."""
-        return self._set_mask_layer("predicted", swept)
+    def set_predicted(self, cells: CellMasks) -> bool:
+        """Replace the predicted layer by these cells (static outlines, movers' tops, swept paths;
+        those outside the map are dropped); True if it changed. The cells it no longer covers show
+        the frames' evidence again."""
+        return self._set_mask_layer("predicted", cells)
 
     def set_contested(self, footprints: CellMasks) -> bool:
         """Replace the contested layer by these cells: static objects' footprints the frames'

@@ -10,14 +10,15 @@ from services.fusion.objects import MapCheck, ObjectTracker
 
 def serve_tracks(
     grid: FusedGrid, tracker: ObjectTracker, outline_static: bool
-) -> tuple[CellMasks, MapCheck]:
+) -> tuple[CellMasks, CellMasks, MapCheck]:
     """Forget the movers' wakes, and set the contested layer (moving and unsettled tracks'
     footprints now: ``ObjectTracker.movers_now``; with ``outline_static`` also the static
     footprints the frames disagree with, the edge cells the frames call free of those they agree
     with (:class:`Outline`), the rims' enclosures and the static footprints' own rims, the cells
     just outside them) and the fringe layer; returns, for the predicted layer, the rest of the
     static footprints the frames agree with and the movers' tops (``ObjectTracker.mover_tops``)
-    where no frame measured them, and the map check (whose pieces the object list reports)."""
+    where no frame measured them (the newest capture's: they go once captures stop), and the map
+    check (whose pieces the object list reports)."""
     resolution_m = grid.params.resolution_m
     grid.forget_occupied(*tracker.wake(resolution_m))
     check = tracker.check_against(grid)
@@ -39,4 +40,4 @@ def serve_tracks(
     tops = [
         (window, top & grid.unknown_in(window)) for window, top in tracker.mover_tops(resolution_m)
     ]
-    return outlined + tops, check
+    return outlined, tops, check

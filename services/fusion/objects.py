@@ -203,8 +203,8 @@ class TrackerConfig:
     unsettled_max_size_m: float = 2.0
     """A track neither moving nor standing whose newest view is longer than this is no mover
     but several objects and a mover merged in one detection (offline, ``--seed 5 --pairs 6``:
-    views 3–5 m long, their footprints 2–6 m² of floor served unknown); nor is a moving track's
-    view, for its top (:meth:`ObjectTracker.mover_tops`)."""
+    views 3–5 m long, their footprints 2–6 m² of floor served unknown). A moving track's view
+    as long is such a merge too, and has no top (:meth:`ObjectTracker.mover_tops`)."""
     mover_top_margin_m: float = 0.1
     """A moving track's view in the newest capture, this much inside its sides, is its top
     (:meth:`ObjectTracker.mover_tops`): its views run a few centimetres to 0.15 m long at each
@@ -886,10 +886,11 @@ class ObjectTracker:
         each *unsettled* track's newest view, where the track is: one the newest capture saw,
         seen twice or more, neither moving nor standing in one place (a mover whose track was
         lost at a turn or has just started, or whose moving flag dropped at a curve). Fusion
-        serves those the frames do not call occupied unknown (the contested layer): something
-        stands there now, and a free reading there is the floor before it came, or a plain side
-        of the floor's grey that the floor model took for floor (offline, ``--floor plain``: the
-        person's cells 23 % free)."""
+        serves those the frames do not call occupied unknown (the contested layer), but a
+        mover's top no frame measured occupied (:meth:`mover_tops`): something stands there now,
+        and a free reading there is the floor before it came, or a plain side of the floor's grey
+        that the floor model took for floor (offline, ``--floor plain``: the person's cells 23 %
+        free)."""
         unsettled = []
         for t in self.tracks:
             if t.moving or t.standing or t.stamp_ns != self.stamp_ns:
@@ -909,23 +910,22 @@ class ObjectTracker:
 
     def mover_tops(self, resolution_m: float) -> list[tuple[Window, Mask]]:
         """The cells whose centres lie ``mover_top_margin_m`` or more inside a moving track's view
-        in the newest capture (partial views too: a lower bound, inside the mover), for views no
-        longer than ``unsettled_max_size_m``: its top. Where no frame measured such a cell (a
-        plain top the matcher found nothing on, its floor hidden), fusion serves it occupied:
-        offline, on the default scene, 41 cells a map the movers stand on and 4 of floor."""
+        in the newest capture, for views no longer than ``unsettled_max_size_m``: its top. Where
+        no frame measured such a cell (a plain top the matcher found nothing on, its floor
+        hidden), fusion serves it occupied: offline, on the default scene, 41 cells a map the
+        movers stand on and 4 of floor (of those, partial views 31 and 1: a view cut by the
+        image's border, or pieces joined around, lies on the mover too)."""
         margin_m = self.config.mover_top_margin_m
-        out = []
-        for view in self.wake_footprints:
-            x, y, length, width, yaw = view.rectangle
-            if (
-                view.stamp_ns != self.stamp_ns
-                or max(length, width) > self.config.unsettled_max_size_m
-            ):
-                continue
-            if min(length, width) > 2 * margin_m:
-                inner = (length - 2 * margin_m, width - 2 * margin_m)
-                out.append(polygon_cells(corners((x, y), inner, yaw), resolution_m))
-        return out
+        return [
+            polygon_cells(view.polygon(-margin_m), resolution_m)
+            for view in self._views_now()
+            if max(view.rectangle[2:4]) <= self.config.unsettled_max_size_m
+            and min(view.rectangle[2:4]) > 2 * margin_m
+        ]
+
+    def _views_now(self) -> list[MoverView]:
+        """The moving tracks' views in the newest capture."""
+        return [view for view in self.wake_footprints if view.stamp_ns == self.stamp_ns]
 
     def wake(self, resolution_m: float) -> tuple[list[tuple[Window, npt.NDArray[np.bool_]]], float]:
         """The cells of the movers' wakes over the last ``wake_s``, and the observation time
@@ -942,9 +942,7 @@ class ObjectTracker:
         # Where something stands now is no wake, even where no frame has measured it: a mover as
         # this capture saw it, and every track where it is now (a mover this capture missed, an
         # object standing beside the path whose plain top frames rarely measure).
-        standing = [
-            view.polygon() for view in self.wake_footprints if view.stamp_ns == self.stamp_ns
-        ]
+        standing = [view.polygon() for view in self._views_now()]
         for footprint in standing + self._footprints_now():
             subtract_cells(cells, polygon_cells(footprint, resolution_m))
         return cells, self.stamp_ns / 1e9 - self.config.wake_missed_frames * self.ahead_s()
@@ -1052,7 +1050,7 @@ class ObjectTracker:
         that are not moving (a mover's own track, sized on all its views, is mostly larger than
         this one: the faces' hits stretch most of them)."""
         config, resolution_m = self.config, cells.resolution_m
-        views = [view for view in self.wake_footprints if view.stamp_ns == self.stamp_ns]
+        views = self._views_now()
         fringes: list[tuple[Window, Mask]] = []
         for view in views:
             connected = None if view.partial else connected_cells(cells, view.rectangle, config)

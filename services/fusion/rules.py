@@ -98,10 +98,10 @@ def occupied_where_predicted(
     occupancy: npt.NDArray[np.int8], predicted: npt.NDArray[np.bool_]
 ) -> npt.NDArray[np.int8]:
     """Overwrite with occupied where the predicted layer holds the cell (a copy): a static
-    object's footprint the frames agree with (less its edge cells they call free), or a moving
-    object's path, so the map a robot reads covers where a mover is by the time the map is read,
-    not where a frame saw it. Applied to the served map only; the evidence layers stay as
-    measured."""
+    object's footprint the frames agree with (less its edge cells they call free), a moving
+    object's top no frame measured, or (with ``predict_movers``) its path, so the map a robot
+    reads covers where a mover is by the time the map is read, not where a frame saw it. Applied
+    to the served map only; the evidence layers stay as measured."""
     return np.where(predicted, np.int8(OCCUPIED), occupancy)
 
 

@@ -131,8 +131,12 @@ class FusionState:
         self.objects_header = ObjectsHeader(version=0, stamp_ns=0, objects=[])
         self.outlined: CellMasks = []
         """The static objects' footprints the map agrees with, less their edge cells the frames
-        call free, and the movers' tops no frame measured (``serve_tracks``), as of the newest
-        capture."""
+        call free (``serve_tracks``), as of the newest capture."""
+        self.tops: CellMasks = []
+        """The movers' tops no frame measured (``serve_tracks``), as of the newest capture …"""
+        self.tops_until_s = 0.0
+        """… shown until this monotonic time: a capture's ``sweep_max_s`` later, no capture since
+        means the pairs stopped or died, and the movers have moved on."""
         self.warn = RateLimitedLog(log)
         frozen, self.unsaved = grid.freeze()
         self.view = View(frozen)
@@ -229,16 +233,20 @@ class FusionState:
         resolution_m = self.grid.params.resolution_m
         changed = self.tracker.flush(time.monotonic(), self.alive)
         check = MapCheck()
+        expired = False
         if changed:  # once a capture: tracks and evidence both moved
-            self.outlined, check = serve_tracks(
+            self.outlined, self.tops, check = serve_tracks(
                 self.grid, self.tracker, self.settings.outline_static
             )
+            self.tops_until_s = time.monotonic() + self.tracker.config.sweep_max_s
+        elif self.tops and time.monotonic() > self.tops_until_s:
+            self.tops, expired = [], True
         if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
             swept = self.tracker.sweep(resolution_m, self.grid.stamp_ns, until_ns)
-            self.grid.set_predicted(self.outlined + swept)
-        elif changed:
-            self.grid.set_predicted(self.outlined)
+            self.grid.set_predicted(self.outlined + self.tops + swept)
+        elif changed or expired:
+            self.grid.set_predicted(self.outlined + self.tops)
         if not changed:
             return None
         self.objects_header = ObjectsHeader(
