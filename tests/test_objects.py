@@ -2,6 +2,7 @@
 movers' paths swept into the map's predicted layer."""
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import numpy.typing as npt
@@ -872,6 +873,34 @@ def test_the_cells_just_outside_a_static_objects_footprint_are_its_fringe() -> N
     assert all(0 <= served(*cell) <= 25 for cell in floor)
 
 
+def _static_box_served(
+    center: tuple[float, float],
+    size: tuple[float, float],
+    evidence: list[tuple[Window, float]],
+) -> Callable[..., int]:
+    """A map of free floor with x 1.0–1.6, y 1.2–1.6 occupied and then ``evidence`` (windows and
+    log-odds), and a box static there with the footprint ``center`` × ``size``: the cell served
+    at (x, y), before serving its track's layers (``serve`` false) or after."""
+    resolution = 0.05
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 100, 100)))
+    measure(grid, Window(0, 0, 100, 100), -2.0, T0_NS)  # the floor: free
+    measure(grid, Window(20, 24, 12, 8), 4.0, T0_NS)  # x 1.0–1.6, y 1.2–1.6
+    for window, logodds in evidence:
+        measure(grid, window, logodds, T0_NS)
+    tracker = ObjectTracker()
+    for k in range(9):  # 4 s at 2 Hz: static
+        tracker.add("p0", T0_NS + k * FRAME_NS, [_record(center, size)], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+
+    def served(x: float, y: float, serve: bool = True) -> int:
+        if serve:
+            outlined, tops, _ = serve_tracks(grid, tracker, outline_static=True)
+            grid.set_predicted(outlined + tops)
+        return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
+
+    return served
+
+
 def test_a_cell_within_a_static_footprints_error_outside_it_is_never_served_free() -> None:
     """A box stands at x 1.0–1.63 m; the frames call its cells occupied up to x = 1.6 and the
     column beyond free (its rim cells, whose centres at x 1.625 the box holds, read mostly floor)
@@ -879,23 +908,13 @@ def test_a_cell_within_a_static_footprints_error_outside_it_is_never_served_free
     outside the footprint, within its error: served unknown where free, occupied where occupied.
     The floor 5.5 cm out (x 1.675) and the cell beside the box's long side 2.5 cm out (y 1.625)
     stay free; the box's cells stay occupied."""
-    resolution = 0.05
-    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 100, 100)))
-    measure(grid, Window(0, 0, 100, 100), -2.0, T0_NS)  # the floor: free
-    measure(grid, Window(20, 24, 12, 8), 4.0, T0_NS)  # x 1.0–1.6, y 1.2–1.6
-    measure(grid, Window(32, 24, 1, 2), 4.0, T0_NS)  # x 1.6–1.65, y 1.2–1.3
-    tracker = ObjectTracker()
-    for k in range(9):  # 4 s at 2 Hz: static
-        tracker.add("p0", T0_NS + k * FRAME_NS, [_record((1.31, 1.4), (0.62, 0.4))], now_s=0.0)
-        tracker.flush(now_s=0.0, live_pairs={"p0"})
-
-    def served(x: float, y: float) -> int:
-        return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
-
+    served = _static_box_served(
+        (1.31, 1.4),
+        (0.62, 0.4),
+        [(Window(32, 24, 1, 2), 4.0)],  # x 1.6–1.65, y 1.2–1.3
+    )
     rim, floor, top = (1.625, 1.4), [(1.675, 1.4), (1.3, 1.625)], (1.3, 1.4)
-    assert 0 <= served(*rim) <= 25  # the frames' verdict
-    outlined, tops, _ = serve_tracks(grid, tracker, outline_static=True)
-    grid.set_predicted(outlined + tops)
+    assert 0 <= served(*rim, serve=False) <= 25  # the frames' verdict
     assert served(*rim) == -1
     assert all(0 <= served(*cell) <= 25 for cell in floor)
     assert all(served(*cell) >= OCCUPIED_MIN for cell in (top, (1.625, 1.225), (1.625, 1.275)))
@@ -909,24 +928,16 @@ def test_an_edge_cell_of_a_static_footprint_the_frames_call_free_is_served_unkno
     not occupied. An edge cell the frames call occupied stays occupied; so does a cell deep
     inside that they call free (a plain top the floor model took for floor), which the outline
     holds up."""
-    resolution = 0.05
-    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 100, 100)))
-    measure(grid, Window(0, 0, 100, 100), -2.0, T0_NS)  # the floor: free
-    measure(grid, Window(20, 24, 12, 8), 4.0, T0_NS)  # x 1.0–1.6, y 1.2–1.6
-    measure(grid, Window(26, 28, 1, 1), -6.0, T0_NS)  # x 1.3–1.35, y 1.4–1.45: read as floor
-    measure(grid, Window(32, 24, 1, 1), 4.0, T0_NS)  # x 1.6–1.65, y 1.2–1.25
-    tracker = ObjectTracker()
-    for k in range(9):  # 4 s at 2 Hz: static
-        tracker.add("p0", T0_NS + k * FRAME_NS, [_record((1.32, 1.4), (0.64, 0.4))], now_s=0.0)
-        tracker.flush(now_s=0.0, live_pairs={"p0"})
-
-    def served(x: float, y: float) -> int:
-        return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
-
+    served = _static_box_served(
+        (1.32, 1.4),
+        (0.64, 0.4),
+        [
+            (Window(26, 28, 1, 1), -6.0),  # x 1.3–1.35, y 1.4–1.45: read as floor
+            (Window(32, 24, 1, 1), 4.0),  # x 1.6–1.65, y 1.2–1.25
+        ],
+    )
     free_edge, occupied_edge, plain_top = (1.625, 1.4), (1.625, 1.225), (1.325, 1.425)
-    assert all(0 <= served(*cell) <= 25 for cell in (free_edge, plain_top))  # the frames' verdict
-    outlined, tops, _ = serve_tracks(grid, tracker, outline_static=True)
-    grid.set_predicted(outlined + tops)
+    assert all(0 <= served(*cell, serve=False) <= 25 for cell in (free_edge, plain_top))
     assert served(*free_edge) == -1
     assert all(served(*cell) >= OCCUPIED_MIN for cell in (occupied_edge, plain_top, (1.3, 1.3)))
     assert 0 <= served(1.675, 1.4) <= 25  # the floor beyond the footprint
