@@ -52,7 +52,7 @@ class SensorModelParams:
     rim cell's share"). The cost: a rim cell reading 0.5–0.6 keeps its belief (the floor's, free,
     where an object was put down or a mover came), and one reading 0.65 needs about seven frames
     from clamped free to occupied, not two; a static track's rim is served unknown, never free,
-    for it (``services.fusion.objects.rim_cells``), walls and movers' rims are not."""
+    for it (``services.fusion.objects.Outline.rim``), walls and movers' rims are not."""
     evidence_ramp: float = Field(
         default=0.25,
         gt=0.0,

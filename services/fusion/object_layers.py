@@ -14,11 +14,11 @@ def serve_tracks(
     """Forget the movers' wakes, and set the contested layer (moving and unsettled tracks'
     footprints now: ``ObjectTracker.movers_now``; with ``outline_static`` also the static
     footprints the frames disagree with, the edge cells the frames call free of those they agree
-    with (:class:`Outline`), the rims' enclosures and the static footprints' own rims, the cells
-    just outside them) and the fringe layer; returns, for the predicted layer, the rest of the
-    static footprints the frames agree with and the movers' tops (``ObjectTracker.mover_tops``)
-    where no frame measured them (the newest capture's: they go once captures stop), and the map
-    check (whose pieces the object list reports)."""
+    with and the rims of both (:class:`Outline`), and the rims' enclosures) and the fringe layer;
+    returns, for the predicted layer, the rest of the static footprints the frames agree with and
+    the movers' tops (``ObjectTracker.mover_tops``) where no frame measured them (the newest
+    capture's: they go once captures stop), and the map check (whose pieces the object list
+    reports)."""
     resolution_m = grid.params.resolution_m
     grid.forget_occupied(*tracker.wake(resolution_m))
     check = tracker.check_against(grid)
@@ -27,14 +27,12 @@ def serve_tracks(
     if outline_static:
         for outline in tracker.outlines(resolution_m):
             window = outline.window
-            if not grid.agrees(window, outline.cells):
-                contested.append((window, outline.cells))
-                continue
-            seen_free = outline.edge & grid.free_in(window)
-            outlined.append((window, outline.cells & ~seen_free))
-            if seen_free.any():
-                contested.append((window, seen_free))
-        contested += check.enclosures + check.rims
+            doubted = outline.cells  # all of it where the frames disagree, else its edge seen free
+            if grid.agrees(window, outline.cells):
+                doubted = outline.edge & grid.free_in(window)
+                outlined.append((window, outline.cells & ~doubted))
+            contested += [cells for cells in ((window, doubted), outline.rim) if cells[1].any()]
+        contested += check.enclosures
         grid.set_fringe(check.fringes)
     grid.set_contested(contested)
     tops = [

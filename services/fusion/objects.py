@@ -33,7 +33,7 @@ Rules that shape the tracks:
   around a static object the frames agree with, its connected cells 1–10 cm outside its
   footprint (less every track's footprint) are handed over as its fringe (of a ``partial`` one,
   those with free floor beyond them; of a ``size_unsure`` one, none); the cells within 1 cm
-  outside any static object's footprint, its rim, as contested (:func:`rim_cells`);
+  outside any static object's footprint, its rim, as contested (:attr:`Outline.rim`);
 - a size is the median of the views seen whole; fewer than four of them, or views that disagree,
   make it ``size_unsure`` (:func:`_views_unsure`);
 - the object list (not the tracks, nor the map's outlines) joins static partial tracks a seam's
@@ -165,7 +165,7 @@ class TrackerConfig:
     fringe_margin_m: float = 0.01
     fringe_reach_m: float = 0.1
     """A static object's cells whose centres lie outside its footprint by ``fringe_margin_m`` at
-    most are its rim (:func:`rim_cells`: never served free); its connected cells whose
+    most are its rim (:attr:`Outline.rim`: never served free); its connected cells whose
     centres lie more than ``fringe_margin_m`` and at most ``fringe_reach_m`` outside it are its
     fringe (:meth:`ConnectedCells.fringe`):
     the cells its side faces and the matcher's fattening make occupied, that its footprint,
@@ -963,7 +963,8 @@ class ObjectTracker:
         return out
 
     def outlines(self, resolution_m: float) -> list[Outline]:
-        """Per static track, the cells whose centres its footprint holds: measured to a centimetre
+        """Per static track, the cells whose centres its footprint holds (and its edge and rim:
+        :class:`Outline`): measured to a centimetre
         or two on its points and image edges, where the frames' evidence decides a rim cell (its
         centre 0–3 cm inside) by a share of pixels that a pixel of fattening or a side face's
         noise tips either way; fusion serves them occupied where the frames agree, except the
@@ -981,13 +982,17 @@ class ObjectTracker:
             length, width, yaw, *_, round_ = track.size(self.config)
             if max(length, width) > self.config.max_size_m:
                 continue
+            rim_m = 0.0  # a round or low track's outline is grown by as much or more instead
             if round_:  # its rim cells lie within a centimetre of a circle measured to one
                 grow_m = 2 * self.config.fringe_margin_m
                 length, width = length + grow_m, width + grow_m
             elif track.low:  # its sides stand within a few centimetres either way
                 grow_m = 2 * self.config.low_margin_m
                 length, width = length + grow_m, width + grow_m
-            out.append(Outline.of(track.center_m, (length, width), yaw, round_, resolution_m))
+            else:
+                rim_m = self.config.fringe_margin_m
+            size = (length, width)
+            out.append(Outline.of(track.center_m, size, yaw, round_, resolution_m, rim_m))
         return out
 
     def check_against(self, cells: OccupiedCells) -> MapCheck:
@@ -1004,21 +1009,14 @@ class ObjectTracker:
         its fringe instead (:meth:`ConnectedCells.fringe`, less every track's footprint; of a
         partial one, only where free floor lies beyond; an unsure one hands over none), which
         fusion serves unknown (the fringe layer); so does each whole view of a moving track in
-        the newest capture (:meth:`_mover_fringes`). Every static track hands over its rim as well
-        (:func:`rim_cells`, within ``fringe_margin_m``), for the contested layer."""
+        the newest capture (:meth:`_mover_fringes`)."""
         config, resolution_m = self.config, cells.resolution_m
-        pieces, enclosures, fringes, rims = set(), [], [], []
+        pieces, enclosures, fringes = set(), [], []
         for track in self.tracks:
             if track.moving or track.detections < config.confirm_detections:
                 continue
             length, width, yaw, _, partial, unsure, round_ = track.size(config)
             footprint = (*track.center_m, length, width, yaw)
-            if (
-                track.static
-                and not (round_ or track.low)
-                and max(length, width) <= config.max_size_m
-            ):
-                rims.append(rim_cells(footprint, config.fringe_margin_m, resolution_m))
             connected = connected_cells(cells, footprint, config, round_)
             if connected is None:
                 continue
@@ -1041,7 +1039,6 @@ class ObjectTracker:
             frozenset(pieces),
             enclosures,
             self._outside_tracks(fringes, resolution_m) + self._mover_fringes(cells),
-            rims,
         )
 
     def _mover_fringes(self, cells: OccupiedCells) -> list[tuple[Window, Mask]]:
@@ -1094,6 +1091,14 @@ class Outline:
     centimetre or more (the pallets' sides up to 3 cm, a piece joined from two pairs' views
     more), and the frames' belief tells the two no better. Fusion serves those the frames call
     free unknown, not occupied (README, "An outline's edge the frames call free")."""
+    rim: tuple[Window, Mask]
+    """The cells whose centres the footprint grown by a margin (``fringe_margin_m``) holds and the
+    footprint does not. A footprint is measured to a centimetre or so, so such a cell is the
+    object's as often as not, and its pixels (a rim's top, side face and floor) decide it either
+    way: with the band share neutral at ``SensorModelParams.edge_fraction`` (0.6), one whose
+    centre the object holds may keep the free belief of the floor seen there before. Fusion
+    serves these unknown where the frames do not call them occupied (the contested layer). (Empty
+    for a round or low track, whose outline is grown by as much or more already.)"""
 
     @classmethod
     def of(
@@ -1103,35 +1108,22 @@ class Outline:
         yaw_rad: float,
         round_: bool,
         resolution_m: float,
+        rim_m: float = 0.0,
     ) -> Outline:
-        """The outline of a footprint (``round_``: the circle inscribed in it)."""
-        window, cells = polygon_cells(
-            footprint_polygon(center_m, size_m, yaw_rad, round_), resolution_m
-        )
+        """The outline of a footprint (``round_``: the circle inscribed in it), with a rim
+        ``rim_m`` wide."""
+
+        def cells_of(grown_m: float) -> tuple[Window, Mask]:
+            size = (size_m[0] + 2 * grown_m, size_m[1] + 2 * grown_m)
+            return polygon_cells(footprint_polygon(center_m, size, yaw_rad, round_), resolution_m)
+
+        window, cells = cells_of(0.0)
         edge = cells.copy()
-        inner = (size_m[0] - resolution_m, size_m[1] - resolution_m)
-        if min(inner) > 0:  # a point's polygon would hold the cell it lies in
-            core = polygon_cells(footprint_polygon(center_m, inner, yaw_rad, round_), resolution_m)
-            subtract_cells([(window, edge)], core)
-        return cls(window, cells, edge)
-
-
-def rim_cells(footprint: Rectangle, margin_m: float, resolution_m: float) -> tuple[Window, Mask]:
-    """The cells whose centres the footprint grown by ``margin_m`` holds and the footprint does
-    not. A footprint is measured to a centimetre or so, so such a cell is the object's as often as
-    not, and its pixels (a rim's top, side face and floor) decide it either way: with the band
-    share neutral at ``SensorModelParams.edge_fraction`` (0.6), one whose centre the object holds
-    may keep the free belief of the floor seen there before. Fusion serves these unknown where the
-    frames do not call them occupied (the contested layer). (A round or low track's outline is
-    grown by as much or more already.)"""
-    x, y, length, width, yaw = footprint
-    grow_m = 2 * margin_m
-    window, rim = polygon_cells(
-        corners((x, y), (length + grow_m, width + grow_m), yaw), resolution_m
-    )
-    cells = [(window, rim)]
-    subtract_cells(cells, polygon_cells(corners((x, y), (length, width), yaw), resolution_m))
-    return cells[0]
+        if min(size_m) > resolution_m:  # a point's polygon would hold the cell it lies in
+            subtract_cells([(window, edge)], cells_of(-resolution_m / 2))
+        rim_window, rim = cells_of(rim_m) if rim_m > 0 else (window, np.zeros_like(cells))
+        subtract_cells([(rim_window, rim)], (window, cells))
+        return cls(window, cells, edge, (rim_window, rim))
 
 
 def subtract_cells(cells: list[tuple[Window, Mask]], cut: tuple[Window, Mask]) -> None:
@@ -1154,9 +1146,6 @@ class MapCheck:
     fringes: list[tuple[Window, Mask]] = field(default_factory=list)
     """Occupied cells just outside static tracks' footprints (a partial one's: with free floor
     beyond), for the fringe layer."""
-    rims: list[tuple[Window, Mask]] = field(default_factory=list)
-    """Cells whose centres lie just outside static tracks' footprints, within their error, for
-    the contested layer (:func:`rim_cells`)."""
 
 
 @dataclass(frozen=True)
