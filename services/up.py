@@ -223,17 +223,25 @@ def progress_line(
     period_s: float,
     iou: float | None = None,
 ) -> str:
+    """One line of ``overgrid up``'s progress from fusion's health ``answer``. The known share is of
+    the map's cells (its window runs past the floor the cameras see), not of the seen floor, which
+    the report's ``unknown_fraction`` is of."""
     m = answer["map"]
-    known = m["known_cells"] / max(m["cols"] * m["rows"], 1)
     rates = []
     for pair, row in sorted(answer["pairs"].items()):
         rate = (row["tiles"] - previous.get(pair, 0)) / period_s
         previous[pair] = row["tiles"]
         rates.append(f"{pair} {rate:.1f}/s" + ("" if row["alive"] else " DEAD"))
+    if not m["cols"]:
+        return (
+            f"[{elapsed_s:6.1f} s] no tile yet: the depth processes start (calibration, first "
+            f"frames) | " + ("  ".join(rates) or "no depth process yet")
+        )
+    known = m["known_cells"] / max(m["cols"] * m["rows"], 1)
     rejected = sum(answer["tiles_rejected"].values())
     return (
-        f"[{elapsed_s:6.1f} s] map v{m['version']} {m['cols']}×{m['rows']} known {known:.0%} "
-        f"tiles {answer['tiles_accepted']} rejected {rejected}"
+        f"[{elapsed_s:6.1f} s] map v{m['version']} {m['cols']}×{m['rows']}, {known:.0%} of its "
+        f"cells known, tiles {answer['tiles_accepted']} rejected {rejected}"
         + (f" IoU {iou:.3f}" if iou is not None else "")
         + " | "
         + "  ".join(rates)

@@ -19,7 +19,13 @@ from services.camera_sim.settings import CameraSimParams, CameraSimSettings
 from services.depth.settings import DepthParams, DepthSettings
 from services.fusion.settings import FusionParams, FusionSettings
 from services.ros2.settings import RmwZenohSettings
-from services.up import UpSettings, child_commands, child_environment, without_unservable_viewer
+from services.up import (
+    UpSettings,
+    child_commands,
+    child_environment,
+    progress_line,
+    without_unservable_viewer,
+)
 from tests.conftest import REPO, Bus, wait_for
 
 pytestmark = pytest.mark.process
@@ -202,3 +208,26 @@ def test_a_dying_child_is_reported_by_name(bus: Bus, tmp_path: Path) -> None:
     assert up.returncode == 1
     assert "camera_sim died" in out and "missing.yaml" in out
     assert _children_of(bus.namespace) == []
+
+
+def _health(cols: int, pairs: dict[str, int]) -> dict[str, object]:
+    """Fusion's health answer as ``progress_line`` reads it: a map of ``cols`` × 10 cells, half
+    known, and each pair's tiles so far."""
+    return {
+        "map": {"version": 3 if cols else 0, "cols": cols, "rows": 10, "known_cells": cols * 5},
+        "pairs": {p: {"tiles": tiles, "alive": True} for p, tiles in pairs.items()},
+        "tiles_accepted": sum(pairs.values()),
+        "tiles_rejected": {},
+    }
+
+
+def test_the_progress_line_says_what_it_waits_for_and_what_its_known_share_is_of() -> None:
+    """Before the first tile the line says the depth processes are starting (it read "map v0
+    0×0 known 0%" for the first 18 s of a fresh run); then the known share names the map's
+    cells, which the report's unknown share of the seen floor is not."""
+    previous: dict[str, int] = {}
+    waiting = progress_line(_health(0, {}), previous, 2.0, 1.0)
+    assert "no tile yet" in waiting and "map v0" not in waiting and "no depth process" in waiting
+    running = progress_line(_health(20, {"p0": 4, "p1": 2}), previous, 3.0, 1.0, iou=0.8)
+    assert "map v3 20×10, 50% of its cells known" in running
+    assert "p0 4.0/s" in running and "p1 2.0/s" in running and "IoU 0.800" in running
