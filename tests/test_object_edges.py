@@ -39,10 +39,11 @@ def _render(
     top_grey: float,
     plain_floor: bool = False,
     stripe_inside_m: float | None = None,
+    stripe_m: float = 0.02,
 ) -> npt.NDArray[np.uint8]:
     """The rectified left image of one object on the floor, ray-traced at 4× and area-averaged;
-    ``plain_floor``: one grey with the sensor's noise; ``stripe_inside_m``: a dark tape 2 cm wide
-    across the top, this far inside its high-x side."""
+    ``plain_floor``: one grey with the sensor's noise; ``stripe_inside_m``: a dark tape
+    ``stripe_m`` wide across the top, this far inside its high-x side."""
     n_u, n_v = WIDTH * SUPERSAMPLE, HEIGHT * SUPERSAMPLE
     u, v = np.meshgrid(
         (np.arange(n_u) + 0.5) / SUPERSAMPLE - 0.5, (np.arange(n_v) + 0.5) / SUPERSAMPLE - 0.5
@@ -93,7 +94,9 @@ def _render(
     top = _texture(top_x, top_y, top_grey)
     if stripe_inside_m is not None:
         inside = size[0] / 2 - top_x
-        top = np.where((inside >= stripe_inside_m) & (inside < stripe_inside_m + 0.02), 30.0, top)
+        top = np.where(
+            (inside >= stripe_inside_m) & (inside < stripe_inside_m + stripe_m), 30.0, top
+        )
     grey = np.where(on_top, top, np.where(on_side, SIDE_GREY, floor))
     small = cv2.resize(grey.astype(np.float32), (WIDTH, HEIGHT), interpolation=cv2.INTER_AREA)
     if plain_floor:  # the sensor's noise, a grey level
@@ -215,3 +218,34 @@ def test_a_print_where_a_top_would_end_behind_its_face_is_not_its_side() -> None
     prior = Detection(center, 1.2, 0.8, 0.0, top, 500, False)
     refined = refine_on_edges([prior], image, VIEW)[0]
     assert abs(refined.length_m - size[0]) < 0.01 and math.dist(refined.center_xy_m, center) < 0.01
+
+
+def test_a_far_side_the_matcher_carried_past_the_search_is_found_further_in() -> None:
+    """A low box's side facing away from the camera, over a textured floor, 10 cm inside the
+    points' side (the matcher carried the top's disparity over the floor beyond it: ``--seed 5
+    --pairs 6``, box_4 0.67 m wide of 0.59): no step within the search, so it is looked for
+    further inside, and the step there is the top's edge (its top as grey as the opposite
+    side's, floor between it and the points' side)."""
+    center, size, top = (5.7, 4.5), (0.64, 0.86), 0.24
+    image = _render(center, size, 0.0, top, round_top=False, top_grey=95.0)
+    # The high-x side (away from the camera at x = 5) 10 cm out, as the points put it.
+    prior = Detection((center[0] + 0.05, center[1]), 0.86, 0.74, math.pi / 2, top, 500, False)
+    refined = refine_on_edges([prior], image, VIEW)[0]
+    far_side_m = refined.center_xy_m[0] + refined.width_m / 2
+    assert abs(far_side_m - (center[0] + size[0] / 2)) < 0.01  # 10 cm out without the search
+
+
+@pytest.mark.parametrize("print_m", [0.02, 0.12])
+def test_a_print_further_in_than_the_search_is_not_a_far_side(print_m: float) -> None:
+    """The points' side of a far side 9 cm inside the top's edge (a plain top matched in part), a
+    dark print 8 cm inside that: the search further in finds the print's step, not the top's
+    edge, so the side stays where the points put it (``--floor speckle``: box_3 0.21 m wide of
+    0.40 when a print was taken). A narrow tape: the grey just inside its step is the top's
+    again, whose contrast with the top beyond is nil; a wide print: its grey is not the top's at
+    the opposite side."""
+    center, size, top = (5.7, 4.5), (0.64, 0.86), 0.24
+    image = _render(center, size, 0.0, top, False, 95.0, stripe_inside_m=0.17, stripe_m=print_m)
+    prior = Detection((center[0] - 0.045, center[1]), 0.86, 0.55, math.pi / 2, top, 500, False)
+    refined = refine_on_edges([prior], image, VIEW)[0]
+    points_side_m = prior.center_xy_m[0] + prior.width_m / 2
+    assert refined.center_xy_m[0] + refined.width_m / 2 > points_side_m - 0.01

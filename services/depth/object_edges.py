@@ -66,6 +66,17 @@ class EdgeConfig:
     half of them: a top as grey as the floor shows only the rim before its dark side face)."""
     round_max_aspect: float = 1.25
     """Only a footprint this close to square may be a round top."""
+    further_search_m: float = 0.16
+    further_grey_share: float = 0.25
+    """On a side facing away from the camera, the matcher can carry the top's disparity over the
+    floor beyond it further than ``search_m`` (``--seed 5 --pairs 6``: box_4, 0.24 m high on
+    concrete, 0.67 m wide of 0.59, its step 7.5-12 cm inside the points' side). Where the search
+    there sees no strong step, or its strongest at its inner end, a step up to
+    ``further_search_m`` inside is the top's edge if the grey just inside it is the grey just
+    inside the opposite side's edge, and the grey between it and the points' side the floor's
+    beyond, each within ``further_grey_share`` of the step's contrast (:func:`_further_side`).
+    Without the first test a print on a top took over (``--floor speckle``: box_3 0.21 m wide
+    of 0.40, 0.29 without the further search)."""
 
 
 @dataclass(frozen=True)
@@ -131,9 +142,8 @@ def _step_at(
     steps alone."""
     if np.isnan(grey).any():
         return None
-    outward = grey[2 * lag :] - grey[: -2 * lag]
+    outward, at = _steps(grey, offsets_m, lag)
     step = np.abs(outward)
-    at = offsets_m[lag:-lag]
     searched = (at >= searched_m[0]) & (at <= searched_m[1])
     strongest = float(step[searched].max(initial=0.0))
     if strongest < config.min_step_grey:
@@ -191,6 +201,11 @@ def _step_at(
     return positions[k], float(step[k])
 
 
+def _steps(grey: F64, offsets_m: F64, lag: int) -> tuple[F64, F64]:
+    """A profile's change outward across ``2 * lag`` samples, and the offsets it is centred at."""
+    return grey[2 * lag :] - grey[: -2 * lag], offsets_m[lag:-lag]
+
+
 def _vertex(three: F64) -> float:
     """Sub-sample offset of a parabola's vertex through three samples around a peak."""
     a, b, c = three
@@ -218,8 +233,8 @@ def _face_growth(top_m: float, view: ImageView) -> float:
 class _Across:
     """How an edge's profile is sampled across it, for one top's height: its pixel's footprint
     there, the step's lag (half a pixel each way, in samples) and the offsets from the points'
-    edge, outward positive (reaching ``plain_search_m`` and the widest face inside, and that
-    face outside, in whole samples)."""
+    edge, outward positive (reaching ``plain_search_m`` and the widest face inside, or
+    ``further_search_m``, and that face outside, in whole samples)."""
 
     pixel_m: float
     lag: int
@@ -228,7 +243,9 @@ class _Across:
     """The offsets sampled for the search where the floor beyond is textured (``search_m`` and
     the lag either way) …"""
     plain_from_m: float
-    """… and from where inside where it is plain (``plain_search_m`` and the lag)."""
+    """… and from where inside where it is plain (``plain_search_m`` and the lag) …"""
+    further_from_m: float
+    """… and from where inside on a far side (``further_search_m`` and the lag)."""
     face_growth: float
     """How far in the top's edge lies, per metre the face's foot lies in, from where the points'
     side would have its foot (:func:`_step_at`): the face widens by top / camera height of it."""
@@ -243,8 +260,9 @@ class _Across:
         offsets = np.arange(-reach, reach + config.step_m / 2, config.step_m)
         # The plain floor's and the face's further reach, on the same samples.
         plain = round((config.plain_search_m - config.search_m) / config.step_m)
+        further = round((config.further_search_m - config.search_m) / config.step_m)
         face = math.ceil(face_m / config.step_m)
-        inside = offsets[0] - config.step_m * np.arange(plain + face, 0, -1)
+        inside = offsets[0] - config.step_m * np.arange(max(plain + face, further), 0, -1)
         outside = offsets[-1] + config.step_m * np.arange(1, face + 1)
         return _Across(
             pixel_m,
@@ -252,6 +270,7 @@ class _Across:
             np.concatenate([inside, offsets, outside]),
             (float(offsets[0]), float(offsets[-1])),
             float(offsets[0] - plain * config.step_m),
+            float(offsets[0] - further * config.step_m),
             _face_growth(top_m, view),
         )
 
@@ -273,40 +292,90 @@ class _Across:
         face: a forklift's, 1.1 m high, 0.19 m out), outside for the foot of the face below a
         top's edge. Not for a round top's rim: offline, the static cylinders came out smaller
         still (``--seed 1 --pairs 6``: 0.41 m wide, 0.43 without, 0.475 true)."""
+        plain = self._plain(grey, along_px, side_band_m, config)
+        from_m = self.plain_from_m if plain else self.textured_m[0]
+        return self._search(grey, from_m, side_band_m, config, behind_face)
+
+    def _plain(self, grey: F64, along_px: float, side_band_m: float, config: EdgeConfig) -> bool:
+        """Whether the floor beyond a side (a pixel past it and past its face) is plain and the
+        samples ``plain_search_m`` inside lie in the image (:meth:`find_side`)."""
         tiny_m = 1e-9
-        from_m, to_m = self.textured_m
+        to_m = self.textured_m[1]
         beyond = grey[(self.offsets_m > side_band_m + self.pixel_m) & (self.offsets_m <= to_m)]
         lag = max(1, round(1.0 / along_px))  # the samples a pixel apart
         change = np.abs(beyond[:, lag:] - beyond[:, :-lag])
         plain_reach = (self.offsets_m >= self.plain_from_m - tiny_m) & (self.offsets_m <= to_m)
-        plain = (
+        return (
             bool(change.size)
             and float(np.median(change)) < config.plain_grey
             and not np.isnan(grey[plain_reach]).any()
         )
-        if plain:
-            from_m = self.plain_from_m
-        # The top's edge behind the face, and the face's foot beyond the top's edge: the face's
-        # width past the search's own reach, which covers its growth for faces up to 0.3 m. To
-        # the growth and the tolerance on it (the reach 0.04-0.07 m further), a box cut by the
-        # border beside the forklift's path lost its rim to the floor at times (offline, default
-        # scene: static false-free 0.04 -> 0.09 %).
-        face_m = side_band_m if behind_face else 0.0
+
+    def grey_at(self, profile: F64, low_m: float, high_m: float) -> float:
+        """The mean of a side's profile (grey per offset) over offsets ``low_m`` … ``high_m``."""
+        return float(profile[(self.offsets_m >= low_m) & (self.offsets_m <= high_m)].mean())
+
+    def step_further_in(
+        self, grey: F64, along_px: float, side_band_m: float, config: EdgeConfig
+    ) -> tuple[float, float] | None:
+        """Where :meth:`find_side` found no step on a side facing away from the camera over a
+        floor that is not plain: a step up to ``further_search_m`` inside, if the search saw no
+        strong one or its strongest at its inner end (``EdgeConfig.further_grey_share``)."""
+        if side_band_m > self.pixel_m or self._plain(grey, along_px, side_band_m, config):
+            return None
+        from_m = self.textured_m[0]
+        if not self._edge_further_in(grey, from_m, config):
+            return None
+        return self._search(grey, self.further_from_m, side_band_m, config, True)
+
+    def _profile(self, grey: F64, from_m: float, face_m: float) -> npt.NDArray[np.bool_]:
+        """The offsets from ``from_m`` to the search's outer end, and a face's width further
+        either way where those samples lie in the image."""
+        tiny_m = 1e-9
+        to_m = self.textured_m[1]
         profile = (self.offsets_m >= from_m - face_m - tiny_m) & (
             self.offsets_m <= to_m + face_m + tiny_m
         )
         if np.isnan(grey[profile]).any():  # the face's reach lies off the image: without it
             profile = (self.offsets_m >= from_m - tiny_m) & (self.offsets_m <= to_m + tiny_m)
-        step_m = config.step_m
+        return profile
+
+    def _searched_m(self, from_m: float, config: EdgeConfig) -> tuple[float, float]:
+        """Where a step may peak: a lag in from either end of ``from_m`` … the outer end."""
+        tiny_m, step_m = 1e-9, config.step_m
+        return (
+            from_m + self.lag * step_m - tiny_m,
+            self.textured_m[1] - self.lag * step_m + tiny_m,
+        )
+
+    def _search(
+        self, grey: F64, from_m: float, side_band_m: float, config: EdgeConfig, behind_face: bool
+    ) -> tuple[float, float] | None:
+        """:func:`_step_at` over the offsets from ``from_m`` outward."""
+        # The top's edge behind the face, and the face's foot beyond the top's edge: the face's
+        # width past the search's own reach, which covers its growth for faces up to 0.3 m. To
+        # the growth and the tolerance on it (the reach 0.04-0.07 m further), a box cut by the
+        # border beside the forklift's path lost its rim to the floor at times (offline, default
+        # scene: static false-free 0.04 -> 0.09 %).
+        profile = self._profile(grey, from_m, side_band_m if behind_face else 0.0)
         return _step_at(
             grey[profile].mean(axis=1),
             self.offsets_m[profile],
             self.lag,
             side_band_m,
             config,
-            (from_m + self.lag * step_m - tiny_m, to_m - self.lag * step_m + tiny_m),
+            self._searched_m(from_m, config),
             self.face_growth if behind_face else None,
         )
+
+    def _edge_further_in(self, grey: F64, from_m: float, config: EdgeConfig) -> bool:
+        """Whether the search from ``from_m`` saw no strong step, or its strongest at its inner
+        end (the shoulder of one further in)."""
+        profile = self._profile(grey, from_m, 0.0)
+        outward, at = _steps(grey[profile].mean(axis=1), self.offsets_m[profile], self.lag)
+        low, high = self._searched_m(from_m, config)
+        step = np.abs(outward)[(at >= low) & (at <= high)]
+        return bool(step.size) and (step.max() < config.min_step_grey or int(np.argmax(step)) == 0)
 
 
 def _world(d: Detection, along_m: F64 | float, across_m: F64 | float) -> tuple[F64, F64]:
@@ -315,6 +384,34 @@ def _world(d: Detection, along_m: F64 | float, across_m: F64 | float) -> tuple[F
     x = d.center_xy_m[0] + c * np.asarray(along_m) - s * np.asarray(across_m)
     y = d.center_xy_m[1] + s * np.asarray(along_m) + c * np.asarray(across_m)
     return x, y
+
+
+def _further_side(
+    across: _Across,
+    grey: F64,
+    side_band_m: float,
+    opposite_grey: F64,
+    opposite: tuple[float, float],
+    config: EdgeConfig,
+) -> tuple[float, float] | None:
+    """:meth:`_Across.step_further_in`, if the grey just inside its step is the grey just inside
+    the ``opposite`` side's (the same top) and between it and the points' side the grey beyond
+    (the floor), each within ``further_grey_share`` of its contrast."""
+    step = across.step_further_in(grey, 0.5, side_band_m, config)
+    if step is None:
+        return None
+    pixel_m = across.pixel_m
+    profile, opposite_profile = grey.mean(axis=1), opposite_grey.mean(axis=1)
+    top = across.grey_at(profile, step[0] - 3 * pixel_m, step[0] - pixel_m)
+    between = across.grey_at(profile, step[0] + pixel_m, 0.0)
+    floor = across.grey_at(profile, pixel_m, across.textured_m[1])
+    opposite_top = across.grey_at(
+        opposite_profile, opposite[0] - 3 * pixel_m, opposite[0] - pixel_m
+    )
+    tolerance = config.further_grey_share * abs(floor - top)
+    if abs(top - opposite_top) <= tolerance and abs(between - floor) <= tolerance:
+        return step
+    return None
 
 
 def _refine_box(
@@ -348,14 +445,22 @@ def _refine_box(
         bands.append(_side_band_m(view, (float(edge_x), float(edge_y)), normal_xy, d.top_m))
     # One lookup for all four sides. Rows: offsets along the normal; columns: along a side.
     grey = _sample(image, view, np.hstack(xs), np.hstack(ys), d.top_m)
+    columns = np.split(grey, np.cumsum(widths)[:-1], axis=1)
+    found = [across.find_side(c, 0.5, band, config) for c, band in zip(columns, bands, strict=True)]
+    for side in range(len(sides)):
+        opposite = side ^ 1  # the other side along the same axis
+        opposite_step = found[opposite]
+        if found[side] is None and opposite_step is not None:
+            found[side] = _further_side(
+                across, columns[side], bands[side], columns[opposite], opposite_step, config
+            )
     strengths = []
-    for side, columns in enumerate(np.split(grey, np.cumsum(widths)[:-1], axis=1)):
-        found = across.find_side(columns, 0.5, bands[side], config)
-        if found is None:
+    for side, step in enumerate(found):
+        if step is None:
             continue
         axis, sign = sides[side]
-        bounds[side] = sign * (half[axis] + found[0])
-        strengths.append(found[1])
+        bounds[side] = sign * (half[axis] + step[0])
+        strengths.append(step[1])
     if not strengths:
         return None
     du, dw = (bounds[0] + bounds[1]) / 2, (bounds[2] + bounds[3]) / 2
