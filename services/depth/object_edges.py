@@ -73,7 +73,7 @@ class EdgeConfig:
     concrete, 0.67 m wide of 0.59, its step 7.5-12 cm inside the points' side). Where the search
     there sees no strong step, or its strongest at its inner end, a step up to
     ``further_search_m`` inside is the top's edge if the grey just inside it is the grey just
-    inside the opposite side's edge, and the grey between it and the points' side the floor's
+    inside the sides found (the same top), and the grey between it and the points' side the floor's
     beyond, each within ``further_grey_share`` of the step's contrast (:func:`_further_side`).
     Without the first test a print on a top took over (``--floor speckle``: box_3 0.21 m wide
     of 0.40, 0.29 without the further search)."""
@@ -315,6 +315,10 @@ class _Across:
         """The mean of a side's profile (grey per offset) over offsets ``low_m`` … ``high_m``."""
         return float(profile[(self.offsets_m >= low_m) & (self.offsets_m <= high_m)].mean())
 
+    def grey_inside(self, profile: F64, edge_m: float) -> float:
+        """The top's grey just inside a step at ``edge_m``: a pixel to three pixels in."""
+        return self.grey_at(profile, edge_m - 3 * self.pixel_m, edge_m - self.pixel_m)
+
     def step_further_in(
         self, grey: F64, along_px: float, side_band_m: float, config: EdgeConfig
     ) -> tuple[float, float] | None:
@@ -387,29 +391,20 @@ def _world(d: Detection, along_m: F64 | float, across_m: F64 | float) -> tuple[F
 
 
 def _further_side(
-    across: _Across,
-    grey: F64,
-    side_band_m: float,
-    opposite_grey: F64,
-    opposite: tuple[float, float],
-    config: EdgeConfig,
+    across: _Across, grey: F64, side_band_m: float, top_grey: float, config: EdgeConfig
 ) -> tuple[float, float] | None:
-    """:meth:`_Across.step_further_in`, if the grey just inside its step is the grey just inside
-    the ``opposite`` side's (the same top) and between it and the points' side the grey beyond
-    (the floor), each within ``further_grey_share`` of its contrast."""
+    """:meth:`_Across.step_further_in`, if the grey just inside its step is ``top_grey`` (the
+    grey just inside the sides found: the same top) and between it and the points' side the grey
+    beyond (the floor), each within ``further_grey_share`` of its contrast."""
     step = across.step_further_in(grey, 0.5, side_band_m, config)
     if step is None:
         return None
-    pixel_m = across.pixel_m
-    profile, opposite_profile = grey.mean(axis=1), opposite_grey.mean(axis=1)
-    top = across.grey_at(profile, step[0] - 3 * pixel_m, step[0] - pixel_m)
-    between = across.grey_at(profile, step[0] + pixel_m, 0.0)
-    floor = across.grey_at(profile, pixel_m, across.textured_m[1])
-    opposite_top = across.grey_at(
-        opposite_profile, opposite[0] - 3 * pixel_m, opposite[0] - pixel_m
-    )
+    profile = grey.mean(axis=1)
+    top = across.grey_inside(profile, step[0])
+    between = across.grey_at(profile, step[0] + across.pixel_m, 0.0)
+    floor = across.grey_at(profile, across.pixel_m, across.textured_m[1])
     tolerance = config.further_grey_share * abs(floor - top)
-    if abs(top - opposite_top) <= tolerance and abs(between - floor) <= tolerance:
+    if abs(top - top_grey) <= tolerance and abs(between - floor) <= tolerance:
         return step
     return None
 
@@ -447,13 +442,14 @@ def _refine_box(
     grey = _sample(image, view, np.hstack(xs), np.hstack(ys), d.top_m)
     columns = np.split(grey, np.cumsum(widths)[:-1], axis=1)
     found = [across.find_side(c, 0.5, band, config) for c, band in zip(columns, bands, strict=True)]
-    for side in range(len(sides)):
-        opposite = side ^ 1  # the other side along the same axis
-        opposite_step = found[opposite]
-        if found[side] is None and opposite_step is not None:
-            found[side] = _further_side(
-                across, columns[side], bands[side], columns[opposite], opposite_step, config
-            )
+    tops = [
+        across.grey_inside(c.mean(axis=1), f[0]) for c, f in zip(columns, found, strict=True) if f
+    ]
+    if tops:
+        found = [
+            f or _further_side(across, c, band, float(np.mean(tops)), config)
+            for c, band, f in zip(columns, bands, found, strict=True)
+        ]
     strengths = []
     for side, step in enumerate(found):
         if step is None:
