@@ -224,8 +224,8 @@ def test_a_far_side_the_matcher_carried_past_the_search_is_found_further_in() ->
     """A low box's side facing away from the camera, over a textured floor, 10 cm inside the
     points' side (the matcher carried the top's disparity over the floor beyond it: ``--seed 5
     --pairs 6``, box_4 0.67 m wide of 0.59): no step within the search, so it is looked for
-    further inside, and the step there is the top's edge (its top as grey as the opposite
-    side's, floor between it and the points' side)."""
+    further inside, and the step there is the top's edge (its top as grey as inside the sides
+    found, floor between it and the points' side)."""
     center, size, top = (5.7, 4.5), (0.64, 0.86), 0.24
     image = _render(center, size, 0.0, top, round_top=False, top_grey=95.0)
     # The high-x side (away from the camera at x = 5) 10 cm out, as the points put it.
@@ -241,8 +241,8 @@ def test_a_print_further_in_than_the_search_is_not_a_far_side(print_m: float) ->
     dark print 8 cm inside that: the search further in finds the print's step, not the top's
     edge, so the side stays where the points put it (``--floor speckle``: box_3 0.21 m wide of
     0.40 when a print was taken). A narrow tape: the grey just inside its step is the top's
-    again, whose contrast with the top beyond is nil; a wide print: its grey is not the top's at
-    the opposite side."""
+    again, whose contrast with the top beyond is nil; a wide print: its grey is not the top's
+    inside the sides found."""
     center, size, top = (5.7, 4.5), (0.64, 0.86), 0.24
     image = _render(center, size, 0.0, top, False, 95.0, stripe_inside_m=0.17, stripe_m=print_m)
     prior = Detection((center[0] - 0.045, center[1]), 0.86, 0.55, math.pi / 2, top, 500, False)

@@ -73,8 +73,9 @@ class EdgeConfig:
     concrete, 0.67 m wide of 0.59, its step 7.5-12 cm inside the points' side). Where the search
     there sees no strong step, or its strongest at its inner end, a step up to
     ``further_search_m`` inside is the top's edge if the grey just inside it is the grey just
-    inside the sides found (the same top), and the grey between it and the points' side the floor's
-    beyond, each within ``further_grey_share`` of the step's contrast (:func:`_further_side`).
+    inside the sides found (the same top), and the grey between it and the points' side the
+    floor's beyond, each within ``further_grey_share`` of the step's contrast
+    (:func:`_further_side`).
     Without the first test a print on a top took over (``--floor speckle``: box_3 0.21 m wide
     of 0.40, 0.29 without the further search)."""
 
