@@ -238,8 +238,8 @@ def test_a_far_side_the_matcher_carried_past_the_search_is_found_further_in() ->
 @pytest.mark.parametrize("print_m", [0.02, 0.12])
 def test_a_print_further_in_than_the_search_is_not_a_far_side(print_m: float) -> None:
     """The points' side of a far side 9 cm inside the top's edge (a plain top matched in part), a
-    dark print 8 cm inside that: the search further in finds the print's step, not the top's
-    edge, so the side stays where the points put it (``--floor speckle``: box_3 0.21 m wide of
+    dark print 8 cm inside that: a search further in meets the print's step, not the top's
+    edge, and the side stays where the points put it (``--floor speckle``: box_3 0.21 m wide of
     0.40 when a print was taken). A narrow tape: the grey just inside its step is the top's
     again, whose contrast with the top beyond is nil; a wide print: its grey is not the top's
     inside the sides found."""

@@ -235,7 +235,7 @@ class _Across:
     """How an edge's profile is sampled across it, for one top's height: its pixel's footprint
     there, the step's lag (half a pixel each way, in samples) and the offsets from the points'
     edge, outward positive (reaching ``plain_search_m`` and the widest face inside, or
-    ``further_search_m``, and that face outside, in whole samples)."""
+    ``further_search_m`` and three pixels, and that face outside, in whole samples)."""
 
     pixel_m: float
     lag: int
@@ -263,7 +263,8 @@ class _Across:
         plain = round((config.plain_search_m - config.search_m) / config.step_m)
         further = round((config.further_search_m - config.search_m) / config.step_m)
         face = math.ceil(face_m / config.step_m)
-        inside = offsets[0] - config.step_m * np.arange(max(plain + face, further), 0, -1)
+        below = math.ceil(3 * pixel_m / config.step_m)  # a further step's top (:meth:`grey_inside`)
+        inside = offsets[0] - config.step_m * np.arange(max(plain + face, further + below), 0, -1)
         outside = offsets[-1] + config.step_m * np.arange(1, face + 1)
         return _Across(
             pixel_m,
@@ -323,9 +324,10 @@ class _Across:
     def step_further_in(
         self, grey: F64, along_px: float, side_band_m: float, config: EdgeConfig
     ) -> tuple[float, float] | None:
-        """Where :meth:`find_side` found no step on a side facing away from the camera over a
-        floor that is not plain: a step up to ``further_search_m`` inside, if the search saw no
-        strong one or its strongest at its inner end (``EdgeConfig.further_grey_share``)."""
+        """Where :meth:`find_side` found no step on a side that shows no face wider than a pixel
+        (facing away from the camera) over a floor that is not plain: a step up to
+        ``further_search_m`` inside, if the search saw no strong one or its strongest at its
+        inner end (taken or not by :func:`_further_side`)."""
         if side_band_m > self.pixel_m or self._plain(grey, along_px, side_band_m, config):
             return None
         from_m = self.textured_m[0]
@@ -446,6 +448,7 @@ def _refine_box(
     tops = [
         across.grey_inside(c.mean(axis=1), f[0]) for c, f in zip(columns, found, strict=True) if f
     ]
+    tops = [grey for grey in tops if math.isfinite(grey)]  # not where the image ends
     if tops:
         found = [
             f or _further_side(across, c, band, float(np.mean(tops)), config)
