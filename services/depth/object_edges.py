@@ -230,6 +230,10 @@ def _face_growth(top_m: float, view: ImageView) -> float:
     return 1.0 / max(1.0 - top_m / float(view.C_world[2]), 0.1)
 
 
+_TINY_M = 1e-9
+"""Offsets this close to a search's bound count as within it (sums of steps in floats)."""
+
+
 @dataclass(frozen=True)
 class _Across:
     """How an edge's profile is sampled across it, for one top's height: its pixel's footprint
@@ -301,12 +305,11 @@ class _Across:
     def _plain(self, grey: F64, along_px: float, side_band_m: float, config: EdgeConfig) -> bool:
         """Whether the floor beyond a side (a pixel past it and past its face) is plain and the
         samples ``plain_search_m`` inside lie in the image (:meth:`find_side`)."""
-        tiny_m = 1e-9
         to_m = self.textured_m[1]
         beyond = grey[(self.offsets_m > side_band_m + self.pixel_m) & (self.offsets_m <= to_m)]
         lag = max(1, round(1.0 / along_px))  # the samples a pixel apart
         change = np.abs(beyond[:, lag:] - beyond[:, :-lag])
-        plain_reach = (self.offsets_m >= self.plain_from_m - tiny_m) & (self.offsets_m <= to_m)
+        plain_reach = (self.offsets_m >= self.plain_from_m - _TINY_M) & (self.offsets_m <= to_m)
         return (
             bool(change.size)
             and float(np.median(change)) < config.plain_grey
@@ -338,21 +341,20 @@ class _Across:
     def _profile(self, grey: F64, from_m: float, face_m: float) -> npt.NDArray[np.bool_]:
         """The offsets from ``from_m`` to the search's outer end, and a face's width further
         either way where those samples lie in the image."""
-        tiny_m = 1e-9
         to_m = self.textured_m[1]
-        profile = (self.offsets_m >= from_m - face_m - tiny_m) & (
-            self.offsets_m <= to_m + face_m + tiny_m
+        profile = (self.offsets_m >= from_m - face_m - _TINY_M) & (
+            self.offsets_m <= to_m + face_m + _TINY_M
         )
         if np.isnan(grey[profile]).any():  # the face's reach lies off the image: without it
-            profile = (self.offsets_m >= from_m - tiny_m) & (self.offsets_m <= to_m + tiny_m)
+            profile = (self.offsets_m >= from_m - _TINY_M) & (self.offsets_m <= to_m + _TINY_M)
         return profile
 
     def _searched_m(self, from_m: float, config: EdgeConfig) -> tuple[float, float]:
         """Where a step may peak: a lag in from either end of ``from_m`` … the outer end."""
-        tiny_m, step_m = 1e-9, config.step_m
+        step_m = config.step_m
         return (
-            from_m + self.lag * step_m - tiny_m,
-            self.textured_m[1] - self.lag * step_m + tiny_m,
+            from_m + self.lag * step_m - _TINY_M,
+            self.textured_m[1] - self.lag * step_m + _TINY_M,
         )
 
     def _search(
@@ -448,7 +450,7 @@ def _refine_box(
     tops = [
         across.grey_inside(c.mean(axis=1), f[0]) for c, f in zip(columns, found, strict=True) if f
     ]
-    tops = [grey for grey in tops if math.isfinite(grey)]  # not where the image ends
+    tops = [top for top in tops if math.isfinite(top)]  # not where the image ends
     if tops:
         found = [
             f or _further_side(across, c, band, float(np.mean(tops)), config)
