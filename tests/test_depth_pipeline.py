@@ -11,7 +11,7 @@ from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import ObjectSpec, SceneSpec, generate_scene
 from services.depth.inverse_model import build_tile
-from services.depth.pipeline import DepthPipeline, FrameResult, PipelineConfig
+from services.depth.pipeline import DepthPipeline, FrameResult, PipelineConfig, view_edge
 from services.depth.projection import project_to_world
 from services.depth.stereo import Rectifier
 
@@ -177,12 +177,22 @@ def test_the_floor_behind_a_standing_pixel_is_hidden_and_no_other() -> None:
     )
     pipeline.floor_model.hidden[:] = False
     pipeline.floor_model.hidden[departed] = True
-    hidden = pipeline._hidden_floor_xy(evidence, points)
+    hidden = pipeline._hidden_floor_xy(np.flatnonzero(np.isfinite(evidence)), points)
     floor_xy = pipeline.floor_xy_m
     expected = np.stack(
         [floor_xy[:, standing[0], standing[1]], floor_xy[:, departed[0], departed[1]]], 1
     )
     np.testing.assert_array_equal(hidden, expected)
+
+
+def test_the_view_edge_is_the_border_of_what_the_matcher_measures() -> None:
+    """5 % of the shorter side (12 px of 320 × 240) from the image's border, and on the left from
+    the columns the matcher has no disparity for."""
+    edge = view_edge((240, 320), 40)
+    inside_rows, inside_cols = np.nonzero(~edge)
+    assert (inside_rows.min(), inside_rows.max()) == (12, 227)
+    assert (inside_cols.min(), inside_cols.max()) == (52, 307)
+    assert (~edge).sum() == (228 - 12) * (308 - 52)
 
 
 def test_a_side_face_no_longer_fills_the_cells_beside_a_box() -> None:
@@ -199,7 +209,8 @@ def test_a_side_face_no_longer_fills_the_cells_beside_a_box() -> None:
     pipeline = DepthPipeline(calib, PipelineConfig())
     result = pipeline.process(left, right)
     config = pipeline.config
-    hidden = pipeline._hidden_floor_xy(result.evidence_disparity_px, result.points)
+    valid_px = np.flatnonzero(np.isfinite(result.evidence_disparity_px))
+    hidden = pipeline._hidden_floor_xy(valid_px, result.points)
     every_point = build_tile(
         result.points, config.resolution_m, config.model, config.min_cell_pixels, hidden
     )

@@ -147,3 +147,44 @@ def test_a_cell_that_loses_its_face_points_shows_the_height_of_those_it_keeps() 
     assert tile.height_m[row, col] == pytest.approx(0.0)
     everything = build_tile(edge, R, SensorModelParams(), 3, None, None)
     assert everything.height_m[row, col] == pytest.approx(0.8)  # the face's highest point
+
+
+def _wall_foot(face_x_m: float, top_m: float | None) -> WorldPoints:
+    """At the edge of the view, along one row of cells: the floor up to ``face_x_m`` and then, if
+    ``top_m`` is None, a wall's face there, its lowest 10–20 cm (the rest is out of the view),
+    else the top of something standing beyond it at that height (a point every 4 mm)."""
+    points = _box_edge(face_x_m, top_from_m=1.0)  # the floor and a face, no top in the row
+    floor = points.height_m < 0.05
+    xs, heights = [*points.x_m[floor]], [*points.height_m[floor]]
+    if top_m is None:
+        xs += [face_x_m] * 30
+        heights += [*np.linspace(0.1, 0.2, 30)]
+    else:
+        top_xs = [*np.arange(face_x_m, 1.1, 0.004)]
+        xs += top_xs
+        heights += [top_m] * len(top_xs)
+    return WorldPoints(
+        x_m=np.array(xs, np.float32),
+        y_m=np.full(len(xs), ROW_Y_M, np.float32),
+        height_m=np.array(heights, np.float32),
+        height_sigma_m=np.full(len(xs), 0.02, np.float32),
+    )
+
+
+def test_a_face_whose_top_is_out_of_the_view_is_judged_without_it() -> None:
+    """A wall's foot at the edge of a view: its face at 0.99 m leaves cell (19, 3)'s centre
+    (0.975) on the open side, but no top is seen above it, so without the flag its points count
+    and the cell reads occupied. Flagged out of view, they are judged as a face and the cell reads
+    free. A top flagged so is judged by the same majority: one from 0.96 m covers the centre and
+    keeps the cell occupied, one from 0.99 m does not."""
+    params = SensorModelParams()
+
+    def cell(points: WorldPoints, flagged: bool) -> float:
+        out_of_view = np.full(points.x_m.size, flagged)
+        tile = build_tile(points, R, params, 3, None, (0.0, 0.0), out_of_view)
+        return float(tile.logodds[3 - tile.window.j0, 19 - tile.window.i0])
+
+    assert cell(_wall_foot(0.99, None), flagged=False) > 0.0
+    assert cell(_wall_foot(0.99, None), flagged=True) < 0.0
+    assert cell(_wall_foot(0.96, 0.3), flagged=True) > 0.0
+    assert cell(_wall_foot(0.99, 0.3), flagged=True) < 0.0

@@ -30,6 +30,23 @@ from services.depth.stereo import DisparityChain, MatcherConfig, Rectifier
 
 SEARCH_MARGIN_M = 0.15
 """Search a little below the floor and above the band's top so their disparities are not clipped."""
+VIEW_EDGE_SHARE = 0.05
+"""Pixels this share of the image's shorter side from the edge of what the matcher measures may
+see a surface whose top is out of the view (a wall's foot, a shelf cut by the border): the tile
+judges their points as side faces without a top above them (``build_tile``'s
+``top_out_of_view``). Offline, thirteen scenes (20 s): IoU +0.0002 to +0.0059 (default +0.0046),
+false-free within 0.01 points; 0.025 gained a little less, 0.1 as much; asking no pixel for a top
+−0.004 to +0.002 against 0.05, false-free up to 0.05 points more."""
+
+
+def view_edge(shape_px: tuple[int, int], left_margin_px: int) -> npt.NDArray[np.bool_]:
+    """The pixels within ``VIEW_EDGE_SHARE`` of the edge of what the matcher measures: the image's
+    border, and on the left the columns it has no disparity for (``left_margin_px``)."""
+    rows, cols = shape_px
+    band = max(1, round(VIEW_EDGE_SHARE * min(rows, cols)))
+    edge = np.ones(shape_px, np.bool_)
+    edge[band : rows - band, left_margin_px + band : cols - band] = False
+    return edge
 
 
 @dataclass(frozen=True)
@@ -115,6 +132,10 @@ class DepthPipeline:
             if config.floor.enabled
             else None
         )
+        self.top_out_of_view = view_edge(
+            self.rays_world.shape[1:], self.min_disparity + self.num_disparities
+        ).ravel()
+        """Per pixel (flat): at the edge of the view, where a surface may rise out of it."""
         self.low_band = (
             LowBand(calib, config.downscale, config.matcher, geometry)
             if config.low_band and config.downscale > 1
@@ -160,6 +181,7 @@ class DepthPipeline:
             evidence = self.floor_model.update(left_rect, right_rect, disparity)
             self._align_rows(self.floor_model)
         times.append(time.perf_counter())
+        valid_px = np.flatnonzero(np.isfinite(evidence))  # the points' pixels, in their order
         points = project_to_world(
             evidence,
             self.rays_world,
@@ -175,8 +197,9 @@ class DepthPipeline:
             self.config.resolution_m,
             self.config.model,
             self.config.min_cell_pixels,
-            self._hidden_floor_xy(evidence, points),
+            self._hidden_floor_xy(valid_px, points),
             (float(self.rectifier.C_world[0]), float(self.rectifier.C_world[1])),
+            self.top_out_of_view[valid_px],
         )
         times.append(time.perf_counter())
         # "disparity" is the whole chain: matcher and its optional stages (stereo.DisparityChain).
@@ -196,15 +219,13 @@ class DepthPipeline:
         )
 
     def _hidden_floor_xy(
-        self, evidence: npt.NDArray[np.float32], points: WorldPoints
+        self, valid_px: npt.NDArray[np.intp], points: WorldPoints
     ) -> npt.NDArray[np.float32]:
         """Floor points (2 × N) this frame does not see: those of the pixels that measure something
         standing (their ray stops above the floor), and those the floor model finds hidden."""
         # Points are the finite pixels in row order; index the few standing ones only (indexing
         # both floor planes by the whole mask cost 1 ms a frame).
-        standing = np.flatnonzero(np.isfinite(evidence))[
-            points.height_m >= self.config.model.obstacle_min_m
-        ]
+        standing = valid_px[points.height_m >= self.config.model.obstacle_min_m]
         if self.floor_model is not None:
             standing = np.concatenate([standing, np.flatnonzero(self.floor_model.hidden)])
         standing = standing[self.meets_floor[standing]]
