@@ -198,9 +198,11 @@ def test_the_view_edge_is_the_border_of_what_the_matcher_measures() -> None:
 def test_a_side_face_no_longer_fills_the_cells_beside_a_box() -> None:
     """A tall box 2.5 m off the pair's nadir, so the camera sees one long side face over many
     pixels: the tile leaves the face's points out of the cells whose centre lies on the open
-    side of it (build_tile's ``camera_xy_m``, which the pipeline passes), so fewer cells just
-    outside the box read occupied than when every point counts; the box's own cells read as
-    before (one fewer occupied at most, none more free)."""
+    side of it (build_tile's ``camera_m``, which the pipeline passes), so fewer cells just
+    outside the box read occupied than when every point counts; none of the box's own cells
+    turns free, and 95 % or more of those occupied stay so (the rest give no reading: their
+    points lie behind the box's top along their rays, the top's scatter in front of a face's
+    lower points, or the far edge's mixed pixels)."""
     box = ObjectSpec(
         name="box_f", shape="box", center_xy_m=(8.3, 6.3), yaw_rad=0.3, size_m=(1.0, 0.7, 1.2)
     )
@@ -224,5 +226,7 @@ def test_a_side_face_no_longer_fills_the_cells_beside_a_box() -> None:
     beside &= ~inside
     occupied_beside = int((tile.logodds[beside] > 0).sum())
     assert occupied_beside < int((every_point.logodds[beside] > 0).sum())
-    assert (tile.logodds[inside] > 0).sum() >= (every_point.logodds[inside] > 0).sum() - 1
+    occupied_before = every_point.logodds[inside] > 0
+    assert not (occupied_before & (tile.logodds[inside] < 0)).any()
+    assert (tile.logodds[inside] > 0).sum() >= 0.95 * occupied_before.sum()
     assert (tile.logodds[inside] < 0).sum() <= (every_point.logodds[inside] < 0).sum()

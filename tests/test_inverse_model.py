@@ -119,10 +119,10 @@ def test_a_side_face_beyond_a_cells_centre_is_left_out_of_its_share() -> None:
     box, and the cell reads occupied either way; so does one within a centimetre of the centre.
     One face point is too few to say where a face is: it counts as before."""
     params = SensorModelParams()
-    camera = (0.0, 0.0)
+    camera = (0.0, 0.0, 3.0)
 
-    def cell(points: WorldPoints, camera_xy_m: tuple[float, float] | None) -> float:
-        tile = build_tile(points, R, params, 3, None, camera_xy_m)
+    def cell(points: WorldPoints, camera_m: tuple[float, float, float] | None) -> float:
+        tile = build_tile(points, R, params, 3, None, camera_m)
         return float(tile.logodds[3 - tile.window.j0, 19 - tile.window.i0])
 
     assert cell(_box_edge(0.99), camera) < 0.0
@@ -130,8 +130,9 @@ def test_a_side_face_beyond_a_cells_centre_is_left_out_of_its_share() -> None:
     assert cell(_box_edge(0.96), camera) > 0.0
     assert cell(_box_edge(0.96), None) > 0.0
     assert cell(_box_edge(0.98), camera) > 0.0  # half a centimetre beyond: within the margin
-    # Seen from x = 2 m, the same face points lie nearer the camera than the centre: they count.
-    assert cell(_box_edge(0.99), (2.0, 0.0)) > 0.0
+    # Seen from x = 2 m, the same face points lie nearer the camera than the centre: they count
+    # (from high above: at 3 m the box's top would hide that face from it).
+    assert cell(_box_edge(0.99), (2.0, 0.0, 100.0)) > 0.0
     lone = _box_edge(0.99, face_points=1)
     assert cell(lone, camera) == cell(lone, None)
 
@@ -141,7 +142,7 @@ def test_a_cell_that_loses_its_face_points_shows_the_height_of_those_it_keeps() 
     keeps (here the floor: the box's top begins in the next cell), not of the face: fusion takes
     a free reading's height as the floor's."""
     edge = _box_edge(0.99, top_from_m=0.015)
-    tile = build_tile(edge, R, SensorModelParams(), 3, None, (0.0, 0.0))
+    tile = build_tile(edge, R, SensorModelParams(), 3, None, (0.0, 0.0, 3.0))
     row, col = 3 - tile.window.j0, 19 - tile.window.i0
     assert tile.logodds[row, col] < 0.0
     assert tile.height_m[row, col] == pytest.approx(0.0)
@@ -181,10 +182,46 @@ def test_a_face_whose_top_is_out_of_the_view_is_judged_without_it() -> None:
 
     def cell(points: WorldPoints, flagged: bool) -> float:
         out_of_view = np.full(points.x_m.size, flagged)
-        tile = build_tile(points, R, params, 3, None, (0.0, 0.0), out_of_view)
+        tile = build_tile(points, R, params, 3, None, (0.0, 0.0, 3.0), out_of_view)
         return float(tile.logodds[3 - tile.window.j0, 19 - tile.window.i0])
 
     assert cell(_wall_foot(0.99, None), flagged=False) > 0.0
     assert cell(_wall_foot(0.99, None), flagged=True) < 0.0
     assert cell(_wall_foot(0.96, 0.3), flagged=True) > 0.0
     assert cell(_wall_foot(0.99, 0.3), flagged=True) < 0.0
+
+
+def test_points_a_taller_top_hides_from_the_camera_give_no_reading() -> None:
+    """A camera 3 m over the origin; along one row, floor, a 1 m tall top over x 0.6–1.0 m, and
+    its shadow beyond it to x = 1.5 m, where the camera sees nothing. The matcher's mixed pixels
+    at the top's edge put points there at 0.3 m (cell 22: x 1.10–1.15, with a few floor points):
+    every point counted, the cell reads occupied; with the camera known, they lie behind the top
+    along their rays and the cell gives no reading, neither occupied nor free. A 0.3 m box at x
+    1.6–1.8, past the shadow, and the top itself read occupied either way."""
+    xs = [*np.arange(0.3, 0.6, 0.01), *np.arange(1.5, 1.6, 0.01), *np.arange(1.8, 2.0, 0.01)]
+    heights = [0.0] * len(xs)
+    for start_m, end_m, height_m in ((0.6, 1.0, 1.0), (1.6, 1.8, 0.3)):
+        surface = [*np.arange(start_m, end_m, 0.005)]
+        xs += surface
+        heights += [height_m] * len(surface)
+    xs += [1.11 + 0.003 * k for k in range(10)] + [1.12, 1.13, 1.14]
+    heights += [0.3] * 10 + [0.0] * 3
+    points = WorldPoints(
+        x_m=np.array(xs, np.float32),
+        y_m=np.full(len(xs), ROW_Y_M, np.float32),
+        height_m=np.array(heights, np.float32),
+        height_sigma_m=np.full(len(xs), 0.02, np.float32),
+    )
+    params = SensorModelParams()
+
+    def cells(camera_m: tuple[float, float, float] | None) -> dict[int, float]:
+        tile = build_tile(points, R, params, 3, None, camera_m)
+        return {
+            i: float(tile.logodds[3 - tile.window.j0, i - tile.window.i0]) for i in (16, 22, 34)
+        }
+
+    everything = cells(None)
+    assert everything[22] > 0.0
+    seen = cells((0.0, 0.0, 3.0))
+    assert seen[22] == 0.0
+    assert seen[16] > 0.0 and seen[34] > 0.0

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from common.compiled import compiled
 from common.lattice import Window, cell_center, cell_of
 from common.sensor_model import (
     SensorModelParams,
@@ -158,23 +159,92 @@ def _faces_beyond_centre(
     return left_out
 
 
+BEHIND_MARGIN_M = 0.05
+"""A band point lies behind a surface of its own frame where, walking back along its ray toward
+the camera, a cell's highest point stands this much above the ray (the matcher's scatter on a
+top, a few centimetres) …"""
+BEHIND_FROM_M = 0.05
+"""… from this far back along the ray (the point's own cell holds its own height) …"""
+BEHIND_REACH_M = 1.0
+"""… to this far: the ray rises a metre or more over it from every point a camera 3 m or more
+above the floor sees."""
+
+
+@compiled
+def _behind_taller(
+    flat: npt.NDArray[np.int64],
+    x_m: npt.NDArray[np.float32],
+    y_m: npt.NDArray[np.float32],
+    height_m: npt.NDArray[np.float32],
+    top_m: npt.NDArray[np.float32],
+    window_ij: tuple[int, int, int, int],
+    resolution_m: float,
+    camera_m: tuple[float, float, float],
+    band_min_m: float,
+) -> npt.NDArray[np.bool_]:
+    """The band points that a taller surface of the same frame hides from the camera. A camera
+    cannot see a point its own measurement of a surface nearer along the ray blocks; such points
+    are a depth edge's mixed pixels: the matcher's window straddles a top's edge and the floor
+    beyond it and returns a disparity between the two, a point part way down the ray into the
+    top's shadow (a forklift's rear edge put them 15–20 cm behind it, at 0.3 m). Walks back
+    along each point's ray, half a cell a step, over the cells' highest points (``top_m``)."""
+    i0, j0, cols, rows = window_ij
+    camera_x, camera_y, camera_z = camera_m
+    behind = np.zeros(flat.size, np.bool_)
+    step_m = resolution_m / 2
+    highest_m = top_m.max() if top_m.size else -np.inf
+    for k in range(flat.size):
+        height = height_m[k]
+        if height < band_min_m:
+            continue
+        to_x, to_y = camera_x - x_m[k], camera_y - y_m[k]
+        distance_m = np.sqrt(to_x * to_x + to_y * to_y)
+        if distance_m < resolution_m or camera_z <= height:
+            continue
+        rise = (camera_z - height) / distance_m
+        # Past where the ray clears the frame's highest point, nothing can stand above it.
+        reach_m = min(BEHIND_REACH_M, distance_m, (highest_m - BEHIND_MARGIN_M - height) / rise)
+        along_m = BEHIND_FROM_M
+        while along_m < reach_m:
+            i = int(np.floor((x_m[k] + to_x / distance_m * along_m) / resolution_m)) - i0
+            j = int(np.floor((y_m[k] + to_y / distance_m * along_m) / resolution_m)) - j0
+            if i < 0 or j < 0 or i >= cols or j >= rows:
+                break
+            if top_m[j * cols + i] > height + rise * along_m + BEHIND_MARGIN_M:
+                behind[k] = True
+                break
+            along_m += step_m
+    return behind
+
+
+def _tops(
+    flat: npt.NDArray[np.int64], height_m: npt.NDArray[np.float32], size: int
+) -> npt.NDArray[np.float32]:
+    """Each cell's highest point (−inf where none)."""
+    top = np.full(size, -np.inf, dtype=np.float32)
+    np.maximum.at(top, flat, height_m)
+    return top
+
+
 def build_tile(
     points: WorldPoints,
     resolution_m: float,
     params: SensorModelParams,
     min_cell_pixels: int = 3,
     hidden_xy_m: npt.NDArray[np.float32] | None = None,
-    camera_xy_m: tuple[float, float] | None = None,
+    camera_m: tuple[float, float, float] | None = None,
     top_out_of_view: npt.NDArray[np.bool_] | None = None,
 ) -> Tile:
     """The frame's tile. ``hidden_xy_m`` (2 × N): floor points of the pixels whose floor is
     hidden; a cell holding at least ``min_cell_pixels`` of them, and at least as many as its
     measured pixels, is *hidden* and its reading dropped, unless that reading says occupied (a
     free one there is the matcher's window dragging the floor onto what hides it).
-    ``camera_xy_m``: where the camera that measured the points stands over the floor; with it, a
-    side face lying beyond a cell's centre is left out of that cell's share and pixel count
-    (:func:`_faces_beyond_centre`), judged so without a top seen above it for the points flagged
-    in ``top_out_of_view`` (one per point)."""
+    ``camera_m``: where the camera that measured the points stands (x, y and height); with it,
+    the points a taller surface of the frame hides from it are left out (:func:`_behind_taller`),
+    and the cells that held them give no free reading (what reads floor there is the same depth
+    edge's floor, not the cell seen empty); and a side face lying beyond a cell's centre is left
+    out of that cell's share and pixel count (:func:`_faces_beyond_centre`), judged so without a
+    top seen above it for the points flagged in ``top_out_of_view`` (one per point)."""
     keep = in_model_range(points.height_m, points.height_sigma_m, params)
     x, y = points.x_m[keep], points.y_m[keep]
     height, sigma = points.height_m[keep], points.height_sigma_m[keep]
@@ -204,9 +274,26 @@ def build_tile(
     size = rows * cols
 
     weights = obstacle_likelihood(height, sigma, params)
-    top = np.full(size, -np.inf, dtype=np.float32)
-    np.maximum.at(top, flat, height)
-    if camera_xy_m is not None:
+    top = _tops(flat, height, size)
+    behind_in = np.zeros(size, np.bool_)
+    if camera_m is not None:
+        behind = _behind_taller(
+            flat,
+            x,
+            y,
+            height,
+            top,
+            (window.i0, window.j0, cols, rows),
+            resolution_m,
+            camera_m,
+            params.obstacle_min_m,
+        )
+        if behind.any():
+            behind_in[flat[behind]] = True
+            seen = ~behind
+            flat, x, y, height, weights = flat[seen], x[seen], y[seen], height[seen], weights[seen]
+            out_of_view = None if out_of_view is None else out_of_view[seen]
+            top = _tops(flat, height, size)
         left_out = _faces_beyond_centre(
             flat,
             x,
@@ -216,7 +303,7 @@ def build_tile(
             window,
             resolution_m,
             params.obstacle_min_m,
-            camera_xy_m,
+            camera_m[:2],
             out_of_view,
         )
         # The top seen in the cells that lost points: of the points they keep (a free reading
@@ -244,6 +331,7 @@ def build_tile(
     ).ravel()
     update = np.where(sparse_free, logodds(params.p_miss), update)
     updated |= sparse_free
+    updated &= ~(behind_in & (update < 0.0))
     hidden_pixels = np.bincount(
         (hidden_j - window.j0) * cols + (hidden_i - window.i0), minlength=size
     )

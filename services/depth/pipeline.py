@@ -198,7 +198,11 @@ class DepthPipeline:
             self.config.model,
             self.config.min_cell_pixels,
             self._hidden_floor_xy(valid_px, points),
-            (float(self.rectifier.C_world[0]), float(self.rectifier.C_world[1])),
+            (
+                float(self.rectifier.C_world[0]),
+                float(self.rectifier.C_world[1]),
+                float(self.rectifier.C_world[2]),
+            ),
             self.top_out_of_view[valid_px],
         )
         times.append(time.perf_counter())
