@@ -197,31 +197,44 @@ def test_points_a_taller_top_hides_from_the_camera_give_no_reading() -> None:
     at the top's edge put points there at 0.3 m (cell 22: x 1.10–1.15, with a few floor points):
     every point counted, the cell reads occupied; with the camera known, they lie behind the top
     along their rays and the cell gives no reading, neither occupied nor free. A 0.3 m box at x
-    1.6–1.8, past the shadow, and the top itself read occupied either way."""
+    1.6–1.8, past the shadow, and the top itself read occupied either way; a stray point at 1.2 m
+    just before the box (a face's scatter) is one cell, no surface, and hides nothing."""
     xs = [*np.arange(0.3, 0.6, 0.01), *np.arange(1.5, 1.6, 0.01), *np.arange(1.8, 2.0, 0.01)]
-    heights = [0.0] * len(xs)
+    ys, heights = [ROW_Y_M] * len(xs), [0.0] * len(xs)
     for start_m, end_m, height_m in ((0.6, 1.0, 1.0), (1.6, 1.8, 0.3)):
-        surface = [*np.arange(start_m, end_m, 0.005)]
-        xs += surface
-        heights += [height_m] * len(surface)
+        for y_m in np.arange(0.0, 0.3, 0.01):  # surfaces, not lines: the rays run aslant
+            surface = [*np.arange(start_m, end_m, 0.005)]
+            xs += surface
+            ys += [y_m] * len(surface)
+            heights += [height_m] * len(surface)
     xs += [1.11 + 0.003 * k for k in range(10)] + [1.12, 1.13, 1.14]
+    ys += [ROW_Y_M] * 13
     heights += [0.3] * 10 + [0.0] * 3
+    xs.append(1.57)  # one stray point at 1.2 m
+    ys.append(ROW_Y_M)
+    heights.append(1.2)
     points = WorldPoints(
         x_m=np.array(xs, np.float32),
-        y_m=np.full(len(xs), ROW_Y_M, np.float32),
+        y_m=np.array(ys, np.float32),
         height_m=np.array(heights, np.float32),
         height_sigma_m=np.full(len(xs), 0.02, np.float32),
     )
     params = SensorModelParams()
 
-    def cells(camera_m: tuple[float, float, float] | None) -> dict[int, float]:
+    def cells(camera_m: tuple[float, float, float] | None) -> dict[int, tuple[float, int]]:
         tile = build_tile(points, R, params, 3, None, camera_m)
+        row = 3 - tile.window.j0
         return {
-            i: float(tile.logodds[3 - tile.window.j0, i - tile.window.i0]) for i in (16, 22, 34)
+            i: (
+                float(tile.logodds[row, i - tile.window.i0]),
+                int(tile.count[row, i - tile.window.i0]),
+            )
+            for i in (16, 22, 32)
         }
 
     everything = cells(None)
-    assert everything[22] > 0.0
+    assert everything[22][0] > 0.0
     seen = cells((0.0, 0.0, 3.0))
-    assert seen[22] == 0.0
-    assert seen[16] > 0.0 and seen[34] > 0.0
+    assert seen[22] == (0.0, 0)
+    assert seen[16][0] > 0.0
+    assert seen[32] == everything[32]  # every point of the box's cell kept

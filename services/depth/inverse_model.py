@@ -161,8 +161,9 @@ def _faces_beyond_centre(
 
 BEHIND_MARGIN_M = 0.05
 """A band point lies behind a surface of its own frame where, walking back along its ray toward
-the camera, a cell's highest point stands this much above the ray (the matcher's scatter on a
-top, a few centimetres) …"""
+the camera, the highest points of two cells or more stand this much above the ray (the matcher's
+scatter on a top, a few centimetres; one cell is a stray: a face's upper points scattered a few
+centimetres in front of it hid its lower points, and live runs read more false-free) …"""
 BEHIND_FROM_M = 0.05
 """… from this far back along the ray (the point's own cell holds its own height) …"""
 BEHIND_REACH_M = 1.0
@@ -187,7 +188,10 @@ def _behind_taller(
     are a depth edge's mixed pixels: the matcher's window straddles a top's edge and the floor
     beyond it and returns a disparity between the two, a point part way down the ray into the
     top's shadow (a forklift's rear edge put them 15–20 cm behind it, at 0.3 m). Walks back
-    along each point's ray, half a cell a step, over the cells' highest points (``top_m``)."""
+    along each point's ray, half a cell a step, over the cells' highest points (``top_m``).
+    Offline, thirteen scenes (20 s): IoU −0.0001 to +0.0028, precision up to +0.3 points,
+    false-free the same or lower; one blocking cell enough, +0.0000 to +0.0051 offline but live
+    more false-free (README, "Points a taller top hides from the camera")."""
     i0, j0, cols, rows = window_ij
     camera_x, camera_y, camera_z = camera_m
     behind = np.zeros(flat.size, np.bool_)
@@ -205,14 +209,18 @@ def _behind_taller(
         # Past where the ray clears the frame's highest point, nothing can stand above it.
         reach_m = min(BEHIND_REACH_M, distance_m, (highest_m - BEHIND_MARGIN_M - height) / rise)
         along_m = BEHIND_FROM_M
+        first_cell = -1  # a surface hides the point from two cells on: one is a stray point
         while along_m < reach_m:
             i = int(np.floor((x_m[k] + to_x / distance_m * along_m) / resolution_m)) - i0
             j = int(np.floor((y_m[k] + to_y / distance_m * along_m) / resolution_m)) - j0
             if i < 0 or j < 0 or i >= cols or j >= rows:
                 break
-            if top_m[j * cols + i] > height + rise * along_m + BEHIND_MARGIN_M:
-                behind[k] = True
-                break
+            cell = j * cols + i
+            if top_m[cell] > height + rise * along_m + BEHIND_MARGIN_M and cell != first_cell:
+                if first_cell >= 0:
+                    behind[k] = True
+                    break
+                first_cell = cell
             along_m += step_m
     return behind
 
