@@ -200,7 +200,7 @@ def test_a_side_face_no_longer_fills_the_cells_beside_a_box() -> None:
     pixels: the tile leaves the face's points out of the cells whose centre lies on the open
     side of it (build_tile's ``camera_m``, which the pipeline passes), so fewer cells just
     outside the box read occupied than when every point counts; none of the box's own cells
-    turns free, and 95 % or more of those occupied stay so (the rest give no reading: their
+    turns free, and 97 % or more of those occupied stay so (the rest give no reading: their
     points lie behind the box's top along their rays, the top's scatter in front of a face's
     lower points, or the far edge's mixed pixels)."""
     box = ObjectSpec(
@@ -228,5 +228,5 @@ def test_a_side_face_no_longer_fills_the_cells_beside_a_box() -> None:
     assert occupied_beside < int((every_point.logodds[beside] > 0).sum())
     occupied_before = every_point.logodds[inside] > 0
     assert not (occupied_before & (tile.logodds[inside] < 0)).any()
-    assert (tile.logodds[inside] > 0).sum() >= 0.95 * occupied_before.sum()
+    assert (tile.logodds[inside] > 0).sum() >= 0.97 * occupied_before.sum()
     assert (tile.logodds[inside] < 0).sum() <= (every_point.logodds[inside] < 0).sum()

@@ -92,6 +92,16 @@ ROW_Y_M = 3.5 * R
 """The row of cells the box edge lies in (j = 3), off the camera's line so both axes count."""
 
 
+def _along_the_row(xs: list[float], heights: list[float]) -> WorldPoints:
+    """Points at ``xs`` with ``heights`` along the row of cells ``ROW_Y_M``."""
+    return WorldPoints(
+        x_m=np.array(xs, np.float32),
+        y_m=np.full(len(xs), ROW_Y_M, np.float32),
+        height_m=np.array(heights, np.float32),
+        height_sigma_m=np.full(len(xs), 0.02, np.float32),
+    )
+
+
 def _box_edge(face_x_m: float, face_points: int = 30, top_from_m: float = 0.005) -> WorldPoints:
     """What a camera over the origin measures of a box standing at x > ``face_x_m``, 1 m tall,
     along one row of cells: the floor before its near face (a point a centimetre), its face
@@ -104,12 +114,7 @@ def _box_edge(face_x_m: float, face_points: int = 30, top_from_m: float = 0.005)
     top_xs = [*np.arange(face_x_m + top_from_m, 1.20, 0.01)]
     xs += top_xs
     heights += [1.0] * len(top_xs)
-    return WorldPoints(
-        x_m=np.array(xs, np.float32),
-        y_m=np.full(len(xs), ROW_Y_M, np.float32),
-        height_m=np.array(heights, np.float32),
-        height_sigma_m=np.full(len(xs), 0.02, np.float32),
-    )
+    return _along_the_row(xs, heights)
 
 
 def test_a_side_face_beyond_a_cells_centre_is_left_out_of_its_share() -> None:
@@ -164,12 +169,7 @@ def _wall_foot(face_x_m: float, top_m: float | None) -> WorldPoints:
         top_xs = [*np.arange(face_x_m, 1.1, 0.004)]
         xs += top_xs
         heights += [top_m] * len(top_xs)
-    return WorldPoints(
-        x_m=np.array(xs, np.float32),
-        y_m=np.full(len(xs), ROW_Y_M, np.float32),
-        height_m=np.array(heights, np.float32),
-        height_sigma_m=np.full(len(xs), 0.02, np.float32),
-    )
+    return _along_the_row(xs, heights)
 
 
 def test_a_face_whose_top_is_out_of_the_view_is_judged_without_it() -> None:

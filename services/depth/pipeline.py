@@ -132,9 +132,9 @@ class DepthPipeline:
             if config.floor.enabled
             else None
         )
-        self.top_out_of_view = view_edge(
-            self.rays_world.shape[1:], self.min_disparity + self.num_disparities
-        ).ravel()
+        self.left_margin_px = self.min_disparity + self.num_disparities
+        """Columns on the left the matcher has no disparity for (the right image holds no match)."""
+        self.top_out_of_view = view_edge(self.rays_world.shape[1:], self.left_margin_px).ravel()
         """Per pixel (flat): at the edge of the view, where a surface may rise out of it."""
         self.low_band = (
             LowBand(calib, config.downscale, config.matcher, geometry)
@@ -245,7 +245,7 @@ class DepthPipeline:
             PixelGrid.from_valid(np.isfinite(result.evidence_disparity_px)),
             camera_height_m=float(rectifier.C_world[2]),
             pixel_angle_rad=1.0 / rectifier.focal_px,
-            left_margin_px=self.min_disparity + self.num_disparities,
+            left_margin_px=self.left_margin_px,
             params=self.config.model,
             baseline_yaw_rad=rectifier.baseline_yaw_rad,
         )
