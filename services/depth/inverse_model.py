@@ -162,9 +162,9 @@ def _faces_beyond_centre(
 BEHIND_MARGIN_M = 0.05
 """A band point lies behind a surface of its own frame where, walking back along its ray toward
 the camera, the highest points of two cells or more (not its own) stand more than this above the
-ray (the matcher's
-scatter on a top, a few centimetres; one cell is a stray: a face's upper points scattered a few
-centimetres in front of it hid its lower points, and live runs read more false-free) …"""
+ray (the matcher's scatter on a top, a few centimetres; one cell is a stray: a face's upper
+points scattered a few centimetres in front of it hid its lower points, and live runs read more
+false-free) …"""
 BEHIND_FROM_M = 0.05
 """… from this far back along the ray …"""
 BEHIND_REACH_M = 1.0
@@ -191,7 +191,7 @@ def _behind_taller(
     top's shadow (a forklift's rear edge put them 15–20 cm behind it, at 0.3 m). Walks back
     along each point's ray, half a cell a step, over the cells' highest points (``top_m``: of
     the points the model keeps, so a surface above the band, out of its range, hides nothing).
-    Offline, thirteen scenes (20 s): IoU −0.0001 to +0.0028, precision up to +0.3 points,
+    Offline, thirteen scenes (20 s): IoU −0.0001 to +0.0027, precision up to +0.3 points,
     false-free the same or lower; one blocking cell enough, +0.0000 to +0.0051 offline but live
     more false-free (README, "Points a taller top hides from the camera")."""
     i0, j0, cols, rows = window_ij
