@@ -230,6 +230,8 @@ def _face_growth(top_m: float, view: ImageView) -> float:
     return 1.0 / max(1.0 - top_m / float(view.C_world[2]), 0.1)
 
 
+_ALONG_PX = 0.5
+"""Samples along a side lie this many pixels apart: enough to average texture out."""
 _TINY_M = 1e-9
 """Offsets this close to a search's bound count as within it (sums of steps in floats)."""
 
@@ -401,7 +403,7 @@ def _further_side(
     """:meth:`_Across.step_further_in`, if the grey just inside its step is ``top_grey`` (the
     grey just inside the sides found: the same top) and between it and the points' side the grey
     beyond (the floor), each within ``further_grey_share`` of its contrast."""
-    step = across.step_further_in(grey, 0.5, side_band_m, config)
+    step = across.step_further_in(grey, _ALONG_PX, side_band_m, config)
     if step is None:
         return None
     profile = grey.mean(axis=1)
@@ -429,8 +431,8 @@ def _refine_box(
     xs, ys, widths, bands = [], [], [], []
     for axis, sign in sides:
         other = half[1 - axis] * config.along_share
-        # Along the side, a sample every half pixel: enough to average texture out.
-        along = np.linspace(-other, other, max(3, math.ceil(4 * other / across.pixel_m)))
+        along_m = _ALONG_PX * across.pixel_m
+        along = np.linspace(-other, other, max(3, math.ceil(2 * other / along_m)))
         normal = sign * half[axis] + sign * across.offsets_m  # outward positive
         if axis == 0:
             x, y = _world(d, normal[:, None], along[None, :])
@@ -446,7 +448,9 @@ def _refine_box(
     # One lookup for all four sides. Rows: offsets along the normal; columns: along a side.
     grey = _sample(image, view, np.hstack(xs), np.hstack(ys), d.top_m)
     columns = np.split(grey, np.cumsum(widths)[:-1], axis=1)
-    found = [across.find_side(c, 0.5, band, config) for c, band in zip(columns, bands, strict=True)]
+    found = [
+        across.find_side(c, _ALONG_PX, band, config) for c, band in zip(columns, bands, strict=True)
+    ]
     tops = [
         across.grey_inside(c.mean(axis=1), f[0]) for c, f in zip(columns, found, strict=True) if f
     ]
