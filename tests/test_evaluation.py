@@ -94,6 +94,21 @@ def test_seen_mask_follows_the_visible_surface() -> None:
     assert heights.max() == pytest.approx(1.0)
 
 
+def test_rig_coverage_narrows_with_height_as_the_views_do() -> None:
+    rig = RigSpec(pair_count=1)
+    focal_px = rig.width_px / 2 / math.tan(math.radians(rig.hfov_deg) / 2)
+    floor = (rig.width_px * rig.height_m / focal_px, rig.height_px * rig.height_m / focal_px)
+    heights = (0.0, 1.0, 2.0)
+    coverage = metrics.coverage_by_height(layout_pairs(rig, floor), floor, RES, heights)
+    assert list(coverage) == ["0", "1", "2"]
+    for height, share in zip(heights, coverage.values(), strict=True):
+        # The floor is one camera's footprint: at a height, both views narrowed toward the
+        # nadir, the baseline apart across.
+        scale = (rig.height_m - height) / rig.height_m
+        expected = (floor[0] * scale - rig.baseline_m) * floor[1] * scale / (floor[0] * floor[1])
+        assert share == pytest.approx(expected, abs=0.02), height
+
+
 @pytest.mark.parametrize("shape", ["box", "cylinder"])
 def test_sight_lines_through_an_object_are_blocked(shape: str) -> None:
     eye = np.array([0.0, 0.0, 6.0])

@@ -174,6 +174,10 @@ def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_pa
     assert report["capture_to_map_ms"]["n"] > 5 and report["capture_to_map_ms"]["p50"] > 0
     assert {"camera", "disparity", "model"} <= set(report["stage_ms"])
     assert "moving_appear_s" in report and "moving_clear_s" in report
+    coverage = report["rig_coverage"]  # the floor the pairs see at heights over the band
+    shares = list(coverage.values())
+    assert list(coverage) == ["0.1", "0.5", "1", "1.5", "2"], coverage
+    assert shares == sorted(shares, reverse=True) and 0 < shares[-1] < shares[0] <= 1, coverage
     run = report["over_run"]  # the maps recorded along the run, after its first third
     assert run["maps"] >= 3 and 0.2 < run["iou"] <= 1 and run["false_free_rate"] < 0.5, run
     ros2_log = (tmp_path / "run" / "logs" / "ros2.log").read_text()

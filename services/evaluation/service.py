@@ -214,6 +214,10 @@ class Evaluator:
             top_heights(static, self.window, resolution_m),
             blockers=static,
         )
+        self.rig_coverage = metrics.coverage_by_height(
+            self.calibrations, self.floor_size_m, resolution_m
+        )
+        """Share of the floor the rig sees at each height over the band (metrics.coverage_by_height)."""
         self.in_view = object_scores.seen_whole(
             object_scores.blocking_static(static, self.floor_size_m),
             self.seen,
@@ -419,6 +423,7 @@ def report(
         "static_cells": evaluator.static_cells(occupancy_map),
         "unknown_fraction": scores.unknown_fraction,
         "seen_cells": int(evaluator.seen.sum()),
+        "rig_coverage": evaluator.rig_coverage,
         "raster_length_error_mean_pct": _mean(errors_pct),
         "raster_length_error_max_pct": max(errors_pct, default=math.nan),
         "raster_length_error_mean_m": _mean(errors_m),
@@ -518,6 +523,11 @@ def table(result: dict[str, Any]) -> str:
             f"/{result['length_error_max_pct_in_view']:<5.2f} % mean/max over "
             f"{result['objects_in_view']} (tops wholly in the cameras' view)"
         )
+    coverage = result["rig_coverage"]
+    lines.append(
+        f"{'rig sees, share of floor':<28}"
+        + ", ".join(f"{share:.0%} at {height} m" for height, share in coverage.items())
+    )
     if "over_run" in result:
         run = result["over_run"]
         lines += [
