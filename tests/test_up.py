@@ -17,6 +17,7 @@ from common.png import decode_png
 from common.settings import OvergridParams, ZenohSettings, parse_settings
 from services.camera_sim.settings import CameraSimParams, CameraSimSettings
 from services.depth.settings import DepthParams, DepthSettings
+from services.evaluation.metrics import COVERAGE_HEIGHTS_M
 from services.fusion.settings import FusionParams, FusionSettings
 from services.ros2.settings import RmwZenohSettings
 from services.up import (
@@ -176,7 +177,7 @@ def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_pa
     assert "moving_appear_s" in report and "moving_clear_s" in report
     coverage = report["rig_coverage"]  # the floor the pairs see at heights over the band
     shares = list(coverage.values())
-    assert list(coverage) == ["0.1", "0.5", "1", "1.5", "2"], coverage
+    assert list(coverage) == [f"{height:g}" for height in COVERAGE_HEIGHTS_M], coverage
     assert shares == sorted(shares, reverse=True) and 0 < shares[-1] < shares[0] <= 1, coverage
     run = report["over_run"]  # the maps recorded along the run, after its first third
     assert run["maps"] >= 3 and 0.2 < run["iou"] <= 1 and run["false_free_rate"] < 0.5, run
