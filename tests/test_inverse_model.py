@@ -31,7 +31,8 @@ def test_a_cell_is_hidden_only_where_hidden_pixels_outweigh_a_free_reading() -> 
     """Floor points of pixels whose floor is hidden (floor model, rule 10): a cell with enough of
     them and at least as many as its measured pixels is hidden and carries no update; a cell
     measured occupied stays so; a cell better measured than hidden keeps its free reading."""
-    points = _points([(0, 4, 0.0), (1, 4, 0.8), (2, 9, 0.0), (5, 5, 0.0)])
+    # Cell 1's hit of five pixels: of four or fewer, with nothing occupied beside it, a lone hit.
+    points = _points([(0, 4, 0.0), (1, 5, 0.8), (2, 9, 0.0), (5, 5, 0.0)])
     tile = build_tile(
         points, R, SensorModelParams(), 3, _hidden({0: 5, 1: 5, 2: 5, 3: 5, 4: 2, 5: 5})
     )
@@ -86,6 +87,25 @@ def test_a_cell_of_too_few_pixels_reads_free_only_inside_open_measured_floor() -
     assert centre(floor | {(2, 2): (1, 0.8)}) == (0.0, 0)  # its own pixel in the band
     lone = {(2, 2): (2, 0.0), (1, 2): (4, 0.0), (3, 2): (4, 0.0)}  # neighbours mostly empty
     assert centre(lone) == (0.0, 0)
+
+
+def test_a_lone_hit_of_few_pixels_gives_no_update() -> None:
+    """An occupied reading of four pixels or fewer with nothing occupied in the eight cells
+    around (a few stray points on the floor) gives no update; with a diagonal neighbour occupied,
+    or of more pixels (a post a cell wide), it stands."""
+    params = SensorModelParams()
+    floor = {(i, j): (6, 0.0) for i in range(5) for j in range(5)}
+
+    def update_at(cells: dict[tuple[int, int], tuple[int, float]], i: int, j: int) -> float:
+        tile = build_tile(_points_2d(cells), R, params, 3)
+        return float(tile.logodds[j - tile.window.j0, i - tile.window.i0])
+
+    assert update_at(floor | {(2, 2): (4, 0.5)}, 2, 2) == 0.0  # a lone hit
+    assert update_at(floor | {(2, 2): (4, 0.5)}, 1, 2) < 0.0  # the floor beside reads free
+    pair = floor | {(2, 2): (4, 0.5), (3, 3): (3, 0.5)}
+    assert update_at(pair, 2, 2) > 0.0 and update_at(pair, 3, 3) > 0.0  # two, diagonal
+    assert update_at(floor | {(2, 2): (5, 0.5)}, 2, 2) > 0.0  # five pixels: a post
+    assert update_at({(2, 2): (4, 0.5)}, 2, 2) == 0.0  # alone in its tile too
 
 
 ROW_Y_M = 3.5 * R
