@@ -1195,9 +1195,10 @@ def test_a_passing_forklift_grown_into_at_a_learning_frame_is_never_its_backgrou
     came near (rule 8; on a live run, a blob at the map's clamp). Now a pixel not yet modelled
     whose image departs from what it was confirmed as starts again at that learning frame, and
     again when the forklift has gone: with and without the stale restart
-    (``stale_learning_frames`` never reached), 53 and 60 obstacle cells over the 52 frames where
-    the code before left 164 and 257. A twin modelled on one confirmation, without the stale
-    restart, shows that this instant still meets the case (153)."""
+    (``stale_learning_frames`` never reached), 35 and 42 obstacle cells over the 52 frames where
+    the code before left 164 and 257 (53 and 60 before a lone hit gave no update). A twin
+    modelled on one confirmation, without the stale restart, shows that this instant still meets
+    the case (119; 153 before lone hits)."""
     pair, scene = _site_pair({}, "p0")
     pair.t_s = FORKLIFT_OVER_LEARNING_S - 0.5
     config = PipelineConfig()
@@ -1231,7 +1232,7 @@ def test_a_passing_forklift_grown_into_at_a_learning_frame_is_never_its_backgrou
     pair.close()
     agreeing, without_stale, one_confirmation = phantoms
     assert pipelines[0].floor_model is not None and pipelines[0].floor_model.disagreed > 0
-    assert one_confirmation > 120, phantoms  # the instant still puts the forklift over the learning
+    assert one_confirmation > 100, phantoms  # the instant still puts the forklift over the learning
     assert max(agreeing, without_stale) < 100, phantoms
 
 
