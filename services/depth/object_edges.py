@@ -429,9 +429,9 @@ def _refine_box(
     bounds = [-half[0], half[0], -half[1], half[1]]  # along low/high, across low/high
     sides = ((0, -1), (0, 1), (1, -1), (1, 1))
     xs, ys, widths, bands = [], [], [], []
+    along_m = _ALONG_PX * across.pixel_m  # the samples' spacing along a side
     for axis, sign in sides:
         other = half[1 - axis] * config.along_share
-        along_m = _ALONG_PX * across.pixel_m
         along = np.linspace(-other, other, max(3, math.ceil(2 * other / along_m)))
         normal = sign * half[axis] + sign * across.offsets_m  # outward positive
         if axis == 0:
