@@ -673,6 +673,23 @@ def test_a_wall_face_along_the_baseline_puts_no_ring_of_obstacles_before_it() ->
     assert (free & before).sum() > 0.2 * before.sum()
 
 
+def test_on_a_plain_floor_the_floor_up_to_a_walls_foot_along_the_baseline_reads_free() -> None:
+    """The model's growth stops where the blurred foot's gradient passes ``edge_gray``, a few
+    pixels short of it; it creeps on outward up to the edge's middle (``_up_to_edges``). Pair p0
+    of the plain site sees the south wall's foot (y = 0) along the baseline: without the creep the
+    first row of cells before it never read free (0 %), the second 39 %."""
+    pair, _ = _site_pair({"floor": "plain"}, "p0")
+    pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
+    for _ in range(12):
+        tile = pipeline.process(*pair.next()).tile
+    pair.close()
+    x, y = tile.window.cell_centers(tile.resolution_m)
+    free = (tile.count > 0) & (tile.logodds < 0)
+    along = (x > 0.3) & (x < 5.2)
+    assert free[along & (y > 0.0) & (y < 0.05)].mean() > 0.5  # 67 %
+    assert free[along & (y > 0.05) & (y < 0.1)].mean() > 0.9  # 100 %
+
+
 def test_lane_lines_along_the_baseline_are_free_floor() -> None:
     """Rule 11. A lane line along x has no texture along x: neither the matcher nor the floor
     test measures it, and its edges stop the model's growth, so it stayed unknown (18 % of the

@@ -196,6 +196,9 @@ MIN_FIT_PIXELS = 200
 """Fewer pixels than this fit no residual, and a share of fewer modelled pixels decides nothing."""
 SEED_PROBE_PX = 3.0
 """A smooth pixel is touched by a seed this far outward of it (away from the nadir)."""
+EDGE_CREEP_PX = 3
+"""Steps (pixels) the learned floor creeps outward toward the edge that stopped its growth
+(:meth:`FloorModel._up_to_edges`)."""
 X_ENERGY_MIN = 0.1
 """Variance of the x-gradient (gray levels² per pixel²) below which no window is x-textured (nor
 a pixel's own row, over the window's width: rule 6b) …"""
@@ -1653,6 +1656,7 @@ class FloorModel:
             return np.asarray(picked, np.int64)
 
         self._outward_probe = probe(SEED_PROBE_PX)
+        self._step_out_probe, self._step_in_probe = probe(1.0), probe(-1.0)
         self._inward_probe = probe(-SEED_PROBE_PX)
         self._thin_probes = np.stack([probe(-THIN_TOP_PX).ravel(), probe(THIN_TOP_PX).ravel()])
         self._further_probes = np.stack(
@@ -2164,7 +2168,8 @@ class FloorModel:
         cfg = self.config
         gx = cv2.Sobel(left, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
         gy = cv2.Sobel(left, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-        smooth = (np.abs(gx) + np.abs(gy) < cfg.edge_gray) & ~contradict
+        gradient = np.abs(gx) + np.abs(gy)
+        smooth = (gradient < cfg.edge_gray) & ~contradict
         count, labels = cv2.connectedComponents(smooth.astype(np.uint8), connectivity=4)
         if count <= 1:
             return np.zeros(self.shape, np.bool_)
@@ -2181,8 +2186,27 @@ class FloorModel:
         seeded = np.bincount(labels[touching & smooth], minlength=count)
         enough = (seeded >= cfg.min_seeds) & (seeded >= cfg.seed_share * sizes)
         enough[0] = False  # label 0: the pixels that are not smooth
-        grown: Mask = enough[labels]
-        return grown
+        return self._up_to_edges(enough[labels], gradient, contradict)
+
+    def _up_to_edges(self, grown: Mask, gradient: F32, contradict: Mask) -> Mask:
+        """``grown`` crept outward (away from the nadir) up to the edge that stopped its growth:
+        at most EDGE_CREEP_PX steps, over pixels whose gradient still rises outward (short of the
+        edge's middle, its strongest gradient). Growth stops where the blurred edge's gradient
+        passes ``edge_gray``, a few pixels short of the edge, and outward is where a floor region
+        ends at something rising from it (a box's base, a wall's foot: the floor lies on the
+        nadir's side of them, the face beyond; a face crept onto under a top's edge is taken off
+        by the line of sight). Without it the plain floor along the walls along the baseline, a
+        cell or two wide, was never learned, so never seen free (offline, ``--floor plain``:
+        unknown 4.99 → 3.53 % of the seen floor, IoU +0.017; README, "The floor at a wall's
+        foot")."""
+        reach = grown.copy()
+        rising = (_probed(gradient, self._step_out_probe, np.float32(0.0)) > gradient) & ~contradict
+        for _ in range(EDGE_CREEP_PX):
+            step = rising & ~reach & _probed(reach, self._step_in_probe, np.False_)
+            if not step.any():
+                break
+            reach |= step
+        return reach
 
     def _plain_floor_seen(self, test: FloorTest, inside: Mask) -> bool | None:
         """Whether the floor is plain (less than TEXTURED_FLOOR_SHARE of it textured for the floor
