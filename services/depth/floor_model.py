@@ -111,7 +111,11 @@ Learning (never from pixels where something stands), every ``learn_every`` frame
   connected region holding enough seeds is floor, so a plain floor is learned from the few floor
   edges stereo can measure (object bases, wall bases, markings). An object standing since start-up
   is bounded by its outline and never joins: it stays unmodelled, so it is never a floor
-  observation.
+  observation. Growth stops a few pixels short of an edge (its blur passes ``edge_gray``), so the
+  grown floor then creeps outward, away from the nadir, up to the edge's middle (at most
+  EDGE_CREEP_PX): outward, a floor region ends at what rises from it (a wall's foot, a box's
+  base), the face beyond the edge's middle (without it, a plain floor along a wall's foot along
+  the baseline was never learned).
 - *Line of sight*: a pixel is never learned where its ray to the floor passes through the column
   under an obstacle point measured in this frame (a box's side face between its base and its top
   edge: learned as floor, it would put free cells inside the box).
