@@ -2168,7 +2168,8 @@ class FloorModel:
         return seeds
 
     def _grown(self, left: F32, seeds: Mask, contradict: Mask) -> Mask:
-        """Smooth connected regions touched by enough seeds (the plain floor around floor edges)."""
+        """Smooth connected regions touched by enough seeds (the plain floor around floor edges),
+        crept outward up to the edges that stopped them (:meth:`_up_to_edges`)."""
         cfg = self.config
         gx = cv2.Sobel(left, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
         gy = cv2.Sobel(left, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
