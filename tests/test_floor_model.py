@@ -690,6 +690,47 @@ def test_on_a_plain_floor_the_floor_up_to_a_walls_foot_along_the_baseline_reads_
     assert free[along & (y > 0.05) & (y < 0.1)].mean() > 0.9  # 100 %
 
 
+def _band_points_around_box_2(frames: int = 12) -> tuple[int, int]:
+    """Band points of pair p3 of the plain site over its last four frames: 5–20 cm outside
+    box_2 (a textured box), and more than 5 cm inside its top."""
+    pair, scene = _site_pair({"floor": "plain"}, "p3")
+    box = next(o for o in scene.truth_objects(0) if o.name == "box_2")
+    pipeline = DepthPipeline(pair.capture.calibration, PipelineConfig())
+    outside = inside = 0
+    for frame in range(frames):
+        result = pipeline.process(*pair.next())
+        if frame < frames - 4:
+            continue
+        points = result.points
+        dx, dy = points.x_m - box.center_m[0], points.y_m - box.center_m[1]
+        cos, sin = np.cos(box.yaw_rad), np.sin(box.yaw_rad)
+        over = [np.abs(cos * dx + sin * dy) - box.size_m[0] / 2]
+        over.append(np.abs(-sin * dx + cos * dy) - box.size_m[1] / 2)
+        out_m = np.hypot(np.maximum(over[0], 0.0), np.maximum(over[1], 0.0))
+        band = points.height_m >= 0.1
+        outside += int((band & (out_m > 0.05) & (out_m < 0.2)).sum())
+        inside += int((band & (np.maximum(over[0], over[1]) < -0.05)).sum())
+    pair.close()
+    return outside, inside
+
+
+def test_on_a_plain_floor_a_textured_tops_filling_over_the_floor_beyond_its_edge_is_dropped(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Rule 6c: the matcher carries box_2's disparity from its edge over the plain floor beyond,
+    and rule 6 kept that filling on the edge's word alone. With the rule, 261 band points lie
+    5–20 cm outside it over four frames, without it 751; its top keeps its 3 809 either way."""
+    outside, inside = _band_points_around_box_2()
+    monkeypatch.setattr(
+        floor_model.FloorModel,
+        "_fattened_one_sided",
+        lambda self, left, interpolated, *_: np.zeros_like(interpolated),
+    )
+    outside_before, inside_before = _band_points_around_box_2()
+    assert outside < 0.6 * outside_before, (outside, outside_before)
+    assert inside >= 0.98 * inside_before, (inside, inside_before)
+
+
 def test_lane_lines_along_the_baseline_are_free_floor() -> None:
     """Rule 11. A lane line along x has no texture along x: neither the matcher nor the floor
     test measures it, and its edges stop the model's growth, so it stayed unknown (18 % of the
@@ -782,6 +823,24 @@ def test_row_support_vouches_only_for_what_the_measurements_bounding_a_run_agree
     # Beyond reach an anchor vouches for nothing.
     far = floor_model.row_support(height, anchors, reach_px=1, tolerance_m=0.1)
     assert not far.anchored[0, 3] and not np.isfinite(far.bridge_m[0, 3])
+
+
+def test_one_sided_anchor_run_is_the_length_of_the_one_nearest_measured_run() -> None:
+    """Rule 6c's test of the measurement a filling rests on: per pixel with measurements within
+    reach on one side only, how many the nearest one has in a row (a textured top's many, a
+    plain top's edge a few); 0 with measurements on both sides or none within reach."""
+    anchors = np.zeros((3, 30), np.bool_)
+    anchors[0, 2:12] = True  # a textured top's ten, the plain floor beyond
+    anchors[1, 2:5] = True  # a plain top's edge of three …
+    anchors[1, 13] = True  # … and one measurement farther along the row
+    run = floor_model.one_sided_anchor_run(anchors, reach_px=6)
+    assert run[0, 15] == 10 and run[0, 17] == 10  # 4 and 6 px beyond its last
+    assert run[0, 18] == 0  # beyond reach
+    assert run[0, 0] == 10  # before it, on its other side
+    assert run[1, 5] == 3  # 1 px from the edge, 8 from the lone one
+    assert run[1, 7] == 0  # within reach of both sides
+    assert run[1, 18] == 1  # the lone one alone within reach
+    assert not run[2].any()  # nothing measured
 
 
 def test_column_support_holds_a_floor_reading_its_columns_nearest_measurements_agree_with() -> None:

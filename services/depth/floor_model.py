@@ -54,6 +54,11 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
    (a wall's foot), whose window holds the edge while its own row has texture along x, is kept
    where the nearest measurements up and down its column agree with it and none along its row
    disagrees (6b: the floor along the walls along x, two cells wide, stayed unknown without it).
+   On a plain floor, a raised filling kept on the word of one measurement is no evidence where
+   that measurement is a textured surface's (several in a row along x) and the pixel has the
+   floor's grey around it (6c): a textured top does not turn plain at its edge, so the run
+   beyond it is the plain floor the matcher carried the top's disparity over, which nothing
+   bounds on the far side (a plain top, measured at its edges only, keeps its filling).
 7. A run with no disparity at all between two measurements at one height in the obstacle band
    (the plain top of a box or a mover: SGBM's uniqueness test leaves most of it empty) is that
    surface, unless the background says floor there.
