@@ -825,7 +825,7 @@ def test_row_support_vouches_only_for_what_the_measurements_bounding_a_run_agree
     assert not far.anchored[0, 3] and not np.isfinite(far.bridge_m[0, 3])
 
 
-def test_one_sided_anchor_run_is_the_length_of_the_one_nearest_measured_run() -> None:
+def test_row_support_gives_the_run_length_of_the_one_nearest_measurement() -> None:
     """Rule 6c's test of the measurement a filling rests on: per pixel with measurements within
     reach on one side only, how many the nearest one has in a row (a textured top's many, a
     plain top's edge a few); 0 with measurements on both sides or none within reach."""
@@ -833,7 +833,9 @@ def test_one_sided_anchor_run_is_the_length_of_the_one_nearest_measured_run() ->
     anchors[0, 2:12] = True  # a textured top's ten, the plain floor beyond
     anchors[1, 2:5] = True  # a plain top's edge of three …
     anchors[1, 13] = True  # … and one measurement farther along the row
-    run = floor_model.one_sided_anchor_run(anchors, reach_px=6)
+    heights = np.where(anchors, np.float32(1.0), np.float32(np.nan)).astype(np.float32)
+    run = floor_model.row_support(heights, anchors, 6, 0.1, runs=True).one_sided_run
+    assert run is not None
     assert run[0, 15] == 10 and run[0, 17] == 10  # 4 and 6 px beyond its last
     assert run[0, 18] == 0  # beyond reach
     assert run[0, 0] == 10  # before it, on its other side

@@ -375,62 +375,25 @@ class RowSupport:
     bridge_m: F32
     """Where measurements within reach on both sides agree with each other: the height between
     them, interpolated along the row; NaN elsewhere."""
+    one_sided_run: npt.NDArray[np.int64] | None
+    """Where a measurement lies within reach on one side only: how many measurements in a row
+    the nearest one belongs to (a textured top's many, a plain top's edge a few: rule 6c); 0
+    elsewhere. None unless asked for (it costs 0.4 ms a frame)."""
 
 
-def row_support(height_m: F32, anchors: Mask, reach_px: int, tolerance_m: float) -> RowSupport:
+def row_support(
+    height_m: F32, anchors: Mask, reach_px: int, tolerance_m: float, runs: bool = False
+) -> RowSupport:
     """The nearest anchor (measured pixel) left and right of every pixel in its row, and how their
-    heights relate to the pixel's and to each other."""
+    heights relate to the pixel's and to each other (and with ``runs``, the one-sided run)."""
     anchored = np.empty(height_m.shape, np.bool_)
     consistent = np.empty(height_m.shape, np.bool_)
     bridge = np.empty(height_m.shape, np.float32)
-    _scan_rows(height_m, anchors, reach_px, tolerance_m, anchored, consistent, bridge)
-    return RowSupport(anchored, consistent, bridge)
-
-
-def one_sided_anchor_run(anchors: Mask, reach_px: int) -> npt.NDArray[np.int64]:
-    """Per pixel with an anchor within ``reach_px`` along its row on one side only: how many
-    anchors in a row that nearest anchor belongs to (0 elsewhere: anchors on both sides, or
-    none)."""
-    run = np.empty(anchors.shape, np.int64)
-    _one_sided_anchor_run(anchors, reach_px, run)
-    return run
-
-
-@compiled
-def _one_sided_anchor_run(anchors: Mask, reach_px: int, out: npt.NDArray[np.int64]) -> None:
-    """Per row: the anchors' run lengths, then the nearest anchor to the left and, in a pass
-    from the right, to the right (whole-frame numpy passes cost 5 ms, this a fraction of one)."""
-    rows, cols = anchors.shape
-    run = np.empty(cols, np.int64)
-    left_col = np.empty(cols, np.int64)
-    for row in range(rows):
-        col = 0
-        while col < cols:
-            start = col
-            while col < cols and anchors[row, col]:
-                col += 1
-            for k in range(start, col):
-                run[k] = col - start
-            if col == start:
-                run[col] = 0
-                col += 1
-        last = -reach_px - 1
-        for col in range(cols):
-            if anchors[row, col]:
-                last = col
-            left_col[col] = last
-        nearest = cols + reach_px + 1
-        for col in range(cols - 1, -1, -1):
-            if anchors[row, col]:
-                nearest = col
-            near_left = col - left_col[col] <= reach_px
-            near_right = nearest - col <= reach_px
-            if near_left and not near_right:
-                out[row, col] = run[left_col[col]]
-            elif near_right and not near_left:
-                out[row, col] = run[nearest]
-            else:
-                out[row, col] = 0
+    one_sided_run = np.empty(height_m.shape if runs else (0, 0), np.int64)
+    _scan_rows(
+        height_m, anchors, reach_px, tolerance_m, anchored, consistent, bridge, one_sided_run
+    )
+    return RowSupport(anchored, consistent, bridge, one_sided_run if runs else None)
 
 
 @compiled
@@ -442,14 +405,27 @@ def _scan_rows(
     anchored: Mask,
     consistent: Mask,
     bridge: F32,
+    one_sided_run: npt.NDArray[np.int64],
 ) -> None:
-    """Two passes per row, the nearest anchor to the left then to the right (a sequential scan:
-    a dozen whole-frame numpy passes cost 3 ms, this 0.2 ms)."""
+    """Per row, two passes, the nearest anchor to the left then to the right (a sequential scan:
+    a dozen whole-frame numpy passes cost 3 ms, this 0.2 ms); first the anchors' run lengths,
+    where ``one_sided_run`` is not empty."""
     rows, cols = height_m.shape
     tolerance = np.float32(tolerance_m)
     left_col = np.empty(cols, np.int64)
     left_height = np.empty(cols, np.float32)
+    run = np.empty(cols, np.int64)
+    runs = one_sided_run.shape[0] > 0
     for row in range(rows):
+        col = 0
+        while runs and col < cols:
+            start = col
+            while col < cols and anchors[row, col]:
+                col += 1
+            run[start:col] = col - start
+            if col == start:
+                run[col] = 0
+                col += 1
         last, last_height = -reach_px - 1, np.float32(np.nan)
         for col in range(cols):
             if anchors[row, col]:
@@ -462,6 +438,10 @@ def _scan_rows(
             height, start, start_height = height_m[row, col], left_col[col], left_height[col]
             near_left, near_right = col - start <= reach_px, nearest - col <= reach_px
             anchored[row, col] = near_left or near_right
+            if runs:
+                one_sided = near_left != near_right
+                nearest_run = run[start] if near_left else run[min(nearest, cols - 1)]
+                one_sided_run[row, col] = nearest_run if one_sided else 0
             agrees = True  # NaN never agrees
             if near_left and not abs(height - start_height) <= tolerance:
                 agrees = False
@@ -1759,7 +1739,6 @@ class FloorModel:
         self._gap_kernel = np.ones((2 * math.ceil(gap_px / 2) + 1,) * 2, np.uint8)
         # Compile the kernels (or load them from numba's cache) now, not in the first frame.
         row_support(np.zeros((1, 1), np.float32), np.zeros((1, 1), np.bool_), 1, ROW_TOLERANCE_M)
-        one_sided_anchor_run(np.zeros((1, 1), np.bool_), 1)
         no_runs = np.zeros((1, 1), np.uint8)
         _top_runs(no_runs, no_runs, 1, 1, no_runs)
         _column_support(
@@ -1939,7 +1918,13 @@ class FloorModel:
         measured[put_down & interpolated] = np.nan  # rule 12
         observed = matches & ((interpolated & ~at_floor) | (~valid & ~refined))
         anchors = np.isfinite(height_now) & ~interpolated
-        support = row_support(height_now, anchors, ROW_REACH_PX, ROW_TOLERANCE_M)
+        support = row_support(
+            height_now,
+            anchors,
+            ROW_REACH_PX,
+            ROW_TOLERANCE_M,
+            runs=self.plain_floor,  # rule 6c
+        )
         # No texture (a plain box top), or texture only across the baseline (board gaps, grain
         # along x: a pallet's deck), lets the matcher carry the floor's disparity in from around:
         # that "floor" is believed only where the background says floor too.
@@ -1948,8 +1933,10 @@ class FloorModel:
         carried = interpolated & low & ~matches & (test.along_baseline | ~test.textured)
         # Rule 6; with no measurement within reach, only the background vouches (for the floor).
         vouched = np.where(support.anchored, support.consistent, matches & low)
-        if self.plain_floor:  # rule 6c
-            vouched &= ~self._fattened_one_sided(left, interpolated, height_now, anchors, support)
+        if support.one_sided_run is not None:  # on a plain floor: rule 6c
+            vouched &= ~self._fattened_one_sided(
+                left, interpolated, height_now, support.one_sided_run
+            )
         # Rule 6b, never against its row: where the row's measurements disagree rule 6 stands
         # (a dark face beside a top's edge along x takes the floor's disparity as well).
         disagreed = support.anchored & ~support.consistent
@@ -2000,7 +1987,7 @@ class FloorModel:
         return out
 
     def _fattened_one_sided(
-        self, left: F32, interpolated: Mask, height_m: F32, anchors: Mask, support: RowSupport
+        self, left: F32, interpolated: Mask, height_m: F32, one_sided_run: npt.NDArray[np.int64]
     ) -> Mask:
         """Rule 6c: the raised fillings of a plain floor that rule 6 keeps on the word of one
         measurement, where that measurement is a textured surface's (TEXTURED_ANCHOR_PX
@@ -2012,10 +1999,9 @@ class FloorModel:
         holds its cells on it: README, "One-sided rows on a plain floor")."""
         with np.errstate(invalid="ignore"):
             raised = interpolated & (height_m >= self.obstacle_min_m)
-        one_sided = raised & ~np.isfinite(support.bridge_m)
+        one_sided = raised & (one_sided_run >= TEXTURED_ANCHOR_PX)
         if not one_sided.any():
             return one_sided
-        one_sided &= one_sided_anchor_run(anchors, ROW_REACH_PX) >= TEXTURED_ANCHOR_PX
         return one_sided & self._floor_grey_alike(left)
 
     def _floor_grey_alike(self, left: F32) -> Mask:
