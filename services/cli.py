@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 
@@ -47,7 +48,16 @@ def main(argv: Sequence[str] | None = None) -> None:
     catch_stop_signals()  # before the heavy imports: a stop while starting is a clean exit
     module = importlib.import_module(COMMANDS[args[0]][0])
     entry = {"map": "map_cli", "health": "health_cli", "objects": "objects_cli"}.get(args[0], "cli")
-    getattr(module, entry)(args[1:])
+    try:
+        try:
+            getattr(module, entry)(args[1:])
+        finally:
+            sys.stdout.flush()  # here, not at exit: a reader that left is handled below
+    except BrokenPipeError:
+        # The reader left (``overgrid objects | head``): nothing more to say to anyone. Standard
+        # output goes to /dev/null so that the interpreter's own flush at exit fails silently too.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        raise SystemExit(1) from None
 
 
 if __name__ == "__main__":

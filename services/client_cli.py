@@ -47,13 +47,19 @@ class HealthSettings(ZenohSettings):
     timeout_s: float = Field(5.0, gt=0.0, description="how long to wait for the fusion service")
 
 
+MAP_USAGE = (
+    "usage: overgrid map get -o FILE [--region x0,y0,x1,y1] [zenoh options]\n"
+    "(overgrid map get --help lists every setting)"
+)
+
+
 def map_cli(argv: Sequence[str] | None = None) -> None:
     args = list(argv or [])
+    if args[:1] in (["-h"], ["--help"]):
+        print(MAP_USAGE)
+        raise SystemExit(0)
     if not args or args[0] != "get":
-        print(
-            "usage: overgrid map get -o FILE [--region x0,y0,x1,y1] [zenoh options]",
-            file=sys.stderr,
-        )
+        print(MAP_USAGE, file=sys.stderr)
         raise SystemExit(2)
     args = ["--out" if a == "-o" else a for a in args[1:]]
     settings = parse_settings(MapGetSettings, args, "overgrid map get", "Save the current map.")

@@ -30,7 +30,7 @@ from common.lifecycle import stop_on_signals
 from common.mapfiles import write_map
 from common.occupancy_map import OccupancyMap
 from common.settings import ENV_PREFIX, ZenohSettings, parse_settings
-from common.zenoh_session import open_session
+from common.zenoh_session import open_session, zenoh_config
 from services.camera_sim.settings import CameraSimParams
 from services.depth.settings import DepthParams
 from services.evaluation.service import Evaluator, Recorder, map_summary
@@ -317,7 +317,17 @@ def save_outputs(
     return [*written, settings.out / "report.json"]
 
 
+def check_inputs(settings: UpSettings) -> None:
+    """The files the children and ``up`` itself would read (the scene, the Zenoh config), read
+    here first: a bad one is one line naming it and exit 2 before any process starts. Found by a
+    child instead, it cost seconds of starting processes and a failed run that saved whatever map
+    the state directory held over the previous run's files."""
+    settings.camera_sim.scene_spec()
+    zenoh_config(settings)
+
+
 def main(settings: UpSettings) -> None:
+    check_inputs(settings)
     stop = stop_on_signals()
     settings.out.mkdir(parents=True, exist_ok=True)
     settings = without_unservable_viewer(settings)
@@ -338,6 +348,8 @@ def main(settings: UpSettings) -> None:
             f"{failed.name} died (exit {failed.process.returncode}); its last log lines:\n{failed.tail()}",
             file=sys.stderr,
         )
+        raise SystemExit(1)
+    if not written:  # the run's one promise is a map to look at
         raise SystemExit(1)
 
 

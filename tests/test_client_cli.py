@@ -4,6 +4,7 @@ network; a map the service cannot serve is one line saying why, never a tracebac
 from __future__ import annotations
 
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -47,3 +48,26 @@ def test_a_region_off_the_map_is_one_line_saying_so(bus: Bus, tmp_path: Path) ->
     done = map_get("-o", str(out), "--region=-1,-1,0.5,0.5", *bus.flags())
     assert done.returncode == 0, done.stderr
     assert out.read_bytes().startswith(b"\x89PNG")
+
+
+def test_map_help_is_its_usage_on_standard_output() -> None:
+    done = run_overgrid("map", "--help")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.startswith("usage: overgrid map get -o FILE") and not done.stderr
+    done = run_overgrid("map")
+    assert done.returncode == 2 and done.stderr.startswith("usage: overgrid map get")
+
+
+def test_a_reader_that_leaves_ends_the_command_without_a_traceback() -> None:
+    """``overgrid objects | head``: the pipe closes before the command has written."""
+    command = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "map", "--help"],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert command.stdout is not None and command.stderr is not None
+    command.stdout.close()
+    assert command.wait(timeout=60) == 1
+    assert command.stderr.read() == ""

@@ -27,7 +27,7 @@ from services.up import (
     progress_line,
     without_unservable_viewer,
 )
-from tests.conftest import REPO, Bus, wait_for
+from tests.conftest import REPO, Bus, run_overgrid, wait_for
 
 pytestmark = pytest.mark.process
 
@@ -191,11 +191,16 @@ def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_pa
 
 
 def test_sigint_during_up_still_saves_the_map(bus: Bus, tmp_path: Path) -> None:
-    """… and the live map is at the URL ``up`` printed, and the viewer dying ends nothing."""
+    """… and the live map is at the URL ``up`` printed, and the viewer dying ends nothing; and
+    ``overgrid eval --json`` on the running system prints its report alone on standard output."""
     up = _up(bus, tmp_path / "run")
     url = _page_url(up)
     wait_for(lambda: _serves(url), 30, "the live map at the URL up printed")
     wait_for(lambda: _serves(url + "download/map.png"), 60, "a map (the viewer has it)")
+    scored = run_overgrid("eval", "--json", "--watch-s", "1", *bus.flags())
+    assert scored.returncode == 0, scored.stderr
+    assert 0 <= json.loads(scored.stdout)["iou"] <= 1
+    assert "watching the stream for 1 s" in scored.stderr
     (viewer,) = _children_of(bus.namespace, "view")
     os.kill(int(viewer), signal.SIGKILL)
     time.sleep(3)  # progress goes on
@@ -208,10 +213,31 @@ def test_sigint_during_up_still_saves_the_map(bus: Bus, tmp_path: Path) -> None:
 
 
 def test_a_dying_child_is_reported_by_name(bus: Bus, tmp_path: Path) -> None:
-    up = _up(bus, tmp_path / "run", "--scene", str(tmp_path / "missing.yaml"))
+    up = _up(bus, tmp_path / "run", "--no-view")
+    wait_for(lambda: len(_children_of(bus.namespace, "camera-sim")) == 1, 60, "camera_sim")
+    (camera_sim,) = _children_of(bus.namespace, "camera-sim")
+    os.kill(int(camera_sim), signal.SIGKILL)
     out, _ = up.communicate(timeout=120)
     assert up.returncode == 1
-    assert "camera_sim died" in out and "missing.yaml" in out
+    assert "camera_sim died (exit -9)" in out, out
+    assert _children_of(bus.namespace) == []
+
+
+@pytest.mark.parametrize(
+    ("flag", "name"), [("--scene", "missing.yaml"), ("--config", "missing.json5")]
+)
+def test_a_missing_file_stops_up_before_any_process_starts(
+    bus: Bus, tmp_path: Path, flag: str, name: str
+) -> None:
+    """One line naming the flag and the file, exit 2; no child started, nothing written (a child
+    that died of it left ``up`` saving whatever map the state directory held)."""
+    up = _up(bus, tmp_path / "run", flag, str(tmp_path / name))
+    out, _ = up.communicate(timeout=60)
+    assert up.returncode == 2, out
+    assert "Traceback" not in out
+    lines = out.strip().splitlines()
+    assert len(lines) == 1 and flag in lines[0] and name in lines[0], out
+    assert not (tmp_path / "run").exists()
     assert _children_of(bus.namespace) == []
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 import threading
 import time
 from collections import deque
@@ -598,7 +599,8 @@ def main(settings: EvalSettings) -> None:
         recorder = None
         if settings.watch_s > 0:
             recorder = Recorder(session, evaluator.window, evaluator.resolution_m)
-            print(f"watching the stream for {settings.watch_s:g} s …", flush=True)
+            # On stderr: standard output is the report alone (``--json`` parses as JSON).
+            print(f"watching the stream for {settings.watch_s:g} s …", file=sys.stderr, flush=True)
             stop.wait(settings.watch_s)
         try:
             result = report(evaluator, recorder)
