@@ -60,6 +60,11 @@ def radial_distortion_fold(dist: npt.ArrayLike, corner_radius: float) -> str | N
     )
 
 
+MAX_SKEW_SHARE = 1e-3
+"""A calibration's skew (K[0][1]) up to this share of fx (pixel axes 0.06° off square) is a
+fitting residual; beyond it, a K for another model or a typing error."""
+
+
 def _finite(values: npt.ArrayLike, what: str) -> None:
     if not np.all(np.isfinite(np.asarray(values, dtype=np.float64))):
         raise ValueError(f"{what} holds NaN or infinity")
@@ -83,6 +88,16 @@ class PinholeCamera(BaseModel):
         _finite(arr, "K")
         if arr[0, 0] <= 0 or arr[1, 1] <= 0:
             raise ValueError(f"focal lengths must be positive, got fx={arr[0, 0]}, fy={arr[1, 1]}")
+        if not np.allclose(arr[2], (0.0, 0.0, 1.0), rtol=0.0, atol=1e-9) or arr[1, 0] != 0:
+            raise ValueError(
+                f"K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got rows {arr[1].tolist()}, "
+                f"{arr[2].tolist()}"
+            )
+        if abs(arr[0, 1]) > MAX_SKEW_SHARE * arr[0, 0]:
+            raise ValueError(
+                f"skew {arr[0, 1]:g} px is over {MAX_SKEW_SHARE:g} of fx: OpenCV's calibration "
+                "and rectification assume square pixels"
+            )
         return k
 
     @model_validator(mode="after")

@@ -185,11 +185,18 @@ class Footprint(BaseModel):
             raise ValueError("footprint values must be finite")
         return value
 
+    @field_validator("size_m")
+    @classmethod
+    def _positive(cls, size_m: tuple[float, float]) -> tuple[float, float]:
+        if min(size_m) <= 0:
+            raise ValueError("a footprint's length and width must be positive")
+        return size_m
+
 
 class DetectionRecord(Footprint):
     """One object as one pair's frame shows it (``depth/{pair}/objects``)."""
 
-    top_m: float
+    top_m: float = Field(allow_inf_nan=False)
     points: int = Field(ge=0, description="world points the object was measured from")
     partial: bool = Field(description="reaches the edge of what the pair can match")
     low: bool = Field(
@@ -213,13 +220,19 @@ class DetectionRecord(Footprint):
         return outline
 
 
+MAX_DETECTIONS = 256
+"""Objects one frame may report: a pair's view of a few tens of square metres holds tens; the
+fusion's tracker pairs every detection with every track, so thousands in one message (a broken or
+forged pair) would stall it for minutes."""
+
+
 class DetectionsHeader(_Header):
     """``depth/{pair}/objects``: the objects of one frame, with the tile's pair, seq and stamp."""
 
     pair: str
     seq: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
-    detections: list[DetectionRecord] = Field(max_length=4096)
+    detections: list[DetectionRecord] = Field(max_length=MAX_DETECTIONS)
 
     @field_validator("pair")
     @classmethod

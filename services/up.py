@@ -41,8 +41,11 @@ from services.viewer.address import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, availa
 
 STOP_TIMEOUT_S = 10.0
 LOG_TAIL_LINES = 15
-OPTIONAL_CHILDREN = frozenset({"viewer"})
-"""Children ``up`` runs on without: the map is what matters, the page only shows it."""
+ESSENTIAL_CHILDREN = frozenset({"fusion", "camera_sim"})
+"""Children ``up`` cannot run on without: the map's owner and the scene every frame comes from.
+Without any other it goes on: the page only shows the map, a ROS 2 bridge only forwards it, and
+a depth process that dies is a pair gone, as on a real site (fusion marks it not alive and maps
+on from the rest)."""
 
 
 class UpSettings(ZenohSettings):
@@ -180,12 +183,12 @@ def without_unservable_viewer(settings: UpSettings) -> UpSettings:
 
 
 def first_failure(children: list[Child], reported: set[str]) -> Child | None:
-    """The first child that ended and must end ``up`` with it; an optional child that ended is
+    """The first essential child that ended (it ends ``up`` with it); any other that ended is
     reported once (its name added to ``reported``) and left out."""
     for child in children:
         if child.process.poll() is None:
             continue
-        if child.name not in OPTIONAL_CHILDREN:
+        if child.name in ESSENTIAL_CHILDREN:
             return child
         if child.name not in reported:
             reported.add(child.name)

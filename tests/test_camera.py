@@ -42,3 +42,25 @@ def test_non_rotation_pose_is_rejected() -> None:
     pose[0, 0] = 2.0
     with pytest.raises(ValidationError, match="rotation"):
         PinholeCamera(width=4, height=4, K=np.eye(3).tolist(), T_world_cam=pose.tolist())
+
+
+@pytest.mark.parametrize(
+    ("row", "col", "value", "message"),
+    [
+        (2, 2, 0.0, r"K must be \[\[fx, s, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"),
+        (2, 0, 0.01, r"K must be"),
+        (1, 0, 3.0, r"K must be"),
+        (0, 1, 5000.0, "skew 5000 px"),
+    ],
+)
+def test_an_intrinsic_matrix_of_no_pinhole_camera_is_rejected(
+    row: int, col: int, value: float, message: str
+) -> None:
+    """Accepted before, it made tiles: a third row [0, 0, 0], or a skew of 5000 px."""
+    k = intrinsics_from_hfov(640, 480, 60)
+    _camera(0.0)  # as made, it is fine
+    k[row, col] = value
+    with pytest.raises(ValidationError, match=message):
+        PinholeCamera(
+            width=640, height=480, K=k.tolist(), T_world_cam=look_down_pose(0, 0, 6).tolist()
+        )

@@ -23,7 +23,7 @@ from common.png import encode_png
 from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import generate_scene
-from tests.conftest import Bus, wait_for
+from tests.conftest import Bus, assert_one_line_exit_2, run_overgrid, wait_for
 
 pytestmark = pytest.mark.process
 
@@ -177,6 +177,15 @@ def test_recorded_images_and_calibration_file_go_through_the_same_pipeline(
     wait_for(lambda: sink.count() >= 4, 60, "four tiles from recorded images")
     assert [t.seq for t in sink.tiles] == [0, 1, 2, 5]
     assert all(t.cols * t.rows > 10_000 for t in sink.tiles)
+
+
+def test_a_video_that_does_not_read_is_one_line_at_start_up(tmp_path: Path) -> None:
+    """FFmpeg's own reason ("moov atom not found") came as a second line."""
+    video = tmp_path / "notavideo.mp4"
+    video.write_bytes(b"not a video")
+    calib = _calibration_file(tmp_path)
+    done = run_overgrid("depth", "--pair", "p0", "--calib", str(calib), "--images", str(video))
+    assert_one_line_exit_2(done, "--images", "notavideo.mp4")
 
 
 def test_one_wildcard_health_query_gets_every_pair(bus: Bus) -> None:

@@ -7,7 +7,7 @@ import pytest
 
 from common.codec import encode
 from common.lattice import Window
-from common.messages import DETECTIONS_KIND, DetectionRecord, DetectionsHeader
+from common.messages import DETECTIONS_KIND, MAX_DETECTIONS, DetectionRecord, DetectionsHeader
 from services.fusion.grid import GridParams
 from services.fusion.intake import FUTURE_TOLERANCE_S, Rejected, TileGate, decode_detections
 from tests.tiles import tile_arrays, tile_payload
@@ -142,18 +142,8 @@ def test_a_tile_beyond_the_site_is_rejected_at_the_edge() -> None:
     assert _reason(tile_payload("p0", Window(500, 0, 5, 5), 1.0), bounded) == "outside_map"
 
 
-@pytest.mark.parametrize(
-    ("field", "value"),
-    [
-        ("outline_m", [(1.0, 2.0), (math.nan, 2.0), (1.5, 2.5)]),  # not finite
-        ("outline_m", [(0.01 * k, 0.0) for k in range(65)]),  # more vertices than allowed
-        ("round", "banana"),  # not a flag
-        ("round", [True]),
-        ("low", "banana"),
-    ],
-)
-def test_detections_with_a_bad_outline_or_flag_are_rejected(field: str, value: object) -> None:
-    good = DetectionsHeader(
+def _detections() -> DetectionsHeader:
+    return DetectionsHeader(
         pair="p0",
         seq=1,
         stamp_ns=time.time_ns(),
@@ -169,11 +159,49 @@ def test_detections_with_a_bad_outline_or_flag_are_rejected(field: str, value: o
             )
         ],
     )
+
+
+SITE = GridParams().site_window()  # ±1 km around the origin
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "reason"),
+    [
+        ("outline_m", [(1.0, 2.0), (math.nan, 2.0), (1.5, 2.5)], "malformed"),  # not finite
+        ("outline_m", [(0.01 * k, 0.0) for k in range(65)], "malformed"),  # too many vertices
+        ("round", "banana", "malformed"),  # not a flag
+        ("round", [True], "malformed"),
+        ("low", "banana", "malformed"),
+        ("top_m", math.nan, "malformed"),  # NaN in map/objects is not even JSON
+        ("top_m", math.inf, "malformed"),
+        ("size_m", [-3.0, -2.0], "malformed"),
+        ("size_m", [0.5, 0.0], "malformed"),
+        ("center_m", [1e300, -1e300], "outside_extent"),
+        ("center_m", [1500.0, 2.0], "outside_extent"),
+        ("size_m", [1e5, 1e5], "dimensions"),
+    ],
+)
+def test_detections_with_a_bad_value_are_rejected(field: str, value: object, reason: str) -> None:
+    gate = TileGate(resolution_m=0.05, max_age_s=2.0, max_bytes=1_000_000, site=SITE)
     now_ns = time.time_ns()
-    assert decode_detections(encode(DETECTIONS_KIND, good), "depth/p0/objects", now_ns, _gate())
-    envelope = msgpack.unpackb(encode(DETECTIONS_KIND, good))
+    good = encode(DETECTIONS_KIND, _detections())
+    assert decode_detections(good, "depth/p0/objects", now_ns, gate)
+    envelope = msgpack.unpackb(good)
     envelope["header"]["detections"][0][field] = value  # all else as sent
     payload = msgpack.packb(envelope)
     with pytest.raises(Rejected) as rejected:
-        decode_detections(payload, "depth/p0/objects", now_ns, _gate())
+        decode_detections(payload, "depth/p0/objects", now_ns, gate)
+    assert rejected.value.reason == reason
+
+
+def test_more_detections_than_a_frame_holds_are_rejected() -> None:
+    """Thousands in one message (a broken or forged pair) stalled the tracker for minutes."""
+    now_ns = time.time_ns()
+    envelope = msgpack.unpackb(encode(DETECTIONS_KIND, _detections()))
+    detections = envelope["header"]["detections"]
+    envelope["header"]["detections"] = detections * MAX_DETECTIONS
+    assert decode_detections(msgpack.packb(envelope), "depth/p0/objects", now_ns, _gate())
+    envelope["header"]["detections"] = detections * (MAX_DETECTIONS + 1)
+    with pytest.raises(Rejected) as rejected:
+        decode_detections(msgpack.packb(envelope), "depth/p0/objects", now_ns, _gate())
     assert rejected.value.reason == "malformed"

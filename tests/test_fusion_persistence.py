@@ -1,6 +1,8 @@
+import zlib
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -88,6 +90,48 @@ def test_corrupt_state_is_set_aside_not_fatal(tmp_path: Path) -> None:
     grid = load_grid(GridParams(), tmp_path, 1)
     assert grid.version == 0 and not grid.chunks
     assert not (tmp_path / CHUNK_LOG).exists()
+    assert len(list(tmp_path.glob(f"{CHUNK_LOG}.corrupt-*"))) == 1
+
+
+def _rewritten(path: Path, change: Any) -> None:
+    """The log's one record with ``change`` applied to its decoded payload, checksum recomputed:
+    a well-formed record of bad content."""
+    data = path.read_bytes()
+    _, length, _ = persistence.RECORD_HEAD.unpack_from(data)
+    payload = msgpack.unpackb(data[persistence.RECORD_HEAD.size :], raw=False, strict_map_key=False)
+    assert len(data) == persistence.RECORD_HEAD.size + length  # one record
+    change(payload)
+    packed = msgpack.packb(payload, use_bin_type=True)
+    head = persistence.RECORD_HEAD.pack(persistence.RECORD_MAGIC, len(packed), zlib.crc32(packed))
+    path.write_bytes(head + packed)
+
+
+def _nan_logodds(payload: dict[str, Any]) -> None:
+    _, _, layers = payload["chunks"][0]
+    logodds = np.frombuffer(zlib.decompress(layers["logodds"]), np.float32).copy()
+    logodds[7] = np.nan
+    layers["logodds"] = zlib.compress(logodds.tobytes())
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        _nan_logodds,
+        lambda payload: payload.update(version=2**64 - 1),
+        lambda payload: payload.update(epoch_ns=2**63),
+        lambda payload: payload.update(stamp_ns=-1),
+    ],
+    ids=["nan-logodds", "version", "epoch", "stamp"],
+)
+def test_a_record_of_bad_values_is_set_aside_like_a_corrupt_one(
+    tmp_path: Path, change: Any
+) -> None:
+    """Its checksum holds, its values do not: fusion failed at start-up (NaN log-odds) or on
+    its first message (a version no message can carry) instead of starting empty."""
+    save_now(_grid(count=1), tmp_path)
+    _rewritten(tmp_path / CHUNK_LOG, change)
+    grid = load_grid(GridParams(), tmp_path, 1)
+    assert grid.version == 0 and not grid.chunks
     assert len(list(tmp_path.glob(f"{CHUNK_LOG}.corrupt-*"))) == 1
 
 

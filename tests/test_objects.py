@@ -11,7 +11,7 @@ import pytest
 from common.footprints import corners, fit_rectangle, polygon_cells
 from common.lattice import Window
 from common.mapfiles import OCCUPIED_MIN
-from common.messages import DetectionRecord, TrackedObject, TruthObject
+from common.messages import MAX_DETECTIONS, DetectionRecord, TrackedObject, TruthObject
 from common.occupancy_map import OCCUPIED
 from common.sensor_model import SensorModelParams
 from services.camera_sim.scene import generate_scene
@@ -1324,3 +1324,15 @@ def test_free_cells_under_a_track_starting_off_are_served_unknown() -> None:
     assert [at(3.2, 2.0), at(3.4, 2.15), at(3.0, 1.85)] == [-1, -1, -1]  # its newest view
     for x, y in ((2.0, 2.0), (2.6, 2.0), (6.0, 2.0), (9.2, 3.5)):
         assert 0 <= at(x, y) <= 25, (x, y)
+
+
+def test_a_frame_of_more_objects_than_a_message_holds_keeps_the_best_measured() -> None:
+    """The message would be refused whole (``MAX_DETECTIONS``): the pair reports those measured
+    from the most points instead."""
+    many = [
+        Detection((0.1 * k, 0.0), 0.2, 0.15, 0.0, 1.0, points=k, partial=False)
+        for k in range(MAX_DETECTIONS + 10)
+    ]
+    header = detections_header(many, "p0", 1, 10**9)
+    assert len(header.detections) == MAX_DETECTIONS
+    assert min(d.points for d in header.detections) == 10

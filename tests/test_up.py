@@ -191,7 +191,8 @@ def test_up_for_a_duration_writes_the_map_and_stops_every_child(bus: Bus, tmp_pa
 
 
 def test_sigint_during_up_still_saves_the_map(bus: Bus, tmp_path: Path) -> None:
-    """… and the live map is at the URL ``up`` printed, and the viewer dying ends nothing; and
+    """… and the live map is at the URL ``up`` printed, and the viewer or a depth process dying
+    ends nothing; and
     ``overgrid eval --json`` on the running system prints its report alone on standard output."""
     up = _up(bus, tmp_path / "run")
     url = _page_url(up)
@@ -203,11 +204,15 @@ def test_sigint_during_up_still_saves_the_map(bus: Bus, tmp_path: Path) -> None:
     assert "watching the stream for 1 s" in scored.stderr
     (viewer,) = _children_of(bus.namespace, "view")
     os.kill(int(viewer), signal.SIGKILL)
-    time.sleep(3)  # progress goes on
+    (depth_p1,) = _children_of(bus.namespace, "depth --pair p1")
+    os.kill(int(depth_p1), signal.SIGKILL)  # a pair gone, as on a site: the map goes on
+    time.sleep(4)  # progress goes on
     up.send_signal(signal.SIGINT)
     out, _ = up.communicate(timeout=60)
     assert up.returncode == 0, out
     assert out.count("viewer died (exit -9); the map goes on") == 1, out
+    assert out.count("depth_p1 died (exit -9); the map goes on") == 1, out
+    assert re.search(r"p1 \S+ DEAD", out), out  # fusion saw the pair go
     assert (tmp_path / "run" / "map.pgm").exists() and (tmp_path / "run" / "map.png").exists()
     assert _children_of(bus.namespace) == []
 

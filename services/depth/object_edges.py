@@ -467,8 +467,8 @@ def _refine_box(
         axis, sign = sides[side]
         bounds[side] = sign * (half[axis] + step[0])
         strengths.append(step[1])
-    if not strengths:
-        return None
+    if not strengths or bounds[1] <= bounds[0] or bounds[3] <= bounds[2]:
+        return None  # no step, or two facing sides moved past each other: no footprint
     du, dw = (bounds[0] + bounds[1]) / 2, (bounds[2] + bounds[3]) / 2
     length, width, yaw = long_side_first(bounds[1] - bounds[0], bounds[3] - bounds[2], d.yaw_rad)
     center_x, center_y = _world(d, du, dw)
@@ -521,6 +521,8 @@ def _refine_round(
     design = np.column_stack([2 * px, 2 * py, np.ones_like(px)])
     (a, b, k0), *_ = np.linalg.lstsq(design, px**2 + py**2, rcond=None)
     fitted = math.sqrt(max(k0 + a * a + b * b, 0.0))
+    if fitted <= 0.0:
+        return None
     center = (d.center_xy_m[0] + a, d.center_xy_m[1] + b)
     return (
         replace(d, center_xy_m=center, length_m=2 * fitted, width_m=2 * fitted, round=True),

@@ -25,7 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from common.footprints import corners, fit_rectangle, long_side_first, vertices
-from common.messages import DetectionRecord, DetectionsHeader
+from common.messages import MAX_DETECTIONS, DetectionRecord, DetectionsHeader
 from common.sensor_model import SensorModelParams
 from services.depth.projection import WorldPoints
 
@@ -318,7 +318,10 @@ def detect_objects(
 def detections_header(
     detections: list[Detection], pair: str, seq: int, stamp_ns: int
 ) -> DetectionsHeader:
-    """``depth/{pair}/objects`` of one frame: the tile's pair, seq and capture stamp."""
+    """``depth/{pair}/objects`` of one frame: the tile's pair, seq and capture stamp; beyond
+    MAX_DETECTIONS objects, those measured from the most points."""
+    if len(detections) > MAX_DETECTIONS:
+        detections = sorted(detections, key=lambda d: d.points, reverse=True)[:MAX_DETECTIONS]
     return DetectionsHeader(
         pair=pair,
         seq=seq,

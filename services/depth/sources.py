@@ -8,6 +8,7 @@ names), a folder of ``*_left.*`` / ``*_right.*`` files, or a side-by-side video 
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -41,6 +42,14 @@ def load_calibration(path: Path) -> StereoCalibration:
         raise InputError(f"--calib {path}: {' '.join(str(error).split())}") from None
 
 
+def _video(source: Path) -> cv2.VideoCapture:
+    """A video capture of ``source``, FFmpeg's own messages off (unless OPENCV_FFMPEG_LOGLEVEL
+    asks for them): its reason for a file it cannot read ("moov atom not found") went to stderr
+    beside overgrid's one line."""
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+    return cv2.VideoCapture(str(source))
+
+
 def check_recording(source: Path) -> None:
     """Fail at start-up, not at the first frame, on a recording that is not there or not one."""
     if source.is_dir():
@@ -51,7 +60,7 @@ def check_recording(source: Path) -> None:
     elif not source.exists():
         raise InputError(f"--images {source}: no such folder or video file")
     else:
-        capture = cv2.VideoCapture(str(source))
+        capture = _video(source)
         opened = capture.isOpened()
         capture.release()
         if not opened:
@@ -91,7 +100,7 @@ def recorded_frames(source: Path) -> Iterator[tuple[np.ndarray, np.ndarray] | Re
             else:
                 yield left, right
         return
-    capture = cv2.VideoCapture(str(source))
+    capture = _video(source)
     if not capture.isOpened():
         raise ValueError(f"cannot open {source} as a folder of image pairs or a video")
     try:

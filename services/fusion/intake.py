@@ -180,8 +180,32 @@ def decode_detections(payload: bytes, key: str, now_ns: int, gate: TileGate) -> 
         raise Rejected("malformed", str(error)) from None
     if header.pair != key_pair:
         raise Rejected("pair", f"header names pair {header.pair}, the key {key_pair}")
+    if gate.site is not None:
+        check_on_site(header, gate.site, gate.resolution_m, gate.bounded)
     check_stamp(header.stamp_ns, now_ns, gate.max_age_ns)
     return header
+
+
+def check_on_site(
+    header: DetectionsHeader, site: Window, resolution_m: float, bounded: bool
+) -> None:
+    """Every detection's centre on the site the tiles may land on, and no footprint longer than
+    the site: elsewhere a detection is a forged or broken one that would only start tracks the
+    map never shows (as a tile there is rejected)."""
+    (x0, y0), span_m = site.origin_m(resolution_m), max(site.cols, site.rows) * resolution_m
+    x1, y1 = x0 + site.cols * resolution_m, y0 + site.rows * resolution_m
+    for detection in header.detections:
+        x, y = detection.center_m
+        if not (x0 <= x < x1 and y0 <= y < y1):
+            raise Rejected(
+                "outside_map" if bounded else "outside_extent",
+                f"a detection at ({x:.6g}, {y:.6g}) m lies beyond the site {site}",
+            )
+        if max(detection.size_m) > span_m:
+            raise Rejected(
+                "dimensions",
+                f"a detection {max(detection.size_m):.6g} m long exceeds the site's {span_m:g} m",
+            )
 
 
 def decode_presence(key: str, alive: bool) -> Presence:

@@ -578,28 +578,49 @@ class ObjectTracker:
         def predicted_at(row: int) -> tuple[float, float]:
             return float(predicted[row][0][0]), float(predicted[row][0][1])
 
-        def assign(rows: list[int], distance: Callable[[int, Observation], float | None]) -> None:
+        centres_m = np.array([obs.center_m for obs in observations], np.float64).reshape(-1, 2)
+
+        def assign(rows: list[int], cost_of: Callable[[list[int], list[int]], F64]) -> None:
             taken = {m[0] for m in matches.values()}
             cols = [c for c in range(len(observations)) if c not in taken]
             rows = [r for r in rows if r not in matches]
-            cost = np.full((len(rows), len(cols)), NOT_ALLOWED)
-            for i, row in enumerate(rows):
-                for j, col in enumerate(cols):
-                    d = distance(row, observations[col])
-                    if d is not None:
-                        cost[i, j] = d
-            for i, j in zip(*(linear_sum_assignment(cost) if cost.size else ([], [])), strict=True):
+            if not rows or not cols:
+                return
+            cost = cost_of(rows, cols)
+            for i, j in zip(*linear_sum_assignment(cost), strict=True):
                 if cost[i, j] < NOT_ALLOWED:
                     matches[rows[int(i)]] = [cols[int(j)]]
 
         def near(
             centre_of: Callable[[int], tuple[float, float]], gate_of: Callable[[int], float]
-        ) -> Callable[[int, Observation], float | None]:
-            def distance(row: int, obs: Observation) -> float | None:
-                d = math.dist(obs.center_m, centre_of(row))
-                return d if d <= gate_of(row) else None
+        ) -> Callable[[list[int], list[int]], F64]:
+            """Each observation's distance from each track's centre, within its gate: one
+            array, not a call per pair (a forged pair's hundreds of detections against as many
+            tracks stalled the loop)."""
 
-            return distance
+            def cost_of(rows: list[int], cols: list[int]) -> F64:
+                centres = np.array([centre_of(r) for r in rows], np.float64)
+                gates = np.array([gate_of(r) for r in rows], np.float64)
+                offsets = centres_m[cols][None, :, :] - centres[:, None, :]
+                distance = np.hypot(offsets[..., 0], offsets[..., 1])
+                cost: F64 = np.where(distance <= gates[:, None], distance, NOT_ALLOWED)
+                return cost
+
+            return cost_of
+
+        def each(
+            distance: Callable[[int, Observation], float | None],
+        ) -> Callable[[list[int], list[int]], F64]:
+            def cost_of(rows: list[int], cols: list[int]) -> F64:
+                cost = np.full((len(rows), len(cols)), NOT_ALLOWED)
+                for i, row in enumerate(rows):
+                    for j, col in enumerate(cols):
+                        d = distance(row, observations[col])
+                        if d is not None:
+                            cost[i, j] = d
+                return cost
+
+            return cost_of
 
         rows = range(len(self.tracks))
         standing = [r for r in rows if self.tracks[r].standing]
@@ -615,7 +636,7 @@ class ObjectTracker:
         established = [r for r in rows if r not in standing and self.tracks[r].detections > 1]
         assign(established, near(predicted_at, gates.__getitem__))
         moving = [r for r in rows if self._steady(self.tracks[r], stamp_ns)]
-        assign(moving, lambda r, obs: self._turned(self.tracks[r], sizes[r], obs, stamp_ns))
+        assign(moving, each(lambda r, obs: self._turned(self.tracks[r], sizes[r], obs, stamp_ns)))
         # A moving track that met an object its size far off its prediction turned: its motion
         # restarts (a piece's centre is no measure of that).
         turned = {
@@ -639,16 +660,22 @@ class ObjectTracker:
             )
             for r in rows
         ]
+        # Only footprints whose circles come within twice the gap can come within the gap
+        # (separating axes along the sides overstate a gap by √2 at most).
+        footprint_centres = np.array([p.mean(axis=0) for p in footprints]).reshape(-1, 2)
+        footprint_radii = np.array([0.5 * math.hypot(*size[:2]) for size in sizes])
         matched = {col for cols_of in matches.values() for col in cols_of}
         for col, obs in enumerate(observations):
             if col in matched:
                 continue
             # A piece of a tracked object (a plain top matches in fragments) joins it; it never
             # starts a track of its own.
+            offsets = footprint_centres - centres_m[col]
+            reach = footprint_radii + 0.5 * math.hypot(*obs.size_m) + 2 * self.config.merge_gap_m
             on = [
-                row
-                for row, polygon in enumerate(footprints)
-                if polygons_overlap(polygon, _polygon(obs), self.config.merge_gap_m)
+                int(row)
+                for row in np.flatnonzero(np.hypot(offsets[:, 0], offsets[:, 1]) <= reach)
+                if polygons_overlap(footprints[row], _polygon(obs), self.config.merge_gap_m)
             ]
             taken = [row for row in on if row in matches]
             if not on:

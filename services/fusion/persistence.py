@@ -176,20 +176,32 @@ def _apply(state: SavedState, record: Any, resolution_m: float, path: Path) -> N
             state.chunks.clear()
         shape = (CHUNK_CELLS, CHUNK_CELLS)
         for ci, cj, layers in record["chunks"]:
-            state.chunks[(int(ci), int(cj))] = {
+            chunk = {
                 name: np.frombuffer(zlib.decompress(layers[name]), LAYER_DTYPES[name])
                 .reshape(shape)
                 .copy()
                 for name in EVIDENCE_LAYERS
             }
-        state.version = int(record["version"])
-        state.stamp_ns = int(record["stamp_ns"])
-        state.epoch_ns = max(state.epoch_ns, int(record.get("epoch_ns", 0)))
+            if not np.isfinite(chunk["logodds"]).all():
+                raise StateUnusable(f"{path}: chunk ({ci}, {cj}) holds non-finite log-odds")
+            state.chunks[(int(ci), int(cj))] = chunk
+        state.version = _counter(record["version"], "version", path)
+        state.stamp_ns = _counter(record["stamp_ns"], "stamp_ns", path)
+        state.epoch_ns = max(state.epoch_ns, _counter(record.get("epoch_ns", 0), "epoch_ns", path))
         state.records += 1
     except StateUnusable:
         raise
     except Exception as error:  # a well-formed record of the wrong content
         raise StateUnusable(f"{path}: bad record: {type(error).__name__}: {error}") from None
+
+
+def _counter(value: Any, name: str, path: Path) -> int:
+    """A saved version or time: an integer the messages can carry (signed 64 bits, not negative);
+    one beyond them let fusion start and then fail on its first message."""
+    number = int(value)
+    if not 0 <= number < 2**63:
+        raise StateUnusable(f"{path}: {name} {number} is out of range")
+    return number
 
 
 def load_grid(params: GridParams, state_dir: Path, epoch_ns: int) -> FusedGrid:
