@@ -23,13 +23,34 @@ def zenoh_reason(error: Exception) -> str:
     return " ".join(line.removeprefix("= ") for line in lines)
 
 
+CONFIG_FILES = (
+    "transport/link/tls/root_ca_certificate",
+    "transport/link/tls/listen_certificate",
+    "transport/link/tls/listen_private_key",
+    "transport/link/tls/connect_certificate",
+    "transport/link/tls/connect_private_key",
+    "transport/auth/usrpwd/dictionary_file",
+)
+"""Files a Zenoh config names (TLS, credentials): checked here, since Zenoh's own errors for a
+missing one do not name it ("Invalid TLS certificate file: No such file or directory"), and for
+a client's certificate blame the network ("Unable to connect to any of [tls/…]")."""
+
+
 def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
     config_path = settings.config or os.environ.get("ZENOH_CONFIG")
+    where = f"--config / ZENOH_CONFIG {config_path}" if config_path else "Zenoh settings"
     try:
-        return _config(settings, config_path)
+        config = _config(settings, config_path)
     except zenoh.ZError as error:
-        where = f"--config / ZENOH_CONFIG {config_path}" if config_path else "Zenoh settings"
         startup_error(f"{where}: {zenoh_reason(error)}")
+    for key in CONFIG_FILES:
+        try:
+            named = json.loads(config.get_json(key))
+        except zenoh.ZError:  # no such setting in this Zenoh's schema: nothing to check
+            continue
+        if isinstance(named, str) and not os.path.isfile(named):
+            startup_error(f"{where}: {key} {named}: no such file")
+    return config
 
 
 def _config(settings: ZenohSettings, config_path: str | os.PathLike[str] | None) -> zenoh.Config:

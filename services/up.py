@@ -182,6 +182,12 @@ def without_unservable_viewer(settings: UpSettings) -> UpSettings:
     return settings.model_copy(update={"view": False})
 
 
+def viewer_token() -> str | None:
+    """The token the viewer child reads from the environment (``up`` hands it none of its own):
+    the printed URL must carry it, or it answers 401."""
+    return os.environ.get(f"{ENV_PREFIX}TOKEN") or None
+
+
 def first_failure(children: list[Child], reported: set[str]) -> Child | None:
     """The first essential child that ended (it ends ``up`` with it); any other that ended is
     reported once (its name added to ``reported``) and left out."""
@@ -363,7 +369,7 @@ def _supervise(
     print(
         f"overgrid up: {len(children)} processes, logs in {settings.out / 'logs'}; Ctrl-C to stop"
         + (
-            f"\nthe live map: {page_url(DEFAULT_HTTP_HOST, settings.view_port)}"
+            f"\nthe live map: {page_url(DEFAULT_HTTP_HOST, settings.view_port, viewer_token())}"
             if settings.view
             else ""
         ),

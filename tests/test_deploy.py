@@ -27,7 +27,14 @@ from services.ros2.settings import RmwZenohSettings
 from services.router import RouterSettings
 from services.viewer.address import LOOPBACK_HOSTS
 from services.viewer.server import ViewSettings
-from tests.conftest import PROCESS_LIFETIME_S, REPO, free_port, wait_for
+from tests.conftest import (
+    PROCESS_LIFETIME_S,
+    REPO,
+    assert_one_line_exit_2,
+    free_port,
+    run_overgrid,
+    wait_for,
+)
 from tests.reliability.test_security import PASSWORDS, _client_config, certs  # noqa: F401
 from tests.test_ros2_native import late_joiner
 from tests.tiles import tile_payload
@@ -72,6 +79,15 @@ def test_the_viewer_unit_reads_as_the_robot_user_and_serves_loopback(tmp_path: P
 @pytest.mark.parametrize("name", ["router.json5", "client.json5"])
 def test_zenoh_configs_load(name: str) -> None:
     zenoh.Config.from_file(str(REPO / "deploy" / "zenoh" / name))
+
+
+@pytest.mark.parametrize("name", ["router.json5", "client.json5"])
+def test_a_file_a_shipped_config_names_and_the_box_lacks_is_one_line(name: str) -> None:
+    """The shipped configs name /etc/overgrid/… files this machine has not: Zenoh's own error
+    named no file (or, for a client's certificate, blamed the network)."""
+    command = "router" if name == "router.json5" else "health"
+    done = run_overgrid(command, "--config", str(REPO / "deploy" / "zenoh" / name))
+    assert_one_line_exit_2(done, "--config", "/etc/overgrid/", "no such file")
 
 
 DOMAIN = 7

@@ -30,7 +30,7 @@ from common.codec import encode
 from common.lattice import Window
 from common.messages import OBJECTS_KIND
 from common.occupancy_map import OccupancyMap
-from tests.conftest import REPO, Bus, wait_for
+from tests.conftest import REPO, Bus, assert_one_line_exit_2, run_overgrid, wait_for
 from tests.test_ros2_messages import tracked_objects
 from tests.test_ros2_native import start_fusion_with_a_tile
 from tests.tiles import tile_payload
@@ -222,3 +222,16 @@ def test_rclpy_subscriber_gets_map_then_each_newer_map(
     # It stops cleanly: no spinning thread left to abort the process at exit.
     node_process.send_signal(signal.SIGINT)
     assert node_process.wait(20) == 0, node_log.read_text()[-2000:]
+
+
+@pytest.mark.parametrize(
+    ("parameter", "named"),
+    [("world_in_map:=1,2", "world_in_map"), ("frame_id:=123", "frame_id")],
+)
+def test_a_bad_node_parameter_is_one_line_naming_it(
+    ros_env: dict[str, str], parameter: str, named: str
+) -> None:
+    """Settings given as node parameters are checked as the flags are: they ended in a
+    pydantic or rclpy traceback."""
+    done = run_overgrid("ros2", "--no-multicast-scouting", "--ros-args", "-p", parameter)
+    assert_one_line_exit_2(done, f"ROS parameter {named}")

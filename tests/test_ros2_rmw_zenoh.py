@@ -35,6 +35,7 @@ from services.ros2.rmw_zenoh import (
     topic_keyexpr,
 )
 from services.ros2.settings import RmwZenohSettings, Ros2Settings
+from tests.conftest import assert_one_line_exit_2, run_overgrid
 
 MAP_QOS = TopicQos(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, History.KEEP_LAST, 1)
 ZID = "4bf9c8b6f3cbb1d2a6cd0c2d1fa5e4e1"
@@ -246,3 +247,22 @@ def test_ros_arguments_run_from_ros_args_to_a_lone_double_dash() -> None:
     assert (own, ros) == (["--frame-id", "a", "--mode", "peer"], ["-p", "x:=1"])
     assert split_ros_args(["--ros-args", "-r", "/map:=/m"]) == ([], ["-r", "/map:=/m"])
     assert split_ros_args(["--frame-id", "a"]) == (["--frame-id", "a"], [])
+
+
+@pytest.mark.parametrize("command", ["ros2", "rmw-zenoh"])
+@pytest.mark.parametrize(
+    ("flag", "value"),
+    [
+        ("--map-topic", "bad topic"),
+        ("--map-topic", ""),
+        ("--node-name", "bad-name"),
+        ("--frame-id", ""),
+        ("--frame-id", "/map"),
+        ("--world-in-map", "1,2,nan"),
+        ("--world-in-map", "1,2,inf"),
+    ],
+)
+def test_a_name_ros_refuses_is_one_line_at_start_up(command: str, flag: str, value: str) -> None:
+    """rclpy raised on such names only once the node started (a traceback), rmw_zenoh's keys took
+    a space, and a NaN pose went out on /tf_static."""
+    assert_one_line_exit_2(run_overgrid(command, flag, value, "--no-multicast-scouting"), flag)

@@ -32,7 +32,9 @@ from tests.conftest import REPO, Bus, run_overgrid, wait_for
 pytestmark = pytest.mark.process
 
 
-def _up(bus: Bus, out: Path, *args: str) -> subprocess.Popen[str]:
+def _up(
+    bus: Bus, out: Path, *args: str, env: dict[str, str] | None = None
+) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [
             sys.executable,
@@ -49,6 +51,7 @@ def _up(bus: Bus, out: Path, *args: str) -> subprocess.Popen[str]:
             *bus.flags(),
         ],
         cwd=REPO,
+        env=None if env is None else {**os.environ, **env},
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
@@ -130,7 +133,9 @@ def _page_url(up: subprocess.Popen[str]) -> str:
     """The live map's URL from ``up``'s first lines."""
     assert up.stdout is not None
     lines = [up.stdout.readline() for _ in range(2)]
-    found = re.search(r"^the live map: (http://127\.0\.0\.1:\d+/)$", lines[1].rstrip("\n"))
+    found = re.search(
+        r"^the live map: (http://127\.0\.0\.1:\d+/(\?token=\w+)?)$", lines[1].rstrip("\n")
+    )
     assert found, lines
     return found.group(1)
 
@@ -194,10 +199,13 @@ def test_sigint_during_up_still_saves_the_map(bus: Bus, tmp_path: Path) -> None:
     """… and the live map is at the URL ``up`` printed, and the viewer or a depth process dying
     ends nothing; and
     ``overgrid eval --json`` on the running system prints its report alone on standard output."""
-    up = _up(bus, tmp_path / "run")
-    url = _page_url(up)
+    up = _up(bus, tmp_path / "run", env={"OVERGRID_TOKEN": "abcdefgh123"})
+    url = _page_url(up)  # with the viewer's token, which it reads from the environment
+    assert url.endswith("/?token=abcdefgh123"), url
     wait_for(lambda: _serves(url), 30, "the live map at the URL up printed")
-    wait_for(lambda: _serves(url + "download/map.png"), 60, "a map (the viewer has it)")
+    download = url.replace("/?", "/download/map.png?")
+    wait_for(lambda: _serves(download), 60, "a map (the viewer has it)")
+    assert not _serves(url.split("?")[0])  # the token is asked for
     scored = run_overgrid("eval", "--json", "--watch-s", "1", *bus.flags())
     assert scored.returncode == 0, scored.stderr
     assert 0 <= json.loads(scored.stdout)["iou"] <= 1

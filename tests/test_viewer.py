@@ -47,7 +47,7 @@ from services.viewer.wire import (
     height_mm,
     read_frame,
 )
-from tests.conftest import REPO, Bus, free_port, wait_for
+from tests.conftest import REPO, Bus, assert_one_line_exit_2, free_port, run_overgrid, wait_for
 from tests.tiles import tile_payload
 
 CHROMIUM_ARGS = [
@@ -325,6 +325,8 @@ def test_token_loopback_and_read_only(bus: Bus, tmp_path: Path) -> None:
     _wait_http(port)
     assert _request(port, "/").status == 401
     assert _request(port, "/?token=wrong-token").status == 401
+    # Bytes no text encodes: a wrong token too (it was a 500 and a traceback).
+    assert _request(port, "/", headers={"Authorization": "Bearer \xff"}).status == 401
     good = _request(port, "/?token=secret-token")
     # One cookie per port: a viewer on another port of this host keeps its own.
     cookie = {"Cookie": f"overgrid_token_{port}=secret-token"}
@@ -358,6 +360,9 @@ def test_view_stops_on_sigterm_within_2_s(bus: Bus, tmp_path: Path) -> None:
         process = subprocess.Popen(command, cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
     try:
         wait_for(lambda: b"overgrid view: http" in (tmp_path / "view.log").read_bytes(), 30, "view")
+        # A second viewer on the port taken: the setting named, one line, exit 2.
+        busy = run_overgrid("view", "--http-port", str(port), *bus.flags())
+        assert_one_line_exit_2(busy, "--http-port", "is in use")
         started = time.monotonic()
         process.send_signal(signal.SIGTERM)
         assert process.wait(10) == 0

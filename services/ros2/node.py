@@ -29,9 +29,11 @@ import threading
 from collections.abc import Sequence
 from typing import Any
 
+from pydantic import ValidationError
+
 from common.lifecycle import stop_on_signals
 from common.logs import setup_logging
-from common.settings import parse_settings
+from common.settings import parse_settings, startup_error
 from common.zenoh_session import open_session
 from services.ros2.environment import ensure_ros_environment
 from services.ros2.grid_message import (
@@ -274,13 +276,23 @@ def rclpy_qos(qos: TopicQos) -> Any:
 def with_ros_parameters(node: Any, settings: Ros2Settings) -> Ros2Settings:
     """Declare ``ROS_PARAMETERS`` with the settings as defaults; a value given as a parameter
     (``-p name:=value``, a parameter file) wins, and is validated like a flag."""
+    from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+
     values: dict[str, Any] = {}
     for name in ROS_PARAMETERS:
         default = getattr(settings, name)
         if isinstance(default, list):
             default = ",".join(default)
-        values[name] = node.declare_parameter(name, default).value
-    return Ros2Settings.model_validate({**settings.model_dump(), **values})
+        try:
+            values[name] = node.declare_parameter(name, default).value
+        except (InvalidParameterTypeException, InvalidParameterValueException) as error:
+            startup_error(f"ROS parameter {name}: {error}")
+    try:
+        return Ros2Settings.model_validate({**settings.model_dump(), **values})
+    except ValidationError as error:
+        first = error.errors()[0]
+        name = ".".join(str(part) for part in first["loc"])
+        startup_error(f"ROS parameter {name}: {first['msg']}")
 
 
 def main(settings: Ros2Settings, ros_args: Sequence[str] = ()) -> None:

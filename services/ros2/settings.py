@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import re
 from typing import Literal
 
 from pydantic import Field, field_validator
@@ -10,6 +12,13 @@ from common.settings import CommaList, ZenohSettings
 from services.ros2.cdr import Distro
 from services.ros2.grid_message import PlanarPose
 from services.ros2.rmw_zenoh import Durability, History, Reliability, TopicQos
+
+NODE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+TOPIC_NAME = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
+"""ROS 2's rules for a node's and a topic's name (absolute or relative; no substitutions): rclpy
+raised on others only once the node started (a traceback), rmw_zenoh's key took a space."""
+FRAME_ID = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_/]*")
+"""tf2 frame ids carry no leading slash (tf2 refuses those) and no spaces."""
 
 DurabilityName = Literal["transient_local", "volatile"]
 ReliabilityName = Literal["reliable", "best_effort"]
@@ -78,10 +87,44 @@ class Ros2Settings(ZenohSettings):
     @field_validator("world_in_map")
     @classmethod
     def _three_numbers(cls, values: list[str]) -> list[str]:
-        if len(values) != 3:
-            raise ValueError("world_in_map must be x,y,yaw")
-        [float(v) for v in values]
+        if len(values) != 3 or not all(math.isfinite(float(v)) for v in values):
+            raise ValueError("world_in_map must be x,y,yaw, three finite numbers")
         return values
+
+    @field_validator("node_name")
+    @classmethod
+    def _node_name(cls, name: str) -> str:
+        if not NODE_NAME.fullmatch(name):
+            raise ValueError(
+                f"{name!r} is no ROS 2 node name (letters, digits and _, not starting with a digit)"
+            )
+        return name
+
+    @field_validator(
+        "map_topic",
+        "updates_topic",
+        "height_topic",
+        "objects_topic",
+        "detections_topic",
+        "tf_static_topic",
+    )
+    @classmethod
+    def _topic_name(cls, name: str) -> str:
+        if not TOPIC_NAME.fullmatch(name) or "//" in name:
+            raise ValueError(
+                f"{name!r} is no ROS 2 topic name (/-separated tokens of letters, digits and _, "
+                "none starting with a digit)"
+            )
+        return name
+
+    @field_validator("frame_id", "world_frame_id")
+    @classmethod
+    def _frame_id(cls, frame: str) -> str:
+        if not FRAME_ID.fullmatch(frame):
+            raise ValueError(
+                f"{frame!r} is no tf2 frame id (letters, digits, _ and /, no leading /, not empty)"
+            )
+        return frame
 
     @property
     def pose(self) -> PlanarPose:

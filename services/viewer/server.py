@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import hmac
 import io
 import json
@@ -37,7 +38,7 @@ from common.mapfiles import (
 )
 from common.occupancy_map import OccupancyMap
 from common.sensor_model import SensorModelParams
-from common.settings import ZenohSettings, parse_settings
+from common.settings import ZenohSettings, parse_settings, startup_error
 from common.zenoh_session import open_session
 from services.viewer.address import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, LOOPBACK_HOSTS, page_url
 from services.viewer.feed import FeedPeriods, FeedState, MapFeed
@@ -252,7 +253,11 @@ def guard(settings: ViewSettings) -> Middleware:
                 or request.cookies.get(cookie)
                 or request.headers.get("Authorization", "").removeprefix("Bearer ")
             )
-            if not hmac.compare_digest(given.encode(), settings.token.encode()):
+            # Bytes as sent (surrogate escapes kept): a header of bytes no text encodes is a
+            # wrong token too, never a server error.
+            if not hmac.compare_digest(
+                given.encode("utf-8", "surrogateescape"), settings.token.encode()
+            ):
                 raise web.HTTPUnauthorized(
                     text="access token missing or wrong: open the URL `overgrid view` printed"
                 )
@@ -382,12 +387,17 @@ async def serve(settings: ViewSettings, feed: MapFeed, stop: threading.Event) ->
     site = web.TCPSite(runner, settings.http_host, settings.http_port)
     try:
         await site.start()
-    except OSError as error:
+    except OSError as error:  # a start-up error: the setting it comes from, one line, exit 2
         await runner.cleanup()
-        raise SystemExit(
-            f"cannot serve on {settings.http_host}:{settings.http_port}: {error.strerror}; "
-            "choose another with --http-port / OVERGRID_HTTP_PORT"
-        ) from None
+        where = f"{settings.http_host}:{settings.http_port}"
+        if error.errno == errno.EADDRINUSE:
+            startup_error(
+                f"--http-port {settings.http_port}: {where} is in use; choose another with "
+                "--http-port / OVERGRID_HTTP_PORT"
+            )
+        startup_error(
+            f"--http-host {settings.http_host}: cannot serve on {where}: {error.strerror or error}"
+        )
     port = int(runner.addresses[0][1])  # the one asked for, or the free one the system chose
     url = page_url(settings.http_host, port, settings.token)
     log.info("serving", extra={"url": url})
