@@ -46,18 +46,13 @@ from services.ros2.grid_message import (
 from services.ros2.object_markers import NAMESPACE, TRACK_SCORE, ObjectMarkers
 from services.ros2.relay import MapRelay
 from services.ros2.rmw_zenoh import TopicQos
-from services.ros2.settings import Ros2Settings
+from services.ros2.settings import TOPIC_FIELDS, Ros2Settings
 
 log = logging.getLogger("ros2")
 ROS_ARGS = "--ros-args"
 ROS_PARAMETERS = (
     "frame_id",
-    "map_topic",
-    "updates_topic",
-    "height_topic",
-    "objects_topic",
-    "detections_topic",
-    "tf_static_topic",
+    *TOPIC_FIELDS,
     "world_frame_id",
     "map_depth",
     "updates_depth",

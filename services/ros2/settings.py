@@ -6,7 +6,7 @@ import math
 import re
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 
 from common.settings import CommaList, ZenohSettings
 from services.ros2.cdr import Distro
@@ -19,6 +19,26 @@ TOPIC_NAME = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
 raised on others only once the node started (a traceback), rmw_zenoh's key took a space."""
 FRAME_ID = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_/]*")
 """tf2 frame ids carry no leading slash (tf2 refuses those) and no spaces."""
+TOPIC_FIELDS = (
+    "map_topic",
+    "updates_topic",
+    "height_topic",
+    "objects_topic",
+    "detections_topic",
+    "tf_static_topic",
+)
+_TOPIC = (
+    TOPIC_NAME,
+    "ROS 2 topic name (/-separated tokens of letters, digits and _, none first a digit)",
+)
+_FRAME = (FRAME_ID, "tf2 frame id (letters, digits, _ and /, no leading /, not empty)")
+NAME_RULES: dict[str, tuple[re.Pattern[str], str]] = {
+    "node_name": (NODE_NAME, "ROS 2 node name (letters, digits and _, not starting with a digit)"),
+    **dict.fromkeys(TOPIC_FIELDS, _TOPIC),
+    "frame_id": _FRAME,
+    "world_frame_id": _FRAME,
+}
+"""Each name setting's rule and what it is, for the one-line error."""
 
 DurabilityName = Literal["transient_local", "volatile"]
 ReliabilityName = Literal["reliable", "best_effort"]
@@ -91,40 +111,13 @@ class Ros2Settings(ZenohSettings):
             raise ValueError("world_in_map must be x,y,yaw, three finite numbers")
         return values
 
-    @field_validator("node_name")
+    @field_validator(*NAME_RULES)
     @classmethod
-    def _node_name(cls, name: str) -> str:
-        if not NODE_NAME.fullmatch(name):
-            raise ValueError(
-                f"{name!r} is no ROS 2 node name (letters, digits and _, not starting with a digit)"
-            )
+    def _ros_name(cls, name: str, info: ValidationInfo) -> str:
+        pattern, what = NAME_RULES[str(info.field_name)]
+        if not pattern.fullmatch(name) or "//" in name:
+            raise ValueError(f"{name!r} is no {what}")
         return name
-
-    @field_validator(
-        "map_topic",
-        "updates_topic",
-        "height_topic",
-        "objects_topic",
-        "detections_topic",
-        "tf_static_topic",
-    )
-    @classmethod
-    def _topic_name(cls, name: str) -> str:
-        if not TOPIC_NAME.fullmatch(name) or "//" in name:
-            raise ValueError(
-                f"{name!r} is no ROS 2 topic name (/-separated tokens of letters, digits and _, "
-                "none starting with a digit)"
-            )
-        return name
-
-    @field_validator("frame_id", "world_frame_id")
-    @classmethod
-    def _frame_id(cls, frame: str) -> str:
-        if not FRAME_ID.fullmatch(frame):
-            raise ValueError(
-                f"{frame!r} is no tf2 frame id (letters, digits, _ and /, no leading /, not empty)"
-            )
-        return frame
 
     @property
     def pose(self) -> PlanarPose:
