@@ -652,17 +652,13 @@ class ObjectTracker:
 
         # Pieces join the track whose footprint they overlap: a turned track's is where it met
         # its object, not where its old motion would have carried it.
-        footprints = [
-            corners(
-                observations[matches[r][0]].center_m if r in turned else predicted_at(r),
-                sizes[r][:2],
-                sizes[r][2],
-            )
-            for r in rows
+        footprint_centres = [
+            observations[matches[r][0]].center_m if r in turned else predicted_at(r) for r in rows
         ]
+        footprints = [corners(footprint_centres[r], sizes[r][:2], sizes[r][2]) for r in rows]
         # Only footprints whose circles come within twice the gap can come within the gap
         # (separating axes along the sides overstate a gap by √2 at most).
-        footprint_centres = np.array([p.mean(axis=0) for p in footprints]).reshape(-1, 2)
+        centres_now = np.array(footprint_centres, np.float64).reshape(-1, 2)
         footprint_radii = np.array([0.5 * math.hypot(*size[:2]) for size in sizes])
         matched = {col for cols_of in matches.values() for col in cols_of}
         for col, obs in enumerate(observations):
@@ -670,7 +666,7 @@ class ObjectTracker:
                 continue
             # A piece of a tracked object (a plain top matches in fragments) joins it; it never
             # starts a track of its own.
-            offsets = footprint_centres - centres_m[col]
+            offsets = centres_now - centres_m[col]
             reach = footprint_radii + 0.5 * math.hypot(*obs.size_m) + 2 * self.config.merge_gap_m
             on = [
                 int(row)
