@@ -32,13 +32,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import numpy.typing as npt
 
+from common.arrays import F32, U8, Mask
 from services.depth.stereo import MatcherConfig, compute_disparity, stage_variants
-
-U8 = npt.NDArray[np.uint8]
-F32 = npt.NDArray[np.float32]
-Mask = npt.NDArray[np.bool_]
 
 BAD_THRESHOLDS_PX = (0.5, 1.0, 2.0)
 OCCLUSION_TOL_PX = 1.0

@@ -10,9 +10,9 @@ import math
 import numpy as np
 import numpy.typing as npt
 
+from common.arrays import F64
 from common.lattice import Window
 
-F64 = npt.NDArray[np.float64]
 ANGLE_STEP_RAD = math.radians(1.0)
 ANGLE_REFINE_RAD = math.radians(0.1)
 COARSE_POINTS = 400

@@ -31,7 +31,16 @@ from services.camera_sim.scene import (
 )
 from services.camera_sim.settings import CameraSimParams
 from services.camera_sim.truth import footprint_mask
-from services.depth import floor_model
+from services.depth import (
+    floor_background,
+    floor_geometry,
+    floor_model,
+    floor_offset,
+    floor_rows,
+    image_windows,
+    line_of_sight,
+    plane_consistency,
+)
 from services.depth.pipeline import DepthPipeline, PipelineConfig
 from services.depth.stereo import DisparityChain, MatcherConfig, Rectifier
 from services.fusion.grid import FusedGrid, GridParams
@@ -123,8 +132,8 @@ def test_window_means_are_cv2_blurs_of_the_terms_to_the_bit(
     """One plane and the product of two, the borders included (a 3 × 4 image reflects past its
     far side as well)."""
     planes = np.random.default_rng(0).normal(100.0, 40.0, (2, *shape)).astype(np.float32)
-    terms = np.array([(0, floor_model.NO_PLANE), (0, 1)], np.int64)
-    means = floor_model.window_means(planes, terms, window_px)
+    terms = np.array([(0, image_windows.NO_PLANE), (0, 1)], np.int64)
+    means = image_windows.window_means(planes, terms, window_px)
     window = (window_px, window_px)
     assert np.array_equal(means[0], cv2.blur(planes[0], window))
     assert np.array_equal(means[1], cv2.blur(planes[0] * planes[1], window))
@@ -139,11 +148,11 @@ def test_window_maxima_at_a_few_pixels_are_cv2_dilates_there(half_px: int) -> No
     at = rng.random(values.shape) < 0.2
     at[0, 0] = at[-1, -1] = True
     kernel = np.ones((2 * half_px + 1,) * 2, np.uint8)
-    maxima = floor_model._window_max_at(values, half_px, at)
+    maxima = image_windows.window_max_at(values, half_px, at)
     assert np.array_equal(maxima, cv2.dilate(values, kernel)[at])
     labels = rng.integers(0, 1000, values.shape).astype(np.int32)
     dilated = cv2.dilate(labels.astype(np.float32), kernel).astype(np.int32)
-    assert np.array_equal(floor_model._window_max_at(labels, half_px, at), dilated[at])
+    assert np.array_equal(image_windows.window_max_at(labels, half_px, at), dilated[at])
 
 
 def test_floor_test_flags_a_raised_textured_patch_and_not_the_floor() -> None:
@@ -153,7 +162,7 @@ def test_floor_test_flags_a_raised_textured_patch_and_not_the_floor() -> None:
     left, right = pair.next()
     pair.close()
     rectifier = Rectifier.from_calibration(pair.capture.calibration, 2)
-    geometry = floor_model.FloorGeometry.from_rectifier(rectifier, rectifier.pixel_rays_world())
+    geometry = floor_geometry.FloorGeometry.from_rectifier(rectifier, rectifier.pixel_rays_world())
     model = floor_model.FloorModel(geometry, (0.1, 2.0))
     left_rect, right_rect = (np.array(image) for image in rectifier.rectify(left, right))
     for _ in range(12):  # let it fit the published calibration's residual first
@@ -164,18 +173,18 @@ def test_floor_test_flags_a_raised_textured_patch_and_not_the_floor() -> None:
     left_rect[rows, cols] = patch
     right_rect[rows, cols.start - shift : cols.stop - shift] = patch
     config = model.config
-    blurred = floor_model._blur(left_rect, config.blur_sigma_px)
+    blurred = image_windows.blur(left_rect, config.blur_sigma_px)
     warped = cast(
         npt.NDArray[np.float32],
         cv2.remap(
-            floor_model._blur(right_rect, config.blur_sigma_px),
+            image_windows.blur(right_rect, config.blur_sigma_px),
             *model._warp_maps,
             cv2.INTER_LINEAR,
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=-1.0,
         ),
     )
-    test = floor_model.floor_test(blurred, warped, warped >= 0, config)
+    test = plane_consistency.floor_test(blurred, warped, warped >= 0, config)
     raised = np.zeros(left_rect.shape, np.bool_)
     raised[rows, cols] = True
     inner, floor = (
@@ -290,7 +299,7 @@ def test_a_frame_that_relearns_fills_no_departed_region_as_an_obstacle(
 
 
 def test_the_gain_field_follows_a_smooth_light_and_not_what_stands_on_the_floor() -> None:
-    rows, cols, step = 240, 320, floor_model.GAIN_SAMPLE_STEP
+    rows, cols, step = 240, 320, floor_background.GAIN_SAMPLE_STEP
     v, u = np.mgrid[0:rows, 0:cols]
     light = (0.5 + 0.45 / (1.0 + np.exp(-(u - 200.0) / 80.0))) * (1.0 + 0.1 * v / rows)
     rng = np.random.default_rng(0)
@@ -298,13 +307,13 @@ def test_the_gain_field_follows_a_smooth_light_and_not_what_stands_on_the_floor(
     ratio[40:120, 30:110] = 0.2  # a dark crate put down where the floor was learned
     valid = np.ones((rows, cols), np.bool_)
     valid[:, 280:] = False  # not modelled: the field extrapolates there
-    (field,) = floor_model.gain_fields(
+    (field,) = floor_background.gain_fields(
         [ratio[::step, ::step]], valid[::step, ::step], step, (rows, cols)
     )
     error = np.abs(field / light - 1.0)
     assert float(error[:, :280].max()) < 0.04
     assert float(error[:, 280:].max()) < 0.08
-    (flat,) = floor_model.gain_fields(
+    (flat,) = floor_background.gain_fields(
         [np.full((rows // step, cols // step), 0.7, np.float32)],
         valid[::step, ::step],
         step,
@@ -321,10 +330,10 @@ def test_block_medians_from_one_sort_are_numpys_medians() -> None:
         values = rng.uniform(0.0, 3.0, size)
         values[0] = 100.0  # beyond GAIN_RATIO_MAX: taken as it, which no median here reaches
         counts = np.bincount(block, minlength=5)
-        medians = floor_model.block_medians(values, block, counts)
+        medians = floor_background.block_medians(values, block, counts)
         for index in range(5):
             if counts[index]:
-                inside = np.minimum(values[block == index], floor_model.GAIN_RATIO_MAX * 0.999)
+                inside = np.minimum(values[block == index], floor_background.GAIN_RATIO_MAX * 0.999)
                 assert medians[index] == pytest.approx(np.median(inside), abs=1e-9)
             else:
                 assert np.isnan(medians[index])
@@ -435,7 +444,7 @@ def test_a_tall_plain_box_of_the_floors_grey_on_a_plain_floor_is_not_learned_as_
 def test_a_plain_run_beyond_an_obstacles_edge_is_a_top_only_where_it_ends_within_reach() -> None:
     """The runs outward of an edge: a plain top ending at textured floor is marked (past a lone
     noisy pixel), a plain stretch running on past the reach is not, nor is anything inward."""
-    sight = floor_model.LineOfSight((240, 320), (160.0, 120.0))
+    sight = line_of_sight.LineOfSight((240, 320), (160.0, 120.0))
     start = np.zeros((240, 320), np.bool_)
     passable = np.zeros((240, 320), np.bool_)
     start[100:140, 200:202] = True  # an edge to the right of the nadir
@@ -455,7 +464,7 @@ def test_a_plain_run_beyond_an_obstacles_edge_is_a_top_only_where_it_ends_within
     column = np.zeros((10, 1), np.uint8)
     start_bins, passable_bins, runs = column.copy(), column.copy(), column.copy()
     start_bins[9], passable_bins[5:9] = 1, 1
-    floor_model._top_runs(start_bins, passable_bins, 4, 0, runs)
+    line_of_sight._top_runs(start_bins, passable_bins, 4, 0, runs)
     assert runs[:, 0].tolist() == [0, 0, 0, 0, 0, 1, 1, 1, 1, 0]
 
 
@@ -469,7 +478,7 @@ def _blocked_on_synthetic_floor(
     measured = geometry.disparity_px(measured_height_m.astype(np.float32))
     no = np.zeros(textured.shape, np.bool_)
     nan = np.full(textured.shape, np.nan, np.float32)
-    test = floor_model.FloorTest(textured, textured, no, textured, nan, no, no, nan)
+    test = plane_consistency.FloorTest(textured, textured, no, textured, nan, no, no, nan)
     inside = np.ones(textured.shape, np.bool_)
     plain = model._plain_floor_seen(test, inside)
     return model._blocked(test, model.geometry.height_m(measured), inside, plain)
@@ -601,7 +610,7 @@ def test_a_learning_frame_that_finds_a_plain_tops_edge_takes_back_a_confirmation
     model.confirmed[100:140, 230:260] = 200  # … and the floor beyond it, long learnt
     no = np.zeros((height, width), np.bool_)
     nan = np.full((height, width), np.nan, np.float32)
-    test = floor_model.FloorTest(textured, textured, no, textured, nan, no, no, nan)
+    test = plane_consistency.FloorTest(textured, textured, no, textured, nan, no, no, nan)
     image = np.full((height, width), 120.0, np.float32)
     inside = np.ones((height, width), np.bool_)
     model._learn(image, image, inside, test, measured, no, no, no, relearn=False)
@@ -813,7 +822,7 @@ def test_row_support_vouches_only_for_what_the_measurements_bounding_a_run_agree
             [False] * 7,
         ]
     )
-    support = floor_model.row_support(height, anchors, reach_px=6, tolerance_m=0.1)
+    support = floor_rows.row_support(height, anchors, reach_px=6, tolerance_m=0.1)
     assert support.consistent[0, 2] and not support.consistent[1, 2]  # 0.2 m agrees with neither
     assert support.anchored[:2].all() and not support.anchored[2].any()
     bridged = np.isfinite(support.bridge_m)
@@ -821,7 +830,7 @@ def test_row_support_vouches_only_for_what_the_measurements_bounding_a_run_agree
     assert support.bridge_m[0, 3] == pytest.approx(1.0 - 0.02 * 3 / 5, abs=1e-5)
     assert not np.isfinite(support.bridge_m[2]).any()
     # Beyond reach an anchor vouches for nothing.
-    far = floor_model.row_support(height, anchors, reach_px=1, tolerance_m=0.1)
+    far = floor_rows.row_support(height, anchors, reach_px=1, tolerance_m=0.1)
     assert not far.anchored[0, 3] and not np.isfinite(far.bridge_m[0, 3])
 
 
@@ -834,7 +843,7 @@ def test_row_support_gives_the_run_length_of_the_one_nearest_measurement() -> No
     anchors[1, 2:5] = True  # a plain top's edge of three …
     anchors[1, 13] = True  # … and one measurement farther along the row
     heights = np.where(anchors, np.float32(1.0), np.float32(np.nan)).astype(np.float32)
-    run = floor_model.row_support(heights, anchors, 6, 0.1, runs=True).one_sided_run
+    run = floor_rows.row_support(heights, anchors, 6, 0.1, runs=True).one_sided_run
     assert run is not None
     assert run[0, 15] == 10 and run[0, 17] == 10  # 4 and 6 px beyond its last
     assert run[0, 18] == 0  # beyond reach
@@ -864,7 +873,7 @@ def test_column_support_holds_a_floor_reading_its_columns_nearest_measurements_a
     anchors[9, 4] = True
     candidates[18, 5], anchors[19, 5] = True, True  # a row plain along x
     held = np.zeros_like(candidates)
-    floor_model._column_support(gradient_x, height, anchors, candidates, 2, 6, 0.1, held)
+    floor_rows.column_support(gradient_x, height, anchors, candidates, 2, 6, 0.1, held)
     assert held.tolist()[10] == [True, False, False, False, True, False]
     assert not held[18].any()
 
@@ -914,13 +923,13 @@ SYNTHETIC_HEIGHT_M = 6.0
 SYNTHETIC_FOCAL_BASELINE = 277.0 * 0.5
 
 
-def _synthetic_geometry() -> floor_model.FloorGeometry:
+def _synthetic_geometry() -> floor_geometry.FloorGeometry:
     """A pinhole camera 6 m up looking straight down, its nadir at the image's centre: a point's
     depth is its height below the camera at every pixel, and the floor's disparity f·b / 6 m
     (23 px) everywhere."""
     width, height = SYNTHETIC_SIZE
     ray_down = np.ones((height, width), np.float32)
-    return floor_model.FloorGeometry(
+    return floor_geometry.FloorGeometry(
         floor_disparity_px=ray_down * np.float32(SYNTHETIC_FOCAL_BASELINE / SYNTHETIC_HEIGHT_M),
         ray_down=ray_down,
         camera_height_m=SYNTHETIC_HEIGHT_M,
@@ -1062,7 +1071,7 @@ def _coarse_floor(
 
 
 def _corner_error_px(
-    coarse: floor_model.CoarseOffset | None, truth: npt.NDArray[np.float64]
+    coarse: floor_offset.CoarseOffset | None, truth: npt.NDArray[np.float64]
 ) -> float:
     """How far the coarse fit's plane lies from ``truth`` at the image's worst corner."""
     assert coarse is not None
@@ -1086,7 +1095,7 @@ def test_the_coarse_offset_fit_sees_the_floor_past_strongly_textured_pallets(
         deck = (slice(row, row + 22), slice(col, col + 22))
         offset[deck] += 0.55
         usable[deck] = True
-    coarse = floor_model.coarse_floor_offset(offset, usable, basis)
+    coarse = floor_offset.coarse_floor_offset(offset, usable, basis)
     assert _corner_error_px(coarse, truth) < 0.12
 
 
@@ -1104,7 +1113,7 @@ def test_the_coarse_offset_is_the_floor_under_the_low_tops_that_fill_most_blocks
         top = (slice(row * 40 + 5, row * 40 + 35), slice(col * 40 + 5, col * 40 + 35))
         offset[top] += above
         usable[top] = True
-    coarse = floor_model.coarse_floor_offset(offset, usable, basis)
+    coarse = floor_offset.coarse_floor_offset(offset, usable, basis)
     assert _corner_error_px(coarse, truth) < 0.12
 
 
@@ -1124,7 +1133,7 @@ def test_scattered_mismatches_below_the_floor_do_not_pull_the_coarse_offset_down
         scattered[rng.choice(1600, 300, replace=False)] = True
         block[scattered.reshape(40, 40)] += rng.uniform(-1.2, -0.05, 300).astype(np.float32)
         usable[:40, col * 40 : col * 40 + 40] |= scattered.reshape(40, 40)
-    coarse = floor_model.coarse_floor_offset(offset, usable, basis)
+    coarse = floor_offset.coarse_floor_offset(offset, usable, basis)
     assert _corner_error_px(coarse, truth) < 0.12
 
 
@@ -1139,7 +1148,7 @@ def test_the_coarse_offset_takes_no_plane_from_one_row_of_blocks() -> None:
         basis, offset = _coarse_floor(truth, 0.03, rng)
         usable = np.zeros(offset.shape, np.bool_)
         usable[:40] = rng.random((40, offset.shape[1])) < 0.07
-        assert floor_model.coarse_floor_offset(offset, usable, basis) is None
+        assert floor_offset.coarse_floor_offset(offset, usable, basis) is None
 
 
 BLOCKS_MEASURING = ((0, 1), (0, 2), (0, 3), (1, 3), (2, 3))
@@ -1149,7 +1158,7 @@ the right column's three on a wall's foot at the floor, and two at the top with 
 
 def _decks_on_a_plain_floor(
     decks: tuple[tuple[int, int], ...], floor_share: float
-) -> tuple[floor_model.CoarseOffset, npt.NDArray[np.float64], np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[floor_offset.CoarseOffset, npt.NDArray[np.float64], np.ndarray, np.ndarray, np.ndarray]:
     """The blocks of BLOCKS_MEASURING as the coarse fit reports them, ``decks`` among them (a
     textured deck 18 × 18, 0.57 px up, each its block's mode) with ``floor_share`` of the other
     pixels measuring the floor (0.2: about as many as the deck's); and the floor's plane, the
@@ -1170,7 +1179,7 @@ def _decks_on_a_plain_floor(
     )
     places = np.array([[1.0, float(basis[1][s].mean()), float(basis[2][s].mean())] for s in slices])
     modes = places @ truth + np.array([0.57 * (b in decks) for b in BLOCKS_MEASURING])
-    coarse = floor_model.CoarseOffset(np.zeros(3), modes, places, slices)
+    coarse = floor_offset.CoarseOffset(np.zeros(3), modes, places, slices)
     return coarse, truth, offset, usable, basis
 
 
@@ -1190,7 +1199,7 @@ def test_the_fine_fits_restart_from_the_blocks_unless_something_stands_on_the_fl
         coarse, truth, offset, usable, basis = _decks_on_a_plain_floor(decks, floor_share)
         current = truth + np.asarray(shift)
         current_px = np.tensordot(current.astype(np.float32), basis, axes=1)
-        return floor_model.restarts_from_blocks(
+        return floor_offset.restarts_from_blocks(
             coarse, current, current_px, offset, usable, 0.25, started
         )
 
@@ -1423,7 +1432,7 @@ def test_a_plain_top_is_filled_from_its_outlines_measurements_in_the_band_only()
 
 
 def test_the_foot_of_a_point_is_the_pixel_that_sees_the_floor_below_it() -> None:
-    """floor_model._foot against the rectified camera's own projection, the default rig's
+    """floor_geometry.foot_px against the rectified camera's own projection, the default rig's
     camera tilted 25° and 10° about its axes (its nadir off the image's centre, a point moving
     down gains 0.89 m of depth a metre): the point at a height on each pixel's ray, moved
     straight down to the floor and projected, lands on the foot to the rounding."""
@@ -1431,7 +1440,7 @@ def test_the_foot_of_a_point_is_the_pixel_that_sees_the_floor_below_it() -> None
     tilt = rotation_from_vector(np.deg2rad([25.0, -10.0, 0.0]))
     rectifier = replace(straight_down, R_world_rect=straight_down.R_world_rect @ tilt)
     rays = rectifier.pixel_rays_world()
-    geometry = floor_model.FloorGeometry.from_rectifier(rectifier, rays)
+    geometry = floor_geometry.FloorGeometry.from_rectifier(rectifier, rays)
     rng = np.random.default_rng(5)
     height, width = geometry.ray_down.shape
     rows = rng.integers(0, height, 200)
@@ -1439,7 +1448,7 @@ def test_the_foot_of_a_point_is_the_pixel_that_sees_the_floor_below_it() -> None
     heights_m = rng.uniform(0.1, 2.0, 200).astype(np.float32)
     foot_rows, foot_cols = np.array(
         [
-            floor_model._foot(int(r), int(c), float(h), geometry.foot_terms)
+            floor_geometry.foot_px(int(r), int(c), float(h), geometry.foot_terms)
             for r, c, h in zip(rows, cols, heights_m, strict=True)
         ]
     ).T
@@ -1602,17 +1611,19 @@ def test_a_floor_reading_beside_what_was_never_floor_is_not_believed_where_the_i
     the pixel), the texture check counts as failed; the image matching its background keeps the
     rest of the floor's texture check passing."""
     rng = np.random.default_rng(8)
-    geometry = _synthetic_geometry()
     width, height = SYNTHETIC_SIZE
-    model = floor_model.FloorModel(geometry, (0.1, 2.0))
     floor = np.asarray(
         cv2.GaussianBlur(rng.uniform(60, 200, (height, width)).astype(np.float32), (0, 0), 1.2),
         np.float32,
     )
-    model.mean[0] = floor
+    background = np.stack([floor, np.zeros_like(floor)])
     modelled = np.ones((height, width), np.bool_)
     modelled[100:140, 100:140] = False  # an object standing since start-up
-    _, gone = model._texture_checks([floor, floor], [modelled, modelled], modelled)
+    _, gone_sampled = floor_background.texture_checks(
+        background, [floor, floor], [modelled, modelled], modelled
+    )
+    step = floor_background.TEXTURE_SAMPLE_STEP  # its verdicts are on every step-th pixel
+    gone = np.repeat(np.repeat(gone_sampled, step, axis=0), step, axis=1)
     assert gone[120, 96:100].all() and gone[96:100, 120].all()  # within 4 px of it
     assert not gone[120, 60:80].any() and not gone[20:60, 120].any()  # away from it
 

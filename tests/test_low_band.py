@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 
 from services.camera_sim.rig import RigSpec, layout_pairs
-from services.depth.floor_model import FloorGeometry
+from services.depth.floor_geometry import FloorGeometry
 from services.depth.low_band import LowBand
 from services.depth.stereo import MatcherConfig, Rectifier
 from tests.test_floor_model import _textured_pair

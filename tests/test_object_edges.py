@@ -10,10 +10,10 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from common.arrays import F64
 from services.depth.object_edges import ImageView, refine_on_edges
 from services.depth.objects import Detection
 
-F64 = npt.NDArray[np.float64]
 WIDTH, HEIGHT, FOCAL_PX, SUPERSAMPLE = 320, 240, 277.0, 4
 VIEW = ImageView(
     focal_px=FOCAL_PX,

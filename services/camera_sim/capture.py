@@ -5,15 +5,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numpy as np
-import numpy.typing as npt
-
+from common.arrays import U8
 from common.camera import StereoCalibration
 from services.camera_sim.calibration_error import CalibrationError, published_calibration
 from services.camera_sim.render import SceneRenderer
 from services.camera_sim.sensor import CameraSensor, SensorParams
-
-U8 = npt.NDArray[np.uint8]
 
 
 @dataclass(frozen=True)

@@ -23,10 +23,8 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
-import numpy.typing as npt
 
-F32 = npt.NDArray[np.float32]
-U8 = npt.NDArray[np.uint8]
+from common.arrays import F32, U8
 
 DN_MAX = 255.0
 

@@ -173,79 +173,46 @@ Pure numpy/OpenCV, no I/O: the depth pipeline owns one per pair.
 
 from __future__ import annotations
 
-import itertools
 import math
-from dataclasses import dataclass
-from typing import Any, NamedTuple, TypeVar
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
+from common.arrays import F32, U8, Mask
 from common.compiled import compiled
-from services.depth.stereo import Rectifier
-
-F32 = npt.NDArray[np.float32]
-F64 = npt.NDArray[np.float64]
-U8 = npt.NDArray[np.uint8]
-Mask = npt.NDArray[np.bool_]
-ScalarT = TypeVar("ScalarT", np.uint8, np.float32)
+from services.depth.floor_background import (
+    GAIN_MIN_SAMPLES,
+    GAIN_SAMPLE_STEP,
+    UNIT_GAIN,
+    gain_fields,
+    gain_normalised,
+    texture_checks,
+)
+from services.depth.floor_config import FloorModelConfig
+from services.depth.floor_geometry import FloorGeometry, foot_px
+from services.depth.floor_offset import (
+    MIN_FIT_PIXELS,
+    coarse_floor_offset,
+    restarts_from_blocks,
+    robust_affine_fit,
+)
+from services.depth.floor_rows import column_support, row_support
+from services.depth.image_windows import blur, probed, window_max_at
+from services.depth.line_of_sight import LineOfSight
+from services.depth.plane_consistency import FloorTest, floor_shift_2d, floor_test
 
 FLOOR_WINDOW_SHARE = 0.75
 """A stereo seed needs this share of its window measured at the floor's disparity."""
 RESIDUAL_FIT_PX = 0.5
 """The residual is fitted to pixels the floor test measures within this of the floor."""
-RESIDUAL_SCALE_PX = 0.1
-"""Scale of the robust weights in the calibration-residual fit."""
-RESIDUAL_RIDGE = 0.1
-"""Slopes need the pixels spread over the image (variance of u', v' over this) to count fully."""
-MAX_RESIDUAL_PX = 1.0
-"""A good calibration's residual is a fraction of this; a fit beyond it is not believed."""
-MIN_FIT_PIXELS = 200
-"""Fewer pixels than this fit no residual, and a share of fewer modelled pixels decides nothing."""
 SEED_PROBE_PX = 3.0
 """A smooth pixel is touched by a seed this far outward of it (away from the nadir)."""
 EDGE_CREEP_PX = 3
 """Steps (pixels) the learned floor creeps outward toward the edge that stopped its growth
 (:meth:`FloorModel._up_to_edges`)."""
-X_ENERGY_MIN = 0.1
-"""Variance of the x-gradient (gray levels² per pixel²) below which no window is x-textured (nor
-a pixel's own row, over the window's width: rule 6b) …"""
-X_ENERGY_SHARE = 0.06
-"""… nor below this share of the y-gradient's (texture along the baseline: the aperture problem)."""
-GAIN_SAMPLE_STEP = 6
-"""Gains are taken from every this-many-th pixel in each direction (the gain field against the
-background; the floor test's one gain between the cameras)."""
-GAIN_BLOCKS = 4
-"""The gain field starts from the median ratio in each of this many × this many blocks …"""
-GAIN_BLOCK_MIN = 12
-"""… holding at least this many sampled pixels …"""
-GAIN_AGREE = 0.05
-"""… and is one gain, their overall median, while every block's lies within this share of it;
-else a quadratic surface, fitted to the blocks less those it misses by more than this share (an
-object covers them; one at a time, the worst first) …"""
-GAIN_BLOCKS_KEPT = 8
-"""… keeping at least this many …"""
-GAIN_OUTLIER = 0.1
-"""… then to the sampled pixels within this share of that fit (a mover: not the light) …"""
-GAIN_EXTRAPOLATION = 1.25
-"""… and held within this factor of the kept blocks' medians (beyond their centres the surface
-extrapolates)."""
-GAIN_MIN_SAMPLES = 6 * GAIN_BLOCK_MIN
-"""With fewer modelled samples than this the gain is fitted over every pixel with a background;
-with fewer of those, it is 1."""
-GAIN_RATIO_MAX = 64.0
-"""A ratio to the background beyond this is taken as this, for the blocks' medians only."""
-QUADRATIC_TERMS = 6
-UNIT_GAIN = np.ones((1, 1), np.float32)
-"""One gain of 1, as a field that broadcasts (read-only: shared)."""
-UNIT_GAIN.setflags(write=False)
 LINE_ACROSS_PX = 3.0
 """Beyond an inward seed, the floor this much further on is compared with the pixel."""
-LINE_OF_SIGHT_MARGIN_PX = 1.5
-"""An obstacle's foot within this of a pixel does not block it (the floor at an object's base)."""
-LINE_OF_SIGHT_BIN_PX = 2.0
-"""Polar bins of the line-of-sight test, in radius and in arc at the image's rim."""
 TOP_REACH_M = 1.5
 """A plain run beyond an obstacle's edge that ends within this many metres of floor at the
 camera's foot (a top at height h looks C/(C − h) times larger: 1.2 m at 1.2 m up, the widest top
@@ -271,64 +238,6 @@ SAME_SURFACE_M = 0.1
 TEXTURED_FLOOR_SHARE = 0.5
 """A floor this much of which the floor test finds textured is textured: there a plain run is no
 floor (measured: concrete and speckle 0.87–1.0 of the modelled pixels, a plain floor 0.04–0.06)."""
-
-
-@dataclass(frozen=True)
-class FloorModelConfig:
-    enabled: bool = True
-    window_px: int = 5
-    """Side of the floor test's correlation window (processing pixels; odd: centred on its pixel)."""
-    blur_sigma_px: float = 1.0
-    """Gaussian blur before every comparison: sensor noise and JPEG blocks matter less."""
-    texture_gray: float = 1.0
-    """Local standard deviation (gray levels) both windows need for the floor test to speak."""
-    agree_zncc: float = 0.7
-    contradict_zncc: float = 0.3
-    measure_zncc: float = 0.5
-    """Below this correlation the floor test measures no shift …"""
-    measure_energy: float = 4.0
-    """… nor below this x-gradient variance (gray levels² per pixel²): on weaker texture its
-    shift is noisier than the matcher's disparity (on concrete, |residual| p95 0.17 px above 8,
-    0.36–0.64 px below 2, the matcher's 0.24–0.32 px)."""
-    max_shift_px: float = 1.0
-    """The shift is a linearisation: trusted up to this far from the floor's disparity."""
-    floor_shift_px: float = 0.2
-    """Residual shift (processing pixels) within which the floor test agrees (≈ 5 cm)."""
-    raised_shift_px: float = 0.35
-    """Residual shift beyond which it contradicts (≈ 9 cm; the obstacle band starts at 10)."""
-    floor_tolerance_px: float = 0.25
-    """Stereo measures the floor where its disparity is within this of the floor's."""
-    edge_gray: float = 1.0
-    """Gradient (gray levels per pixel, blurred image) that stops the model's growth."""
-    min_seeds: int = 40
-    """A smooth region is learned as floor only with at least this many pixels touched by seeds …"""
-    seed_share: float = 0.002
-    """… and at least this share of its pixels."""
-    match_sigmas: float = 4.0
-    match_min_gray: float = 6.0
-    match_relative: float = 0.05
-    """A pixel matches its background within max(match_sigmas·σ, match_min_gray, match_relative·mean)."""
-    learn_rate: float = 0.05
-    learn_every: int = 4
-    """Learn (grow, line of sight, update) every this many frames; the floor changes slowly."""
-    confirm_frames: int = 2
-    ready_share: float = 0.3
-    """The model reports *ready* once this share of the image is modelled."""
-    relearn_share: float = 0.5
-    """Re-learn when more than this share of the modelled pixels departs at once."""
-    stale_learning_frames: int = 3
-    """Learning frames in a row a modelled pixel departs in texture alone, where the matcher reads
-    the floor and nothing stands, before it starts again from the image (module docstring,
-    Learning); 1–255."""
-    offset_every: int = 4
-    offset_rate: float = 0.5
-
-    def __post_init__(self) -> None:
-        for name in ("stale_learning_frames", "confirm_frames"):  # uint8 counts per pixel
-            if not 1 <= getattr(self, name) <= 255:
-                raise ValueError(f"{name} {getattr(self, name)} is not in 1–255")
-
-
 ROW_REACH_PX = 40
 """How far along a row (processing pixels) a measurement vouches for the matcher's filling."""
 ROW_TOLERANCE_M = 0.1
@@ -364,174 +273,6 @@ the baseline, is the paint's (lane lines are 5–10 cm wide; the model's growth 
 two before each of their edges)."""
 
 
-@dataclass(frozen=True)
-class RowSupport:
-    """What the measurements bounding each pixel along its row say of it (evidence rules 6, 7)."""
-
-    anchored: Mask
-    """A measurement lies within reach on at least one side."""
-    consistent: Mask
-    """Every measurement within reach on either side agrees with the pixel's height."""
-    bridge_m: F32
-    """Where measurements within reach on both sides agree with each other: the height between
-    them, interpolated along the row; NaN elsewhere."""
-    one_sided_run: npt.NDArray[np.int64] | None
-    """Where a measurement lies within reach on one side only: how many measurements in a row
-    the nearest one belongs to (a textured top's many, a plain top's edge a few: rule 6c); 0
-    elsewhere. None unless asked for (it costs 0.4 ms a frame)."""
-
-
-def row_support(
-    height_m: F32, anchors: Mask, reach_px: int, tolerance_m: float, runs: bool = False
-) -> RowSupport:
-    """The nearest anchor (measured pixel) left and right of every pixel in its row, and how their
-    heights relate to the pixel's and to each other (and with ``runs``, the one-sided run)."""
-    anchored = np.empty(height_m.shape, np.bool_)
-    consistent = np.empty(height_m.shape, np.bool_)
-    bridge = np.empty(height_m.shape, np.float32)
-    one_sided_run = np.empty(height_m.shape if runs else (0, 0), np.int64)
-    _scan_rows(
-        height_m, anchors, reach_px, tolerance_m, anchored, consistent, bridge, one_sided_run
-    )
-    return RowSupport(anchored, consistent, bridge, one_sided_run if runs else None)
-
-
-@compiled
-def _scan_rows(
-    height_m: F32,
-    anchors: Mask,
-    reach_px: int,
-    tolerance_m: float,
-    anchored: Mask,
-    consistent: Mask,
-    bridge: F32,
-    one_sided_run: npt.NDArray[np.int64],
-) -> None:
-    """Per row, two passes, the nearest anchor to the left then to the right (a sequential scan:
-    a dozen whole-frame numpy passes cost 3 ms, this 0.2 ms); first the anchors' run lengths,
-    where ``one_sided_run`` is not empty."""
-    rows, cols = height_m.shape
-    tolerance = np.float32(tolerance_m)
-    left_col = np.empty(cols, np.int64)
-    left_height = np.empty(cols, np.float32)
-    run = np.empty(cols, np.int64)
-    runs = one_sided_run.shape[0] > 0
-    for row in range(rows):
-        col = 0
-        while runs and col < cols:
-            start = col
-            while col < cols and anchors[row, col]:
-                col += 1
-            run[start:col] = col - start
-            if col == start:
-                run[col] = 0
-                col += 1
-        last, last_height = -reach_px - 1, np.float32(np.nan)
-        for col in range(cols):
-            if anchors[row, col]:
-                last, last_height = col, height_m[row, col]
-            left_col[col], left_height[col] = last, last_height
-        nearest, nearest_height = cols + reach_px + 1, np.float32(np.nan)
-        for col in range(cols - 1, -1, -1):
-            if anchors[row, col]:
-                nearest, nearest_height = col, height_m[row, col]
-            height, start, start_height = height_m[row, col], left_col[col], left_height[col]
-            near_left, near_right = col - start <= reach_px, nearest - col <= reach_px
-            anchored[row, col] = near_left or near_right
-            if runs:
-                one_sided = near_left != near_right
-                nearest_run = run[start] if near_left else run[min(nearest, cols - 1)]
-                one_sided_run[row, col] = nearest_run if one_sided else 0
-            agrees = True  # NaN never agrees
-            if near_left and not abs(height - start_height) <= tolerance:
-                agrees = False
-            if near_right and not abs(height - nearest_height) <= tolerance:
-                agrees = False
-            consistent[row, col] = agrees
-            if near_left and near_right and abs(start_height - nearest_height) <= tolerance:
-                along = np.float32(col - start) / np.float32(max(nearest - start, 1))
-                bridge[row, col] = start_height + (nearest_height - start_height) * along
-            else:
-                bridge[row, col] = np.float32(np.nan)
-
-
-@compiled
-def _column_support(
-    gradient_x: F32,
-    height_m: F32,
-    anchors: Mask,
-    candidates: Mask,
-    half_px: int,
-    reach_px: int,
-    tolerance_m: float,
-    held: Mask,
-) -> None:
-    """Rule 6b at the ``candidates``: texture along x in the pixel's own row (the x-gradient's
-    variance over ``2·half_px + 1`` columns above X_ENERGY_MIN), and a measurement (``anchors``)
-    within ``reach_px`` up or down its column, every such nearest one agreeing with its height
-    (as :func:`_scan_rows` along a row; NaN never agrees). At the candidates alone: over the
-    whole image (the row's variance by blurs, the row scan on the transpose) the rule cost 0.87
-    ms a frame, so 0.14 ms."""
-    height, width = height_m.shape
-    tolerance = np.float32(tolerance_m)
-    for row in range(height):
-        for col in range(width):
-            if candidates[row, col]:
-                held[row, col] = _row_textured(gradient_x, row, col, half_px) and _column_agrees(
-                    height_m, anchors, row, col, reach_px, tolerance
-                )
-
-
-@compiled
-def _row_textured(gradient_x: F32, row: int, col: int, half_px: int) -> bool:
-    """The x-gradient's variance over the pixel's row, ``half_px`` either side (fewer at the
-    image's edges), is above X_ENERGY_MIN."""
-    first, last = max(col - half_px, 0), min(col + half_px, gradient_x.shape[1] - 1)
-    total, squares = np.float32(0.0), np.float32(0.0)
-    for c in range(first, last + 1):
-        g = gradient_x[row, c]
-        total += g
-        squares += g * g
-    count = np.float32(last - first + 1)
-    mean = total / count
-    return bool(squares / count - mean * mean > np.float32(X_ENERGY_MIN))
-
-
-@compiled
-def _column_agrees(
-    height_m: F32, anchors: Mask, row: int, col: int, reach_px: int, tolerance_m: np.float32
-) -> bool:
-    """An anchor lies within ``reach_px`` up or down the pixel's column, and the nearest on each
-    side agrees with its height within ``tolerance_m`` (NaN never agrees)."""
-    value, anchored = height_m[row, col], False
-    for step in (-1, 1):
-        r = row + step
-        while 0 <= r < height_m.shape[0] and abs(r - row) <= reach_px:
-            if anchors[r, col]:
-                anchored = True
-                if not abs(value - height_m[r, col]) <= tolerance_m:
-                    return False
-                break
-            r += step
-    return anchored
-
-
-@compiled
-def _foot(
-    row: int, col: int, height_m: float, terms: tuple[F32, float, float, float, float]
-) -> tuple[int, int]:
-    """Where the floor straight below the point at ``height_m`` on the pixel's ray shows: on the
-    line from the pixel to the nadir, where vertical lines vanish. Its image is z·p + h·μ·n over
-    z + h·μ (z the point's depth, μ the depth a metre down adds), to the nearest pixel."""
-    ray_down, camera_height_m, depth_per_m_down, nadir_row, nadir_col = terms
-    depth = (camera_height_m - height_m) / ray_down[row, col]
-    weight = height_m * depth_per_m_down / (depth + height_m * depth_per_m_down)
-    return (
-        int(np.rint(row + weight * (nadir_row - row))),
-        int(np.rint(col + weight * (nadir_col - col))),
-    )
-
-
 @compiled
 def _stand(
     measured: F32,
@@ -556,7 +297,7 @@ def _stand(
             chosen_m = np.nan
             for step in range(STANDING_STEPS):
                 height_m = top_m + (lowest_m - top_m) * step / (STANDING_STEPS - 1)
-                foot_row, foot_col = _foot(row, col, height_m, terms)
+                foot_row, foot_col = foot_px(row, col, height_m, terms)
                 inside = 0 <= foot_row < rows and 0 <= foot_col < cols
                 if not (inside and floor_seen[foot_row, foot_col]):
                     chosen_m = height_m
@@ -576,787 +317,6 @@ def floor_everywhere_around(floor: Mask) -> Mask:
     """Pixels whose 3 × 3 neighbourhood is all ``floor`` (outside the image counts as floor)."""
     eroded: Mask = cv2.erode(floor.view(np.uint8), np.ones((3, 3), np.uint8)).view(np.bool_)
     return eroded
-
-
-@dataclass(frozen=True)
-class FloorGeometry:
-    """What the floor model needs of a pair's rectified geometry."""
-
-    floor_disparity_px: F32
-    """Disparity of the plane z = 0 at every rectified pixel."""
-    ray_down: F32
-    """−ray_z of every pixel's ray (scaled so that depth z multiplies it): height = C_z − z·ray_down."""
-    camera_height_m: float
-    focal_baseline_px_m: float
-    """f·b: depth z = f·b / d."""
-    nadir_px: tuple[float, float]
-    """Where vertical lines vanish in the rectified left image (the point below the camera)."""
-    floor_px_per_m: float
-    """Pixels a metre of floor spans below the camera (focal length over camera height)."""
-    depth_per_m_down: float
-    """Depth (along the optical axis) a point gains per metre it moves straight down: 0 for rays
-    that are all vertical (the point below shows at the same pixel)."""
-
-    @staticmethod
-    def from_rectifier(rectifier: Rectifier, rays_world: F32) -> FloorGeometry:
-        down = np.maximum(-rays_world[2].astype(np.float64), 1e-9)
-        height_m = float(rectifier.C_world[2])
-        focal_baseline = rectifier.focal_px * rectifier.baseline_m
-        below = rectifier.R_world_rect.T @ np.array([0.0, 0.0, -1.0])
-        if below[2] <= 1e-6:
-            raise ValueError("the camera does not look down: no floor model")
-        nadir = (
-            rectifier.cx_px + rectifier.focal_px * below[0] / below[2],
-            rectifier.cy_px + rectifier.focal_px * below[1] / below[2],
-        )
-        return FloorGeometry(
-            floor_disparity_px=(focal_baseline * down / height_m).astype(np.float32),
-            ray_down=down.astype(np.float32),
-            camera_height_m=height_m,
-            focal_baseline_px_m=focal_baseline,
-            nadir_px=(float(nadir[0]), float(nadir[1])),
-            floor_px_per_m=rectifier.focal_px / height_m,
-            depth_per_m_down=float(below[2]),
-        )
-
-    @property
-    def foot_terms(self) -> tuple[F32, float, float, float, float]:
-        """What :func:`_foot` needs of the geometry: ray_down, the camera's height, the depth a
-        metre down adds, the nadir's row and column."""
-        return (
-            self.ray_down,
-            self.camera_height_m,
-            self.depth_per_m_down,
-            self.nadir_px[1],
-            self.nadir_px[0],
-        )
-
-    def height_m(self, disparity_px: F32, at: Mask | None = None) -> F32:
-        """The height of the surface at ``disparity_px`` at every pixel, or with ``at`` at those
-        pixels only (``disparity_px`` holds their values, in order): the same figures, without the
-        passes over the rest of the image."""
-        ray_down = self.ray_down if at is None else self.ray_down[at]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            depth = np.float32(self.focal_baseline_px_m) / disparity_px
-        height: F32 = (np.float32(self.camera_height_m) - depth * ray_down).astype(np.float32)
-        return height
-
-    def disparity_px(self, height_m: F32, at: Mask | None = None) -> F32:
-        """The disparity of a surface at ``height_m`` at every pixel (inverse of :meth:`height_m`),
-        or with ``at`` at those pixels only (``height_m`` holds their values, in order)."""
-        ray_down = self.ray_down if at is None else self.ray_down[at]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            disparity: F32 = (
-                np.float32(self.focal_baseline_px_m)
-                * ray_down
-                / (np.float32(self.camera_height_m) - height_m)
-            ).astype(np.float32)
-        return disparity
-
-
-@dataclass(frozen=True)
-class FloorTest:
-    """Left against the floor-warped right, per pixel (see :func:`floor_test`)."""
-
-    textured: Mask
-    """Enough texture in both windows for the test to speak."""
-    x_textured: Mask
-    """Enough texture *along x* for any horizontal-baseline match: elsewhere (a uniform surface,
-    or grain and gaps along the baseline) a disparity is the matcher's interpolation."""
-    along_baseline: Mask
-    """Texture, but hardly any of it along x (grain, board gaps along the baseline)."""
-    matchable: Mask
-    """Texture, and texture along x, in the *left* image's window alone: there the matcher's
-    disparity is a measurement, at whatever height; elsewhere (a uniform surface, sensor noise,
-    texture only across the baseline) the matcher carried it in from around. (``x_textured``
-    needs the floor-warped right image to agree, which a raised surface's does not.)"""
-    shift_px: F32
-    """Disparity minus the floor's, measured to a fraction of a pixel; NaN where not measured."""
-    agree: Mask
-    contradict: Mask
-    left_x_gray: F32
-    """The left image's x-gradient (gray levels per pixel), one of the test's planes: rule 6b
-    reads a pixel's own row of it."""
-
-
-class FloorTestThresholds(NamedTuple):
-    """The floor test's thresholds in float32, as numpy compares a float32 image with a number."""
-
-    texture_var: np.float32
-    agree_zncc: np.float32
-    contradict_zncc: np.float32
-    measure_zncc: np.float32
-    measure_energy: np.float32
-    max_shift_px: np.float32
-    floor_shift_px: np.float32
-    raised_shift_px: np.float32
-
-    @staticmethod
-    def of(config: FloorModelConfig) -> FloorTestThresholds:
-        return FloorTestThresholds(
-            *(
-                np.float32(value)
-                for value in (
-                    config.texture_gray**2,
-                    config.agree_zncc,
-                    config.contradict_zncc,
-                    config.measure_zncc,
-                    config.measure_energy,
-                    config.max_shift_px,
-                    config.floor_shift_px,
-                    config.raised_shift_px,
-                )
-            )
-        )
-
-
-@compiled
-def _floor_decisions(
-    means: F32,
-    inside: Mask,
-    limits: FloorTestThresholds,
-    textured: Mask,
-    x_textured: Mask,
-    along_baseline: Mask,
-    matchable: Mask,
-    shift_px: F32,
-    agree: Mask,
-    contradict: Mask,
-) -> None:
-    """The floor test's verdicts at each pixel from its window means (``FLOOR_TEST_TERMS``'
-    order), in float32 as the numpy expressions they replace: a few dozen whole-image passes
-    cost more than the window sums."""
-    x_energy_min, x_energy_share = np.float32(X_ENERGY_MIN), np.float32(X_ENERGY_SHARE)
-    tiny, nan = np.float32(1e-6), np.float32(np.nan)
-    rows, cols = inside.shape
-    for row in range(rows):
-        for col in range(cols):  # & and | rather than and, or: fewer branches
-            mean_l, mean_r, mean_g = means[0, row, col], means[1, row, col], means[2, row, col]
-            mean_across, mean_lx, mean_ly = (
-                means[3, row, col],
-                means[4, row, col],
-                means[5, row, col],
-            )
-            var_l = means[6, row, col] - mean_l * mean_l
-            var_r = means[7, row, col] - mean_r * mean_r
-            covariance = means[8, row, col] - mean_l * mean_r
-            energy = means[9, row, col] - mean_g * mean_g
-            along = means[10, row, col] - (mean_r - mean_l) * mean_g
-            energy_across = means[11, row, col] - mean_across * mean_across
-            left_energy_x = means[12, row, col] - mean_lx * mean_lx
-            left_energy_y = means[13, row, col] - mean_ly * mean_ly
-            left_textured = var_l > limits.texture_var
-            is_textured = left_textured & (var_r > limits.texture_var) & inside[row, col]
-            zncc = covariance / np.sqrt(max(var_l * var_r, tiny))
-            shift = along / max(energy, tiny)
-            size = abs(shift)
-            # Texture along x, against an absolute floor and against the texture across it: grain
-            # or board gaps along the baseline have gradients, but none along x to match on.
-            is_along = is_textured & (energy < energy_across * x_energy_share)
-            is_x_textured = is_textured & (energy > x_energy_min) & (not is_along)
-            strong = is_x_textured & (energy >= limits.measure_energy)
-            measured = strong & (zncc >= limits.measure_zncc) & (size < limits.max_shift_px)
-            # A shift too large for the linearisation to measure is still no floor.
-            strong &= size >= limits.max_shift_px
-            textured[row, col] = is_textured
-            x_textured[row, col] = is_x_textured
-            along_baseline[row, col] = is_along
-            matchable[row, col] = (
-                left_textured
-                & (left_energy_x > x_energy_min)
-                & (left_energy_x >= left_energy_y * x_energy_share)
-            )
-            shift_px[row, col] = shift if measured else nan
-            agree[row, col] = (
-                measured & (zncc >= limits.agree_zncc) & (size <= limits.floor_shift_px)
-            )
-            contradict[row, col] = is_textured & (
-                (zncc < limits.contradict_zncc)
-                | strong
-                | (measured & (size >= limits.raised_shift_px))
-            )
-
-
-NO_PLANE = -1
-"""A term of :func:`window_means` that is one plane, not a product of two."""
-
-
-def window_means(planes: F32, terms: npt.NDArray[np.int64], window_px: int) -> F32:
-    """The mean over a ``window_px`` square about every pixel of each term, a row of ``terms``:
-    ``planes[i]``, or the float32 product ``planes[i] * planes[j]``, (i, j) or (i, NO_PLANE). Equal
-    to ``cv2.blur`` of each term to the bit (sums in float64 in its order, borders reflected
-    without the edge pixel), in one pass without the products' images: a dozen blurs and their
-    products as numpy passes were the floor test's main cost."""
-    if window_px % 2 != 1:
-        raise ValueError(f"window_means needs an odd window, not {window_px}")
-    means = np.empty((len(terms), *planes.shape[1:]), np.float32)
-    _window_means(np.ascontiguousarray(planes, np.float32), terms, window_px // 2, means)
-    return means
-
-
-@compiled
-def _reflected(index: int, length: int) -> int:
-    """``index`` reflected into [0, length) without repeating the edge (cv2.BORDER_REFLECT_101)."""
-    if length == 1:
-        return 0
-    while index < 0 or index >= length:
-        index = -index if index < 0 else 2 * length - 2 - index
-    return index
-
-
-@compiled
-def _window_means(planes: F32, terms: npt.NDArray[np.int64], half_px: int, means: F32) -> None:
-    """cv2.blur's box filter for float32, term by term: each row's sums along x (left to right),
-    then a running sum of the last rows' sums down each column, scaled once."""
-    _, rows, cols = planes.shape
-    size = 2 * half_px + 1
-    scale = 1.0 / (size * size)
-    padded = np.empty(cols + 2 * half_px, np.float64)
-    row_sums = np.empty((size, cols), np.float64)  # the last ``size`` rows' sums, a ring
-    column = np.empty(cols, np.float64)
-    for term in range(terms.shape[0]):
-        first, product = planes[terms[term, 0]], terms[term, 1] != NO_PLANE
-        second = planes[max(terms[term, 1], 0)]
-        column[:] = 0.0
-        for step in range(rows + 2 * half_px):  # the window's rows from its top, reflected
-            row = _reflected(step - half_px, rows)
-            # Loops over rows' views (not 2-D indexing): so they vectorise.
-            values, first_row, second_row = (
-                padded[half_px : half_px + cols],
-                first[row],
-                second[row],
-            )
-            if product:
-                for col in range(cols):
-                    values[col] = first_row[col] * second_row[col]
-            else:
-                for col in range(cols):
-                    values[col] = first_row[col]
-            for k in range(half_px):
-                padded[half_px - 1 - k] = padded[half_px + _reflected(-1 - k, cols)]
-                padded[half_px + cols + k] = padded[half_px + _reflected(cols + k, cols)]
-            sums = row_sums[step % size]
-            if size == 5:  # the windows this module uses: unrolled, the loop vectorises
-                for col in range(cols):
-                    sums[col] = (
-                        padded[col]
-                        + padded[col + 1]
-                        + padded[col + 2]
-                        + padded[col + 3]
-                        + padded[col + 4]
-                    )
-            else:
-                sums[:] = padded[:cols]
-                for k in range(1, size):
-                    shifted = padded[k : k + cols]
-                    for col in range(cols):
-                        sums[col] += shifted[col]
-            if step < size - 1:
-                for col in range(cols):
-                    column[col] += sums[col]
-                continue
-            out, oldest = means[term, step - size + 1], row_sums[(step + 1) % size]
-            for col in range(cols):
-                total = column[col] + sums[col]
-                out[col] = np.float32(total * scale)
-                column[col] = total - oldest[col]
-
-
-def _gradient(image: F32, dx: int, dy: int, out: F32 | None = None) -> F32:
-    """Sobel derivative along x (dx) or y (dy), in gray levels per pixel of a smoothed image
-    (into ``out`` if given)."""
-    gradient: F32 = np.asarray(
-        cv2.Sobel(image, cv2.CV_32F, dx, dy, dst=out, ksize=3, scale=1.0 / 16.0), np.float32
-    )
-    return gradient
-
-
-FLOOR_TEST_PLANES = ("left", "warped", "gradient", "across", "left_x", "left_y", "error")
-"""The floor test's planes: both images (the right one floor-warped, at the left one's gain), the
-x- and y-gradients of their sum and of the left image, and the right minus the left."""
-_LEFT, _WARPED, _GRADIENT, _ACROSS, _LEFT_X, _LEFT_Y, _ERROR = range(len(FLOOR_TEST_PLANES))
-# The terms whose window means it takes (:func:`_floor_decisions` reads them in this order).
-FLOOR_TEST_TERMS = np.array(
-    [
-        (_LEFT, NO_PLANE),
-        (_WARPED, NO_PLANE),
-        (_GRADIENT, NO_PLANE),
-        (_ACROSS, NO_PLANE),
-        (_LEFT_X, NO_PLANE),
-        (_LEFT_Y, NO_PLANE),
-        (_LEFT, _LEFT),
-        (_WARPED, _WARPED),
-        (_LEFT, _WARPED),
-        (_GRADIENT, _GRADIENT),
-        (_ERROR, _GRADIENT),
-        (_ACROSS, _ACROSS),
-        (_LEFT_X, _LEFT_X),
-        (_LEFT_Y, _LEFT_Y),
-    ],
-    np.int64,
-)
-
-
-def floor_test(left: F32, warped: F32, inside: Mask, config: FloorModelConfig) -> FloorTest:
-    """Zero-mean normalised cross-correlation of ``left`` and ``warped`` (the right image remapped
-    at the floor's disparity) over a small window, and the residual shift between them.
-
-    The shift is one Lucas–Kanade step along x: where the surface has disparity d = d_floor + δ,
-    left(u) = warped(u − δ) ≈ warped(u) − δ·∂warped/∂u, so δ = ⟨(warped − left)·g⟩ / ⟨g²⟩ over the
-    window with g the x-gradient, means removed, after one global gain between the cameras.
-    """
-    step = GAIN_SAMPLE_STEP
-    left_sample, right_sample = left[::step, ::step], warped[::step, ::step]
-    seen = right_sample >= 0
-    ratio = float(left_sample[seen].mean()) / max(float(right_sample[seen].mean()), 1.0)
-    planes = np.empty((len(FLOOR_TEST_PLANES), *left.shape), np.float32)
-    np.copyto(planes[_LEFT], left)
-    warped = np.multiply(warped, np.float32(ratio), out=planes[_WARPED])
-    both = left + warped
-    _gradient(both, 1, 0, out=planes[_GRADIENT])
-    _gradient(both, 0, 1, out=planes[_ACROSS])
-    _gradient(left, 1, 0, out=planes[_LEFT_X])
-    _gradient(left, 0, 1, out=planes[_LEFT_Y])
-    np.subtract(warped, left, out=planes[_ERROR])
-    means = window_means(planes, FLOOR_TEST_TERMS, config.window_px)
-    shape = left.shape
-    test = FloorTest(
-        textured=np.empty(shape, np.bool_),
-        x_textured=np.empty(shape, np.bool_),
-        along_baseline=np.empty(shape, np.bool_),
-        matchable=np.empty(shape, np.bool_),
-        shift_px=np.empty(shape, np.float32),
-        agree=np.empty(shape, np.bool_),
-        contradict=np.empty(shape, np.bool_),
-        left_x_gray=planes[_LEFT_X],
-    )
-    _floor_decisions(
-        means,
-        inside,
-        FloorTestThresholds.of(config),
-        test.textured,
-        test.x_textured,
-        test.along_baseline,
-        test.matchable,
-        test.shift_px,
-        test.agree,
-        test.contradict,
-    )
-    return test
-
-
-def floor_shift_2d(left: F32, warped: F32, config: FloorModelConfig) -> tuple[F32, F32]:
-    """Residual shift (x, y) between ``left`` and ``warped`` per pixel: the 2-D Lucas–Kanade step
-    (x alone is what :func:`floor_test` measures every frame; y shows the rows' misalignment).
-    NaN where the window's gradients leave a component undetermined."""
-    k = (config.window_px, config.window_px)
-    both = left + warped
-    gx = np.asarray(cv2.Sobel(both, cv2.CV_32F, 1, 0, ksize=3, scale=1.0 / 16.0), np.float32)
-    gy = np.asarray(cv2.Sobel(both, cv2.CV_32F, 0, 1, ksize=3, scale=1.0 / 16.0), np.float32)
-    error = warped - left
-    # Zero-mean in each window, as the correlation is: a gain or offset between cameras is no shift.
-    error -= np.asarray(cv2.blur(error, k), np.float32)
-    gx -= np.asarray(cv2.blur(gx, k), np.float32)
-    gy -= np.asarray(cv2.blur(gy, k), np.float32)
-    xx, xy, yy = cv2.blur(gx * gx, k), cv2.blur(gx * gy, k), cv2.blur(gy * gy, k)
-    ex, ey = cv2.blur(error * gx, k), cv2.blur(error * gy, k)
-    det = xx * yy - xy * xy
-    floor = config.texture_gray**2
-    determined = (det > floor * np.maximum(xx, yy)) & (np.minimum(xx, yy) > floor / 2)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        shift_x = np.where(determined, (yy * ex - xy * ey) / det, np.nan).astype(np.float32)
-        shift_y = np.where(determined, (xx * ey - xy * ex) / det, np.nan).astype(np.float32)
-    return shift_x, shift_y
-
-
-def _median(values: npt.NDArray[np.floating[Any]]) -> float:
-    """``np.median`` of finite values (the middle one, or the float32 mean of the middle two),
-    without its general machinery: on the few thousand values of a block or a gain sample that
-    was most of its cost."""
-    middle = values.size // 2
-    if values.size % 2:
-        return float(np.partition(values, middle)[middle])
-    return float(np.mean(np.partition(values, (middle - 1, middle))[middle - 1 : middle + 1]))
-
-
-def gain_fields(ratios: list[F32], valid: Mask, step: int, shape: tuple[int, int]) -> list[F32]:
-    """The gain of each camera against its background over the image (``shape``), from its
-    ``ratios`` (image over background) at every ``step``-th pixel where ``valid``. A lighting
-    circuit switched off over part of a hall darkens the floor by a factor that varies over metres
-    (0.26–0.51 across one view in the simulation), which no single gain takes off: where the
-    blocks' medians spread wider than ``GAIN_AGREE`` about the overall median, a quadratic surface
-    in the pixel (to 2.5 % on that light, :func:`_gain_surface`); else the overall median, one
-    gain (exposure, a uniform change), as a 1 × 1 field that broadcasts."""
-    rows, cols = shape
-    v_sample, u_sample = np.nonzero(valid)
-    if v_sample.size < GAIN_MIN_SAMPLES:
-        return [UNIT_GAIN for _ in ratios]
-    u_norm = (u_sample * (2.0 * step / max(cols - 1, 1)) - 1.0).astype(np.float64)
-    v_norm = (v_sample * (2.0 * step / max(rows - 1, 1)) - 1.0).astype(np.float64)
-    band_v = np.minimum(v_sample * GAIN_BLOCKS // valid.shape[0], GAIN_BLOCKS - 1)
-    band_u = np.minimum(u_sample * GAIN_BLOCKS // valid.shape[1], GAIN_BLOCKS - 1)
-    block = band_v * GAIN_BLOCKS + band_u
-    counts = np.bincount(block, minlength=GAIN_BLOCKS * GAIN_BLOCKS)
-    full = counts >= GAIN_BLOCK_MIN
-    centre_u = (np.bincount(block, u_norm, counts.size) / np.maximum(counts, 1))[full]
-    centre_v = (np.bincount(block, v_norm, counts.size) / np.maximum(counts, 1))[full]
-    fields = []
-    for ratio in ratios:
-        values: F64 = ratio[v_sample, u_sample].astype(np.float64)
-        overall = max(_median(values), 1e-3)  # at least: a covered lens, the lights all out
-        medians = block_medians(values, block, counts)[full]
-        if medians.size < QUADRATIC_TERMS or np.all(np.abs(medians / overall - 1.0) <= GAIN_AGREE):
-            fields.append(np.full((1, 1), overall, np.float32))
-            continue
-        coef, kept = _gain_surface(centre_u, centre_v, medians, u_norm, v_norm, values)
-        across, down = np.linspace(-1.0, 1.0, cols), np.linspace(-1.0, 1.0, rows)
-        along_u = coef[0] + coef[1] * across + coef[3] * across * across
-        along_v = coef[2] * down + coef[5] * down * down
-        field = np.outer(coef[4] * down, across) + along_u[None, :] + along_v[:, None]
-        lowest = float(medians[kept].min()) / GAIN_EXTRAPOLATION
-        highest = float(medians[kept].max()) * GAIN_EXTRAPOLATION
-        fields.append(np.clip(field, lowest, highest).astype(np.float32))
-    return fields
-
-
-def _gain_normalised(image: F32, gain: F32) -> F32:
-    """``image`` on its background's scale: divided by its gain field (a gain held at 1e-3 at
-    least: a covered lens gives no infinities)."""
-    return (image / np.maximum(gain, np.float32(1e-3))).astype(np.float32, copy=False)
-
-
-def block_medians(values: F64, block: npt.NDArray[np.intp], counts: npt.NDArray[np.intp]) -> F64:
-    """The median of ``values`` in each block (``block`` is each value's, ``counts`` the blocks'
-    sizes; NaN for an empty block), from one sort: values clipped to [0, GAIN_RATIO_MAX) and
-    offset by their block's index times it sort by block, then by value."""
-    if values.size == 0:
-        return np.full(counts.size, np.nan)
-    keyed = np.sort(block * GAIN_RATIO_MAX + np.clip(values, 0.0, GAIN_RATIO_MAX * 0.999))
-    starts = np.cumsum(counts) - counts
-    middle_low = np.clip(starts + (counts - 1) // 2, 0, keyed.size - 1)
-    middle_high = np.clip(starts + counts // 2, 0, keyed.size - 1)
-    offsets = np.arange(counts.size) * GAIN_RATIO_MAX
-    medians: F64 = (keyed[middle_low] + keyed[middle_high]) / 2.0 - offsets
-    return np.where(counts > 0, medians, np.nan)
-
-
-def _gain_surface(
-    centre_u: F64, centre_v: F64, medians: F64, u_norm: F64, v_norm: F64, values: F64
-) -> tuple[F64, Mask]:
-    """The quadratic a + b·u + c·v + d·u² + e·u·v + f·v² through the blocks' medians, less the
-    block it misses most while it misses one by over ``GAIN_AGREE`` (``GAIN_BLOCKS_KEPT`` kept),
-    then through the sampled pixels within ``GAIN_OUTLIER`` of that; and the blocks kept."""
-
-    def basis(u: F64, v: F64) -> F64:
-        return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1).astype(np.float64)
-
-    def fit(a: F64, y: F64) -> F64:
-        # The normal equations: 25 µs a call here, lstsq's SVD 90 µs.
-        normal = a.T @ a + 1e-9 * np.eye(QUADRATIC_TERMS)
-        return np.linalg.solve(normal, a.T @ y).astype(np.float64)
-
-    at = basis(centre_u, centre_v)
-    blocks = np.ones(medians.size, np.bool_)
-    while True:
-        coef = fit(at[blocks], medians[blocks])
-        missed = np.abs(medians / np.maximum(at @ coef, 1e-3) - 1.0)
-        worst = int(np.argmax(np.where(blocks, missed, -1.0)))
-        if missed[worst] <= GAIN_AGREE or np.count_nonzero(blocks) <= GAIN_BLOCKS_KEPT:
-            break
-        blocks[worst] = False
-    pixels = basis(u_norm, v_norm)
-    near = np.abs(values / np.maximum(pixels @ coef, 1e-3) - 1.0) <= GAIN_OUTLIER
-    if np.count_nonzero(near) >= GAIN_MIN_SAMPLES:
-        coef = fit(pixels[near], values[near])
-    return coef, blocks
-
-
-def robust_affine_fit(basis: npt.NDArray[np.float32], values: F32) -> npt.NDArray[np.float64]:
-    """a + b·u' + c·v' by least squares with Cauchy weights (scale ``RESIDUAL_SCALE_PX``), the
-    slopes held toward zero (ridge): the floor's residual is a fraction of a pixel, pixels on low
-    objects or mismatches must not pull it, and pixels bunched in one corner of the image must
-    not tilt it across the rest."""
-    weights = np.ones(values.size, np.float64)
-    a = basis.astype(np.float64)
-    coef: npt.NDArray[np.float64] = np.zeros(basis.shape[1], np.float64)
-    for _ in range(3):
-        ridge = np.diag([0.0] + [RESIDUAL_RIDGE * float(weights.sum())] * (basis.shape[1] - 1))
-        weighted = (a * weights[:, None]).T
-        normal = weighted @ a + ridge
-        coef = np.asarray(np.linalg.solve(normal, weighted @ values), np.float64)
-        weights = 1.0 / (1.0 + ((values - a @ coef) / RESIDUAL_SCALE_PX) ** 2)
-    clipped: npt.NDArray[np.float64] = np.clip(coef, -MAX_RESIDUAL_PX, MAX_RESIDUAL_PX)
-    return clipped
-
-
-OFFSET_CAPTURE_PX = 1.5
-"""The coarse offset fit looks for the floor this far either side of the calibration's floor
-disparity (a poor calibration is off by ±1 px at the image's edges: ``--seed 2``'s p0)."""
-OFFSET_BLOCKS = (4, 3)
-"""Columns × rows of image blocks the coarse fit takes one floor offset from each."""
-OFFSET_BIN_PX = 0.05
-OFFSET_OUTLIER_PX = 0.3
-"""A block whose mode lies further than this from the floor's plane is not the floor's (a
-pallet)."""
-BELOW_FLOOR_COST = 4.0
-"""A block's mode further than OFFSET_OUTLIER_PX below a plane costs this many times one as far
-above (nothing stands below the floor; a plane through low tops leaves the floor below it)."""
-MIN_FLOOR_BLOCKS = 4
-"""The coarse fit needs this many blocks on its plane: the three that make it and one more."""
-MIN_TRIO_SPAN = 0.1
-"""Three blocks whose modes' places span less than this (twice their triangle's area in
-(u', v'), the image 2 × 2; two blocks side by side and one below span 0.33) make no plane: with
-one row of blocks measuring, they lie in a line but for the scatter of their pixels (0.02), and a
-plane through them took its slope across the row from that scatter (1.0 px, the clip, 1.7 px off
-at a corner; a review)."""
-
-
-@dataclass(frozen=True)
-class CoarseOffset:
-    """The floor's disparity offset found without a starting guess (:func:`coarse_floor_offset`)."""
-
-    coef: npt.NDArray[np.float64]
-    """Affine a + b·u' + c·v' through the blocks' modes."""
-    modes_px: npt.NDArray[np.float64]
-    """Each block's mode (the floor's offset there), and where it is in (u', v')."""
-    basis: npt.NDArray[np.float64]
-    blocks: tuple[tuple[slice, slice], ...]
-    """Each block's rows and columns in the offsets the fit was given."""
-
-
-def coarse_floor_offset(
-    offset_px: F32, usable: Mask, basis: npt.NDArray[np.float32]
-) -> CoarseOffset | None:
-    """The floor's disparity offset (measured minus the calibration's floor disparity) over the
-    image, with no starting guess: in each block the mode of the offsets within
-    ±``OFFSET_CAPTURE_PX``, placed where the pixels that make the mode are; then the plane
-    through three blocks' modes that explains them best, one vote a block (a pallet's strongly
-    textured deck must not outweigh sparse concrete): a block costs its squared distance, at most
-    ``OFFSET_OUTLIER_PX``² (something standing on the floor), and ``BELOW_FLOOR_COST`` times that
-    where it lies further below (nothing stands below the floor); and the affine fit through the
-    blocks within ``OFFSET_OUTLIER_PX`` of it (at least ``MIN_FLOOR_BLOCKS``). Blocks whose modes
-    lie coherently a pixel below the floor (not seen on the renders: a reflection on a glossy
-    floor could) would tilt it: two of twelve did by 1.2 px in a review's test. A block's mode is
-    the floor only where the floor is most of what the matcher measures there; on a plain floor
-    the textured tops of low boxes are, in most blocks: grown from the modes' median, the fit went
-    through them (``--floor plain --seed 4``: a pair's floor 1 px high, a 0.3 m box 86 % free).
-    The fine fits start from it: they only see pixels near their current estimate, and from a
-    wrong start they creep (0.02 px a fit) or never begin."""
-    height, width = offset_px.shape
-    cols, rows = OFFSET_BLOCKS
-    edges = np.arange(-OFFSET_CAPTURE_PX, OFFSET_CAPTURE_PX + OFFSET_BIN_PX / 2, OFFSET_BIN_PX)
-    modes, where, slices = [], [], []
-    with np.errstate(invalid="ignore"):
-        near = usable & (np.abs(offset_px) < OFFSET_CAPTURE_PX)
-    for j in range(rows):
-        for i in range(cols):
-            block = (
-                slice(j * height // rows, (j + 1) * height // rows),
-                slice(i * width // cols, (i + 1) * width // cols),
-            )
-            chosen = near[block]
-            values = offset_px[block][chosen]
-            if values.size < MIN_FIT_PIXELS // 4:
-                continue
-            # np.histogram's counts (edges[k] <= value < edges[k + 1]; every value lies within them)
-            # without its sort.
-            histogram = np.bincount(
-                np.searchsorted(edges, values, side="right") - 1, minlength=edges.size - 1
-            )
-            smooth = np.convolve(histogram, np.ones(3), mode="same")
-            peak = int(np.argmax(smooth))
-            centre = (edges[peak] + edges[peak + 1]) / 2
-            around = np.abs(values - centre) <= 2 * OFFSET_BIN_PX
-            modes.append(_median(values[around]))
-            where.append(basis[:, block[0], block[1]][:, chosen][:, around].mean(axis=1))
-            slices.append(block)
-    if len(modes) < MIN_FLOOR_BLOCKS:
-        return None
-    a = np.asarray(where, np.float64)
-    b = np.asarray(modes, np.float64)
-    # Every plane through three blocks, scored at once: the cheapest is the floor's.
-    trios = np.array(list(itertools.combinations(range(len(b)), 3)), np.intp)
-    trio_basis = a[trios]  # (trios, 3 blocks, 3 terms)
-    planar = np.abs(np.linalg.det(trio_basis)) > MIN_TRIO_SPAN
-    if not planar.any():
-        return None
-    trios, trio_basis = trios[planar], trio_basis[planar]
-    planes = np.linalg.solve(trio_basis, b[trios][..., None])[..., 0]  # (trios, 3 terms)
-    residual_px = b[None, :] - planes @ a.T  # (trios, blocks)
-    limit_px2 = OFFSET_OUTLIER_PX**2
-    cost = np.where(
-        residual_px < -OFFSET_OUTLIER_PX,
-        BELOW_FLOOR_COST * limit_px2,
-        np.minimum(residual_px**2, limit_px2),
-    )
-    keep = np.abs(residual_px[int(np.argmin(cost.sum(axis=1)))]) <= OFFSET_OUTLIER_PX
-    if int(keep.sum()) < MIN_FLOOR_BLOCKS:
-        return None
-    coef = np.linalg.lstsq(a[keep], b[keep], rcond=None)[0]
-    clipped = np.clip(coef, -MAX_RESIDUAL_PX, MAX_RESIDUAL_PX)
-    blocks = tuple(slices[k] for k in np.flatnonzero(keep))
-    return CoarseOffset(coef=clipped, modes_px=b[keep], basis=a[keep], blocks=blocks)
-
-
-FLOOR_STILL_SEEN_SHARE = 0.5
-"""A block whose mode lies off the current floor still shows that floor where at least this share
-as many of its offsets lie near the floor as near its mode."""
-
-
-def restarts_from_blocks(
-    coarse: CoarseOffset,
-    current_coef: npt.NDArray[np.float64],
-    current_px: F32,
-    offset_px: F32,
-    usable: Mask,
-    tolerance_px: float,
-    started: bool,
-) -> bool:
-    """Whether the fine fits begin again from the coarse fit's plane: where a quarter of its
-    blocks (two at least) lie further than ``tolerance_px`` from the current floor
-    (``current_coef``; ``current_px`` at each of ``offset_px``'s pixels). Eager: the blocks'
-    fit is robust, and starting again from it beat waiting for a third of the blocks by 0.02 of
-    IoU on the poorly calibrated seeds 2, 4 and 5.
-
-    But not, once ``started`` (the blocks have been compared with the current floor before: at
-    first it is no estimate), where those blocks all lie above the current floor and are half
-    the blocks or fewer, or where each of them still shows it (FLOOR_STILL_SEEN_SHARE as many of
-    its ``offset_px`` near it as near its mode): what made their modes stands on that floor, the
-    floor has not moved. On a plain floor a pallet's textured deck made two of the five blocks
-    that measured, and the plane through the decks and the other three took that pair's floor
-    0.5 px up, through the deck (``--floor plain --seed 2``: 0.97 of the deck's cells read as floor
-    in a frame, 347 of its 384 free in the map, until the next restart 3.5 s on). Either test
-    alone missed cases the other caught on the plain floors (the floor beside a plain top has no
-    texture to show). A camera knocked askew restarts where its floor fell in a block or rose in
-    most of them and left them; where it rose in half the blocks or fewer and fell in none, this
-    declines, and the fine fits, which see only pixels within ``floor_tolerance_px`` of their
-    floor, follow no rise beyond it: a limit, untested (telling a deck from a risen floor by where
-    its pixels lie, a compact patch or spread over the block, is untried)."""
-    off_px = coarse.modes_px - coarse.basis @ current_coef
-    off = np.abs(off_px) > tolerance_px
-    off_count = int(np.count_nonzero(off))
-    if off_count < max(2, off.size // 4):
-        return False
-    if not started:
-        return True
-    if not np.any(off_px < -tolerance_px) and 2 * off_count <= off.size:
-        return False
-    with np.errstate(invalid="ignore"):
-        for k in np.flatnonzero(off):
-            rows, cols = coarse.blocks[k]
-            chosen = usable[rows, cols]
-            values = offset_px[rows, cols][chosen]
-            near_floor = np.count_nonzero(
-                np.abs(values - current_px[rows, cols][chosen]) <= tolerance_px
-            )
-            near_mode = np.count_nonzero(np.abs(values - coarse.modes_px[k]) <= tolerance_px)
-            if near_floor < FLOOR_STILL_SEEN_SHARE * near_mode:
-                return True
-    return False
-
-
-class LineOfSight:
-    """Pixels whose ray to the floor passes through the column under a measured obstacle point.
-
-    A vertical segment (an obstacle point and the floor below it) images as a segment toward the
-    nadir: from the point's pixel inward to its foot, at a radius (1 − h/C_z) times the point's
-    from the nadir. In polar coordinates about the nadir that is a run along the radius, so "is any
-    column over me" is a cumulative minimum of the feet's radii from the rim inward.
-    """
-
-    def __init__(self, shape: tuple[int, int], nadir_px: tuple[float, float]) -> None:
-        height, width = shape
-        cx, cy = nadir_px
-        corners = np.array([[0, 0], [width, 0], [0, height], [width, height]], np.float64)
-        max_radius = float(np.max(np.hypot(corners[:, 0] - cx, corners[:, 1] - cy)))
-        step = LINE_OF_SIGHT_BIN_PX
-        radii = max(2, math.ceil(max_radius / step))
-        angles = max(8, math.ceil(2 * math.pi * max_radius / step))
-        # Rows run from the rim inward, so the cumulative minimum runs down the rows.
-        radius = (np.arange(radii, dtype=np.float64)[::-1] * step)[:, None]
-        theta = np.linspace(0, 2 * math.pi, angles, endpoint=False, dtype=np.float64)[None, :]
-        self._to_polar = (
-            (cx + radius * np.cos(theta)).astype(np.float32),
-            (cy + radius * np.sin(theta)).astype(np.float32),
-        )
-        self._inner_radius = np.ascontiguousarray(
-            np.broadcast_to((radius - LINE_OF_SIGHT_MARGIN_PX).astype(np.float32), (radii, angles))
-        )
-        v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-        self.pixel_radius_px = np.hypot(u - cx, v - cy).astype(np.float32)
-        back_theta = np.mod(np.arctan2(v - cy, u - cx), 2 * math.pi)
-        self._from_polar = (
-            np.mod(np.round(back_theta * angles / (2 * math.pi)), angles).astype(np.float32),
-            (radii - 1 - np.minimum(np.round(self.pixel_radius_px / step), radii - 1)).astype(
-                np.float32
-            ),
-        )
-        self._spread = np.ones((2 * math.ceil(step) + 1,) * 2, np.uint8)
-
-    def top_runs(self, start: Mask, passable: Mask, reach_px: float, grace_px: float) -> Mask:
-        """Pixels on a closed run of ``passable`` ones outward (away from the nadir) of a ``start``
-        pixel: one that ends within ``reach_px`` at pixels that are not passable or at the image's
-        edge (an open run is floor, or a top too large to tell from it). The first ``grace_px``
-        need not be passable (the start's own window holds texture)."""
-        step = LINE_OF_SIGHT_BIN_PX
-        polar_start = self._polar(
-            np.asarray(cv2.dilate(start.view(np.uint8), self._spread), np.uint8), 0
-        )
-        polar_passable = self._polar(passable.view(np.uint8), 0)
-        runs = np.zeros_like(polar_start)
-        _top_runs(polar_start, polar_passable, round(reach_px / step), round(grace_px / step), runs)
-        return self._image(runs)
-
-    def blocked(self, foot_radius_px: F32) -> Mask:
-        """``foot_radius_px``: per pixel, the radius of its obstacle point's foot (inf: none)."""
-        # A minimum over the polar bins' spacing first, so no column falls between two rays.
-        polar = self._polar(np.asarray(cv2.erode(foot_radius_px, self._spread), np.float32), np.inf)
-        inward = np.minimum.accumulate(polar, axis=0)
-        return self._image((inward < self._inner_radius).view(np.uint8))
-
-    def _polar(self, image: npt.NDArray[ScalarT], outside: float) -> npt.NDArray[ScalarT]:
-        """``image`` on the polar bins (rows from the rim inward, a column per angle); bins past
-        the image's edge take ``outside``."""
-        polar: npt.NDArray[ScalarT] = np.asarray(
-            cv2.remap(
-                image,
-                *self._to_polar,
-                cv2.INTER_NEAREST,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=outside,
-            ),
-            image.dtype,
-        )
-        return polar
-
-    def _image(self, polar: U8) -> Mask:
-        """A mask on the polar bins back on the image's pixels."""
-        mask: Mask = cv2.remap(polar, *self._from_polar, cv2.INTER_NEAREST) > 0
-        return mask
-
-
-@compiled
-def _top_runs(start: U8, passable: U8, reach_bins: int, grace_bins: int, runs: U8) -> None:
-    """Per polar column (an angle about the nadir; rows run from the rim inward), from the nadir
-    outward: a start opens a run, which goes on over passable bins (any bin for the first
-    ``grace_bins``, and a lone other one: sensor noise passes for texture now and then on a plain
-    surface) and ends at two others in a row; a run still open after ``reach_bins`` is taken
-    back."""
-    radii, angles = start.shape
-    for angle in range(angles):
-        left, grace, first = 0, 0, 0
-        for row in range(radii - 1, -1, -1):
-            goes_on = passable[row, angle] or (row > 0 and passable[row - 1, angle])
-            if start[row, angle]:
-                left, grace, first = reach_bins, grace_bins, row - 1
-            elif left > 0 and (goes_on or grace > 0):
-                runs[row, angle] = 1
-                left -= 1
-                grace = max(grace - 1, 0)
-                if left == 0 and row > 0 and passable[row - 1, angle]:  # it would go on
-                    runs[row : first + 1, angle] = 0
-            else:
-                left = 0
 
 
 @compiled
@@ -1460,166 +420,6 @@ def _paint_gaps(floor: Mask, candidates: Mask, gap_px: F32, paint: Mask) -> None
                 for inner in range(last + 1, row):
                     paint[inner, col] = candidates[inner, col]
             last = row
-
-
-BACKGROUND_TEXTURE_WINDOW_PX = 10
-TEXTURE_SAMPLE_STEP = 2
-TEXTURE_WINDOW_SIDES = (0, 1, 0)
-"""The texture checks' weighted windows (:meth:`FloorModel._texture_checks`), by camera: the
-background's texture kept in either camera (over its pixels alike their background), and gone in
-the left one (over the modelled pixels)."""
-_KEPT_WINDOWS, _GONE_WINDOW = (0, 1), 2
-"""Which of those windows each check reads (:func:`_texture_verdicts`)."""
-_MEAN_PLANES, _IMAGE_PLANES = (0, 1), (2, 3)
-"""The texture checks' planes on the sampled grid: each camera's background mean and image; then,
-per window, its weight and the background and image where weighted (zero elsewhere)."""
-
-
-def _window_planes(window: int) -> tuple[int, int, int]:
-    """The weight, weighted background and weighted image planes of a texture window."""
-    first = len(_MEAN_PLANES) + len(_IMAGE_PLANES) + 3 * window
-    return first, first + 1, first + 2
-
-
-def _window_terms(window: int, side: int) -> tuple[tuple[int, int], ...]:
-    """A texture window's terms: its weight, weighted background and image, and their products
-    with the camera's background and image (:func:`_window_moments` reads them in this order)."""
-    weight, background, now = _window_planes(window)
-    return (
-        (weight, NO_PLANE),
-        (background, NO_PLANE),
-        (now, NO_PLANE),
-        (background, _MEAN_PLANES[side]),
-        (now, _IMAGE_PLANES[side]),
-        (now, _MEAN_PLANES[side]),
-    )
-
-
-TERMS_PER_TEXTURE_WINDOW = len(_window_terms(0, 0))
-TEXTURE_PLANE_COUNT = _window_planes(len(TEXTURE_WINDOW_SIDES))[0]
-TEXTURE_TERMS = np.array(
-    [
-        term
-        for window, side in enumerate(TEXTURE_WINDOW_SIDES)
-        for term in _window_terms(window, side)
-    ],
-    np.int64,
-)
-"""Every texture window's terms, window after window."""
-BACKGROUND_TEXTURE_GRAY = 1.5
-"""Local standard deviation (gray levels) of a background below which it has no texture to check."""
-COVERED_ZNCC = 0.3
-"""Correlation of image and background below which the background's texture is gone (a shadow
-scales it: about 1; another surface: about 0)."""
-MODELLED_WINDOW_SHARE = 0.95
-"""A window less modelled than this holds something that was never floor: its texture check fails."""
-TEXTURE_KEPT = 0.5
-"""Share of the background's texture (regression slope) a pixel must still show to match it."""
-
-
-@compiled
-def _window_moments(
-    means: F32, window: int, row: int, col: int
-) -> tuple[np.float32, np.float32, np.float32, np.float32]:
-    """A texture window's weighted share, background and image variances and their covariance at
-    one pixel of the sampled grid, in float32 as numpy computes them; NaN where the window holds
-    no weighted pixel."""
-    first = TERMS_PER_TEXTURE_WINDOW * window
-    share = means[first, row, col]
-    if share == 0:  # every weighted sum is 0 too: numpy's 0 / 0
-        nan = np.float32(np.nan)
-        return share, nan, nan, nan
-    mean_bg = means[first + 1, row, col] / share
-    mean_now = means[first + 2, row, col] / share
-    var_bg = means[first + 3, row, col] / share - mean_bg * mean_bg
-    var_now = means[first + 4, row, col] / share - mean_now * mean_now
-    covariance = means[first + 5, row, col] / share - mean_now * mean_bg
-    return share, var_bg, var_now, covariance
-
-
-@compiled
-def _texture_verdicts(means: F32, kept: Mask, gone: Mask) -> None:
-    """Per pixel of the sampled grid, from the windows' means (``TEXTURE_TERMS``): both cameras'
-    background texture kept, and the left one's gone (:meth:`FloorModel._texture_checks`)."""
-    textured_var = np.float32(BACKGROUND_TEXTURE_GRAY**2)
-    kept_slope, covered_zncc = np.float32(TEXTURE_KEPT), np.float32(COVERED_ZNCC)
-    modelled_share, tiny = np.float32(MODELLED_WINDOW_SHARE), np.float32(1e-6)
-    rows, cols = kept.shape
-    for row in range(rows):
-        for col in range(cols):
-            both_kept = True
-            for window in _KEPT_WINDOWS:  # a plain background (or none: NaN): nothing to check
-                _, var_bg, _, covariance = _window_moments(means, window, row, col)
-                if var_bg >= textured_var and not covariance / var_bg >= kept_slope:
-                    both_kept = False
-            kept[row, col] = both_kept
-            share, var_bg, var_now, covariance = _window_moments(means, _GONE_WINDOW, row, col)
-            is_gone = share < modelled_share
-            if var_bg >= textured_var:
-                zncc = covariance / np.sqrt(max(var_bg * var_now, tiny))
-                is_gone |= zncc < covered_zncc
-            gone[row, col] = is_gone
-
-
-ProbedT = TypeVar("ProbedT", np.bool_, np.float32)
-
-
-def _probed(
-    image: npt.NDArray[ProbedT], probe: npt.NDArray[np.int64], outside: ProbedT
-) -> npt.NDArray[ProbedT]:
-    """``image`` at each pixel's probe (:meth:`FloorModel.__init__`), ``outside`` beyond the
-    image: cv2.remap's nearest neighbour without its per-call map decoding (a third of a
-    millisecond each)."""
-    if image.shape != probe.shape:  # the kernel reads wherever an index points
-        raise ValueError(f"probe of shape {probe.shape} for an image of {image.shape}")
-    picked = np.empty_like(image)
-    _gather(image.ravel(), probe.ravel(), outside, picked.ravel())
-    return picked
-
-
-@compiled
-def _gather(
-    values: npt.NDArray[Any], index: npt.NDArray[np.int64], outside: Any, out: npt.NDArray[Any]
-) -> None:
-    """``out[i] = values[index[i]]``, ``outside`` where the index is negative."""
-    for pixel in range(index.size):
-        out[pixel] = values[index[pixel]] if index[pixel] >= 0 else outside
-
-
-WindowT = TypeVar("WindowT", np.int32, np.float32)
-
-
-def _window_max_at(values: npt.NDArray[WindowT], half_px: int, at: Mask) -> npt.NDArray[WindowT]:
-    """The maximum of ``values`` over the (2·half_px + 1)² square about each pixel of ``at``,
-    in order, pixels beyond the image not counted: ``cv2.dilate``'s figures at a few pixels,
-    without dilating the whole image."""
-    maxima = np.empty(np.count_nonzero(at), values.dtype)
-    _window_max(values, half_px, at, maxima)
-    return maxima
-
-
-@compiled
-def _window_max(values: npt.NDArray[Any], half_px: int, at: Mask, maxima: npt.NDArray[Any]) -> None:
-    """:func:`_window_max_at`'s loop."""
-    rows, cols = values.shape
-    found = 0
-    for row in range(rows):
-        for col in range(cols):
-            if not at[row, col]:
-                continue
-            top = values[row, col]
-            for near_row in range(max(row - half_px, 0), min(row + half_px + 1, rows)):
-                for near_col in range(max(col - half_px, 0), min(col + half_px + 1, cols)):
-                    top = max(top, values[near_row, near_col])
-            maxima[found] = top
-            found += 1
-
-
-def _blur(image: U8 | F32, sigma_px: float) -> F32:
-    blurred: F32 = np.asarray(
-        cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma_px), dtype=np.float32
-    )
-    return blurred
 
 
 class FloorModel:
@@ -1740,8 +540,7 @@ class FloorModel:
         # Compile the kernels (or load them from numba's cache) now, not in the first frame.
         row_support(np.zeros((1, 1), np.float32), np.zeros((1, 1), np.bool_), 1, ROW_TOLERANCE_M)
         no_runs = np.zeros((1, 1), np.uint8)
-        _top_runs(no_runs, no_runs, 1, 1, no_runs)
-        _column_support(
+        column_support(
             np.zeros((1, 1), np.float32),
             np.zeros((1, 1), np.float32),
             no_runs.view(np.bool_),
@@ -1754,11 +553,11 @@ class FloorModel:
         _march_outward(no_runs.view(np.bool_), no_runs.view(np.bool_), (0.0, 0.0), 1, 1, no_runs)
         tiny, none = np.zeros((8, 8), np.float32), np.zeros((8, 8), np.bool_)
         floor_test(tiny, tiny, none, self.config)
-        _texture_verdicts(np.zeros((len(TEXTURE_TERMS), 8, 8), np.float32), none, none.copy())
-        _probed(tiny, np.zeros(tiny.shape, np.int64), np.float32(0.0))
-        _probed(none, np.zeros(tiny.shape, np.int64), np.False_)
-        _window_max_at(tiny, 1, none)
-        _window_max_at(np.zeros((8, 8), np.int32), 1, none)
+        texture_checks(np.zeros((2, 8, 8), np.float32), [tiny, tiny], [none, none], none)
+        probed(tiny, np.zeros(tiny.shape, np.int64), np.float32(0.0))
+        probed(none, np.zeros(tiny.shape, np.int64), np.False_)
+        window_max_at(tiny, 1, none)
+        window_max_at(np.zeros((8, 8), np.int32), 1, none)
         self._keep_standing(np.full((8, 8), np.nan, np.float32), none, none)
 
     # -- geometry -------------------------------------------------------------------------------
@@ -1874,8 +673,8 @@ class FloorModel:
         """The disparity the tile is built from: this frame under the evidence rules (NaN where
         there is no evidence). Learns from the frame as well."""
         cfg = self.config
-        left = _blur(left_rect, cfg.blur_sigma_px)
-        right = _blur(right_rect, cfg.blur_sigma_px)
+        left = blur(left_rect, cfg.blur_sigma_px)
+        right = blur(right_rect, cfg.blur_sigma_px)
         warped, inside, test = self._tested(left, right)
         if self.frames == 0:
             # The matcher's offset (through its coarse fit, the residual) before the first
@@ -2014,7 +813,7 @@ class FloorModel:
         weight = cv2.blur(modelled, window)
         with np.errstate(invalid="ignore", divide="ignore"):
             floor_grey = cv2.blur(self.mean[0] * modelled, window) / weight
-            grey = _gain_normalised(left, self._gain[0])
+            grey = gain_normalised(left, self._gain[0])
             alike: Mask = (weight >= FLOOR_GREY_MIN_SHARE) & (
                 np.abs(grey - floor_grey) <= self.config.match_min_gray
             )
@@ -2026,14 +825,14 @@ class FloorModel:
         """Rule 6b: the ``candidates`` (floor readings the matcher filled in, that rule 6 or the
         carried-floor rule drop and no measurement along their row disagrees with) that have
         texture along x in their own row and that the measurements nearest up and down their
-        column within EDGE_REACH_PX agree with (:func:`_column_support`). Beside an edge along the
+        column within EDGE_REACH_PX agree with (:func:`column_support`). Beside an edge along the
         baseline, such as a wall's foot, the floor test's window holds the edge, whose texture
         runs across the baseline only, so the window reads as grain along x and the reading was
         dropped (the floor along the walls along x stayed unknown, two cells wide), yet the
         pixel's own row has texture along x for the matcher (a pallet's boards along x give
         their rows little)."""
         held = np.zeros(self.shape, np.bool_)
-        _column_support(
+        column_support(
             test.left_x_gray,
             height_m,
             anchors,
@@ -2085,13 +884,13 @@ class FloorModel:
 
     def _match(self, left: F32, warped: F32, inside: Mask) -> tuple[Mask, float, Mask, Mask]:
         """Whether both cameras match their backgrounds at each pixel after gain normalisation
-        (their grey and texture: :meth:`_texture_checks`); the share of modelled pixels that
+        (their grey and texture: :func:`texture_checks`); the share of modelled pixels that
         departs (for the re-learn decision); where the left background's texture is gone; and
         whether both match in grey alone."""
         modelled = self._modelled & inside
         self._gain = self._gains(left, warped, modelled)
         normalised = [
-            _gain_normalised(image, gain)
+            gain_normalised(image, gain)
             for image, gain in zip((left, warped), self._gain, strict=True)
         ]
         alike = [
@@ -2099,46 +898,13 @@ class FloorModel:
             for side in (0, 1)
         ]
         both = alike[0] & alike[1]
-        kept, gone = self._texture_checks(normalised, alike, modelled)
+        kept, gone = (
+            self._upsampled(sampled)
+            for sampled in texture_checks(self.mean, normalised, alike, modelled)
+        )
         count = int(np.count_nonzero(modelled))
         departed = 0.0 if count < MIN_FIT_PIXELS else 1.0 - float(np.count_nonzero(both)) / count
         return both & kept, departed, gone, both
-
-    def _texture_checks(
-        self, normalised: list[F32], alike: list[Mask], modelled: Mask
-    ) -> tuple[Mask, Mask]:
-        """Whether both cameras' images still show their background's texture, and where the
-        left one's is gone, from windowed moments on every other pixel of each axis (a window's
-        statistics hardly change from one pixel to the next).
-
-        *Kept*: the slope of the image regressed on the background over a window of the pixels
-        whose grey matches it (``alike``: an object's own pixels beside the floor do not count)
-        is about 1 on the floor and about 0 on a plain surface whose grey lies within the
-        background's tolerance (a plain orange forklift over grey concrete: the same luma).
-        Where the background has no texture (a plain floor), there is nothing to check.
-
-        *Gone*: the windowed correlation of image and background over the modelled pixels is
-        under COVERED_ZNCC where the background has texture. A shadow scales the floor's texture
-        and keeps it; something standing over the floor hides it. Where under
-        MODELLED_WINDOW_SHARE of the window is modelled, something that was never floor stands
-        within it (an object beside the pixel): a floor reading there is no more believed
-        (offline, default scene: false-free overall 0.9 → 0.7 %, the person's cells)."""
-        step = TEXTURE_SAMPLE_STEP
-        grid = modelled[::step, ::step]
-        planes = np.empty((TEXTURE_PLANE_COUNT, *grid.shape), np.float32)
-        for side in (0, 1):
-            planes[_MEAN_PLANES[side]] = self.mean[side, ::step, ::step]
-            planes[_IMAGE_PLANES[side]] = normalised[side][::step, ::step]
-        weights = (alike[0], alike[1], modelled)
-        for window, side in enumerate(TEXTURE_WINDOW_SIDES):
-            weight, background, now = _window_planes(window)
-            planes[weight] = weights[window][::step, ::step]
-            np.multiply(planes[_MEAN_PLANES[side]], planes[weight], out=planes[background])
-            np.multiply(planes[_IMAGE_PLANES[side]], planes[weight], out=planes[now])
-        means = window_means(planes, TEXTURE_TERMS, BACKGROUND_TEXTURE_WINDOW_PX // step)
-        kept, gone = np.empty(grid.shape, np.bool_), np.empty(grid.shape, np.bool_)
-        _texture_verdicts(means, kept, gone)
-        return self._upsampled(kept), self._upsampled(gone)
 
     def _in_band(self, height_m: F32) -> Mask:
         """Heights in the obstacle band (NaN: not). Above it is no surface to fill or bridge with:
@@ -2158,7 +924,7 @@ class FloorModel:
         gap = closed & ~band & np.isfinite(height)
         if gap.any():
             band_height = np.where(band, height, np.float32(-np.inf))
-            top = _window_max_at(band_height, len(self._gap_kernel) // 2, gap)
+            top = window_max_at(band_height, len(self._gap_kernel) // 2, gap)
             evidence[gap] = self.geometry.disparity_px(top, gap)
 
     def _paint(self, matches: Mask, test: FloorTest, empty: Mask) -> Mask:
@@ -2193,7 +959,7 @@ class FloorModel:
         edge = near.copy()
         edge[near] = measured_near
         # The region beside each edge pixel (the highest label where two meet).
-        region = _window_max_at(np.asarray(labels, np.int32), REGION_EDGE_PX // 2, edge)
+        region = window_max_at(np.asarray(labels, np.int32), REGION_EDGE_PX // 2, edge)
         edge_height = height[measured_near]
         raised = self._in_band(edge_height)
         raised_count = np.bincount(region[raised], minlength=count)
@@ -2266,11 +1032,11 @@ class FloorModel:
         # Seeds sit on floor-level edges, next to the smooth floor rather than inside it. An edge
         # at floor level vouches only for its side toward the nadir: there lies the floor, while on
         # the other side of a box's base rises its face (a marking has floor on both sides).
-        touching = _probed(seeds, self._outward_probe, np.False_)
+        touching = probed(seeds, self._outward_probe, np.False_)
         # A line at floor level (a marking) vouches for both sides: inward of it as well, where
         # the floor beyond it looks the same as here (a box's base has its face beyond).
-        seed_inward = _probed(seeds, self._inward_probe, np.False_)
-        across = _probed(left, self._beyond_probe, np.float32(0.0))
+        seed_inward = probed(seeds, self._inward_probe, np.False_)
+        across = probed(left, self._beyond_probe, np.float32(0.0))
         touching |= seed_inward & (np.abs(across - left) < 2 * cfg.texture_gray)
         seeded = np.bincount(labels[touching & smooth], minlength=count)
         enough = (seeded >= cfg.min_seeds) & (seeded >= cfg.seed_share * sizes)
@@ -2289,9 +1055,9 @@ class FloorModel:
         unknown 4.99 → 3.53 % of the seen floor, IoU +0.017; README, "The floor at a wall's
         foot")."""
         reach = grown.copy()
-        rising = (_probed(gradient, self._step_out_probe, np.float32(0.0)) > gradient) & ~contradict
+        rising = (probed(gradient, self._step_out_probe, np.float32(0.0)) > gradient) & ~contradict
         for _ in range(EDGE_CREEP_PX):
-            step = rising & ~reach & _probed(reach, self._step_in_probe, np.False_)
+            step = rising & ~reach & probed(reach, self._step_in_probe, np.False_)
             if not step.any():
                 break
             reach |= step
@@ -2454,7 +1220,7 @@ class FloorModel:
                 self._stale[restart] = 0
                 fresh |= restart
         normalised = [
-            _gain_normalised(image, gain) for image, gain in zip((left, warped), gains, strict=True)
+            gain_normalised(image, gain) for image, gain in zip((left, warped), gains, strict=True)
         ]
         if not relearn:
             # Confirmations that disagree (module docstring, Learning): start again from the image.

@@ -18,14 +18,13 @@ from typing import Generic, TypeVar
 
 import cv2
 import numpy as np
-import numpy.typing as npt
 
+from common.arrays import U8
 from common.camera import StereoCalibration
 from common.codec import CodecError, decode
 from common.messages import CALIB_KIND, STEREO_KIND, StereoFrameHeader
 from services.depth.pipeline import DepthPipeline, PipelineConfig
 
-U8 = npt.NDArray[np.uint8]
 T = TypeVar("T")
 SIDES = ("left", "right")
 

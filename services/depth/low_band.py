@@ -22,14 +22,11 @@ import dataclasses
 
 import cv2
 import numpy as np
-import numpy.typing as npt
 
+from common.arrays import F32, U8
 from common.camera import StereoCalibration
-from services.depth.floor_model import FloorGeometry
+from services.depth.floor_geometry import FloorGeometry
 from services.depth.stereo import DisparityChain, MatcherConfig, Rectifier
-
-F32 = npt.NDArray[np.float32]
-U8 = npt.NDArray[np.uint8]
 
 RAISED_MIN_M = 0.05
 LOW_BAND_TOP_M = 0.4

@@ -23,10 +23,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from common.arrays import F64
 from common.footprints import long_side_first
 from services.depth.objects import Detection
-
-F64 = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)

@@ -24,12 +24,11 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from common.arrays import F64
 from common.footprints import corners, fit_rectangle, long_side_first, vertices
 from common.messages import MAX_DETECTIONS, DetectionRecord, DetectionsHeader
 from common.sensor_model import SensorModelParams
 from services.depth.projection import WorldPoints
-
-F64 = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)

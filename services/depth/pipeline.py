@@ -20,7 +20,9 @@ import numpy.typing as npt
 from common.camera import StereoCalibration
 from common.lattice import check_resolution
 from common.sensor_model import SensorModelParams
-from services.depth.floor_model import FloorGeometry, FloorModel, FloorModelConfig
+from services.depth.floor_config import FloorModelConfig
+from services.depth.floor_geometry import FloorGeometry
+from services.depth.floor_model import FloorModel
 from services.depth.inverse_model import Tile, build_tile
 from services.depth.low_band import LowBand
 from services.depth.object_edges import ImageView, refine_on_edges

@@ -7,10 +7,9 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from common.arrays import F32
 from common.compiled import compiled
 from common.sensor_model import SensorModelParams, depth_from_disparity, depth_sigma
-
-F32 = npt.NDArray[np.float32]
 
 
 @dataclass(frozen=True)

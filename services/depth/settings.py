@@ -10,7 +10,7 @@ from pydantic import AfterValidator, Field, model_validator
 from common import keys
 from common.sensor_model import SensorModelParams
 from common.settings import DEFAULT_RESOLUTION_M, OvergridParams, ResolutionM, ZenohSettings
-from services.depth.floor_model import FloorModelConfig
+from services.depth.floor_config import FloorModelConfig
 from services.depth.pipeline import PipelineConfig
 from services.depth.stereo import MatcherConfig
 

@@ -14,12 +14,9 @@ import numpy.typing as npt
 from pydantic import ConfigDict, Field
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 
+from common.arrays import F32, F64, U8
 from common.camera import StereoCalibration
 from common.compiled import compiled
-
-U8 = npt.NDArray[np.uint8]
-F32 = npt.NDArray[np.float32]
-F64 = npt.NDArray[np.float64]
 
 
 def scale_intrinsics(K: F64, factor: float) -> F64:

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from common.arrays import Mask
 from common.camera import StereoCalibration
 from common.lattice import Window, reframe
 from common.mapfiles import OCCUPIED_MIN, free_cells
@@ -22,7 +23,6 @@ from common.occupancy_map import UNKNOWN, OccupancyMap
 from common.sensor_model import SensorModelParams
 from services.camera_sim.truth import footprint_mask
 
-Mask = npt.NDArray[np.bool_]
 _MODEL = SensorModelParams()
 OBSTACLE_BAND_M = (_MODEL.obstacle_min_m, _MODEL.obstacle_max_m)
 """Truth is judged on the band the depth service's sensor model calls an obstacle."""

@@ -9,11 +9,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.arrays import Mask
 from common.footprints import footprint_polygon
 from common.lattice import Window
 from common.messages import TrackedObject, TruthObject
 from services.camera_sim.truth import footprint_mask
-from services.evaluation.metrics import OBSTACLE_BAND_M, Mask, true_extent
+from services.evaluation.metrics import OBSTACLE_BAND_M, true_extent
 
 MATCH_MARGIN_M = 0.15
 """A track belongs to a truth object whose footprint, grown by this, holds the track's centre."""

@@ -54,6 +54,7 @@ import numpy.typing as npt
 from scipy.ndimage import label
 from scipy.optimize import linear_sum_assignment
 
+from common.arrays import F64, Mask
 from common.footprints import (
     Rectangle,
     convex_hull,
@@ -69,8 +70,6 @@ from common.messages import DetectionRecord, TrackedObject
 from services.fusion.captures import CaptureGroups
 from services.fusion.seams import MapEvidence, SeamConfig, SeamView, seam_groups
 
-F64 = npt.NDArray[np.float64]
-Mask = npt.NDArray[np.bool_]
 NOT_ALLOWED = 1e6
 
 

@@ -18,13 +18,10 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-import numpy.typing as npt
 
+from common.arrays import F64, Mask
 from common.footprints import convex_hull, fit_rectangle, polygon_cells, polygons_overlap
 from common.lattice import Window
-
-F64 = npt.NDArray[np.float64]
-Mask = npt.NDArray[np.bool_]
 
 
 class MapEvidence(Protocol):
