@@ -18,6 +18,9 @@ Matrix = list[list[float]]
 MAX_IMAGE_PIXELS = 4096 * 4096
 """Larger than any stereo camera we know (12 MP machine-vision sensors fit): a calibration of a
 16384×16384 image would have the depth process allocate gigabytes of rectification maps."""
+ROTATION_TOLERANCE = 1e-3
+"""How far a pose's rotation may be from orthonormal (largest entry of R·Rᵀ − I): a rotation
+typed to four decimals is off by about 1e-4; it is taken to the nearest rotation."""
 MAX_FIELD_OF_VIEW_DEG = 170.0
 """A pinhole model cannot see 180° across; a focal length of 1e-9 px claims it does."""
 RAY_SAMPLES = 4096
@@ -71,7 +74,7 @@ def _finite(values: npt.ArrayLike, what: str) -> None:
 
 
 class PinholeCamera(BaseModel):
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     width: int = Field(gt=0, le=16384)
     height: int = Field(gt=0, le=16384)
@@ -154,14 +157,20 @@ class PinholeCamera(BaseModel):
             raise ValueError(f"T_world_cam must be 4×4, got shape {arr.shape}")
         _finite(arr, "T_world_cam")
         rotation = arr[:3, :3]
-        if (
-            not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-5)
-            or np.linalg.det(rotation) < 0
-        ):
-            raise ValueError("T_world_cam rotation is not a proper rotation matrix")
+        residual = float(np.abs(rotation @ rotation.T - np.eye(3)).max())
+        if residual > ROTATION_TOLERANCE or np.linalg.det(rotation) < 0:
+            raise ValueError(
+                "T_world_cam rotation is not a proper rotation matrix "
+                f"(|R·Rᵀ − I| {residual:.2g}, at most {ROTATION_TOLERANCE:g}; det {np.linalg.det(rotation):.3g})"
+            )
         if not np.allclose(arr[3], [0, 0, 0, 1]):
             raise ValueError("T_world_cam last row must be [0, 0, 0, 1]")
-        return pose
+        if residual < 1e-9:
+            return pose
+        # The nearest rotation (SVD): a rotation typed to four decimals is one, to 1e-4.
+        u, _, vt = np.linalg.svd(rotation)
+        arr[:3, :3] = u @ vt
+        return [[float(value) for value in row] for row in arr]
 
     @cached_property
     def K_array(self) -> npt.NDArray[np.float64]:
@@ -193,9 +202,10 @@ class PinholeCamera(BaseModel):
 
 
 class StereoCalibration(BaseModel):
-    """A stereo pair: the right camera sits to the right of the left one (OpenCV's convention)."""
+    """A stereo pair: the right camera sits to the right of the left one (OpenCV's convention).
+    A key it does not know is refused: ``distortion:`` for ``dist:`` ran with none."""
 
-    model_config = ConfigDict(frozen=True)
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     pair: str
     left: PinholeCamera

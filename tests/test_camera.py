@@ -64,3 +64,40 @@ def test_an_intrinsic_matrix_of_no_pinhole_camera_is_rejected(
         PinholeCamera(
             width=640, height=480, K=k.tolist(), T_world_cam=look_down_pose(0, 0, 6).tolist()
         )
+
+
+def test_a_rotation_typed_to_four_decimals_is_taken_as_the_nearest_rotation() -> None:
+    """A 10° tilt written to four decimals was refused (tolerance 1e-5, no residual named)."""
+    tilt = np.radians(10.0)
+    pose = look_down_pose(1.0, 2.0, 6.0) @ np.array(
+        [
+            [1, 0, 0, 0],
+            [0, np.cos(tilt), -np.sin(tilt), 0],
+            [0, np.sin(tilt), np.cos(tilt), 0],
+            [0, 0, 0, 1],
+        ]
+    )
+    camera = PinholeCamera(
+        width=640,
+        height=480,
+        K=intrinsics_from_hfov(640, 480, 60).tolist(),
+        T_world_cam=np.round(pose, 4).tolist(),
+    )
+    rotation = camera.T_world_cam_array[:3, :3]
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(rotation, pose[:3, :3], atol=1e-4)
+    skewed = pose.copy()
+    skewed[0, 1] += 0.01
+    with pytest.raises(ValidationError, match=r"R·Rᵀ − I\| 0\.0098, at most 0\.001"):
+        PinholeCamera(width=640, height=480, K=camera.K, T_world_cam=skewed.tolist())
+
+
+def test_a_calibration_key_overgrid_does_not_know_is_refused() -> None:
+    """``distortion:`` for ``dist:`` ran with no distortion at all, silently."""
+    camera = _camera(0.0).model_dump(mode="json")
+    with pytest.raises(ValidationError, match="distortion"):
+        PinholeCamera.model_validate(camera | {"distortion": [-0.3, 0.1, 0, 0, 0]})
+    with pytest.raises(ValidationError, match="R"):
+        StereoCalibration.model_validate(
+            {"pair": "p0", "left": camera, "right": _camera(0.5).model_dump(), "R": np.eye(3)}
+        )

@@ -1,6 +1,7 @@
 """Real camera_sim and depth processes over Zenoh on loopback."""
 
 import json
+import os
 import signal
 import subprocess
 import threading
@@ -186,6 +187,32 @@ def test_a_video_that_does_not_read_is_one_line_at_start_up(tmp_path: Path) -> N
     calib = _calibration_file(tmp_path)
     done = run_overgrid("depth", "--pair", "p0", "--calib", str(calib), "--images", str(video))
     assert_one_line_exit_2(done, "--images", "notavideo.mp4")
+
+
+def test_a_recording_that_gives_no_tile_exits_1_saying_why(tmp_path: Path) -> None:
+    """Every frame rejected (unreadable files here; a wrong size or pixel type the same) ended
+    with exit 0, as a recording that mapped."""
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+        for index in range(3):
+            (tmp_path / side / f"{index}.png").write_bytes(b"not a png")
+    done = run_overgrid(
+        "depth",
+        "--pair",
+        "p0",
+        "--calib",
+        str(_calibration_file(tmp_path)),
+        "--images",
+        str(tmp_path),
+        "--rate-hz",
+        "20",
+        "--no-multicast-scouting",
+        "--namespace",
+        f"test_no_tile_{os.getpid()}",
+    )
+    assert done.returncode == 1, done.stderr
+    assert "Traceback" not in done.stderr
+    assert "no frame became a tile (rejected {'undecodable': 3})" in done.stderr
 
 
 def test_one_wildcard_health_query_gets_every_pair(bus: Bus) -> None:

@@ -2,9 +2,11 @@ import subprocess
 import sys
 
 import pytest
+import zenoh
 
+from common import zenoh_session
 from common.sensor_model import SensorModelParams
-from common.settings import load_settings, parse_settings
+from common.settings import ZenohSettings, load_settings, parse_settings
 from services.camera_sim.settings import CameraSimSettings
 from services.depth.settings import DepthSettings
 from services.depth.stereo import MatcherConfig
@@ -134,3 +136,27 @@ def test_undecodable_nested_env_var_is_named(
     assert stopped.value.code == 2
     err = capsys.readouterr().err
     assert "OVERGRID_MODEL" in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_session_that_times_out_closing_ends_with_a_warning_not_a_traceback(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """zenoh's "close operation timed out!" at the end of a recording ended a depth process with
+    a traceback and exit 1, its last log line lost."""
+    real_open = zenoh.open
+    closed: list[bool] = []
+
+    class TimesOutClosing:
+        def __init__(self, session: zenoh.Session) -> None:
+            self.session = session
+
+        def close(self) -> None:
+            self.session.close()  # type: ignore[no-untyped-call]
+            closed.append(True)
+            raise zenoh.ZError("close operation timed out!")
+
+    monkeypatch.setattr(zenoh, "open", lambda config: TimesOutClosing(real_open(config)))
+    settings = ZenohSettings(no_multicast_scouting=True, namespace="test_close_timeout")
+    with caplog.at_level("WARNING"), zenoh_session.open_session(settings):
+        pass
+    assert closed and "session close failed" in caplog.text

@@ -2,10 +2,11 @@
 message kind turns bytes into a typed value or a named :class:`Rejection`, which the service counts
 in ``depth/{pair}/health``. Nothing past these functions sees a frame it cannot process.
 
-Pixels accepted: 8-bit gray, H×W×1, RGB and RGBA (converted to gray), and 16-bit mono (H×W or
-H×W×1: machine-vision drivers deliver 10/12/16-bit pixels in 16-bit words), reduced to 8 bits by
-the shift that keeps the frame's brightest pixel, one shift for both images so that left and right
-keep one scale (a frame-to-frame change of it is a gain step, which the floor model normalises).
+Pixels accepted: 8- and 16-bit gray, H×W×1, RGB and RGBA (each image converted to gray on its
+own, so a mono camera pairs with a colour one); 16-bit pixels (machine-vision drivers deliver
+10/12/16-bit pixels in 16-bit words) are reduced to 8 bits by the shift that keeps the frame's
+brightest pixel, one shift for both images so that left and right keep one scale (a
+frame-to-frame change of it is a gain step, which the floor model normalises).
 Float, signed and bool pixels are rejected: they carry no agreed brightness scale.
 """
 
@@ -26,6 +27,10 @@ from common.messages import CALIB_KIND, STEREO_KIND, StereoFrameHeader
 from services.depth.pipeline import DepthPipeline, PipelineConfig
 
 T = TypeVar("T")
+MAX_VIEW_EXTENT_M = 200.0
+"""The most floor one pair's view may span: a ceiling camera sees tens of metres. A calibration
+in millimetres (a camera 5000 "m" up) passed every other check and had the first frame's tile
+ask for gigabytes (the box ran out of memory)."""
 SIDES = ("left", "right")
 
 FRAME_REJECTIONS = (
@@ -171,32 +176,34 @@ def _checked(left: np.ndarray, right: np.ndarray, image_size: tuple[int, int]) -
 
 def _to_mono8(left: np.ndarray, right: np.ndarray) -> tuple[U8, U8]:
     """Both images as gray uint8 (see the module docstring for the formats accepted)."""
-    if left.dtype != right.dtype or left.shape != right.shape:
-        raise _Refused(
-            "bad_pixels",
-            f"left {left.dtype} {left.shape} and right {right.dtype} {right.shape} differ",
-        )
-    if left.ndim == 3:
-        channels = left.shape[2]
-        if channels not in (1, 3, 4):
-            raise _Refused("bad_pixels", f"images have {channels} channels, accepted 1, 3 or 4")
-        if channels == 1:
-            left, right = left[:, :, 0], right[:, :, 0]
-    if left.dtype == np.uint16 and left.ndim == 2:
+    left, right = _gray("left", left), _gray("right", right)
+    if left.dtype != right.dtype:
+        raise _Refused("bad_pixels", f"left pixels are {left.dtype}, right {right.dtype}")
+    if left.dtype == np.uint16:
         bits = max(int(left.max()), int(right.max())).bit_length()
         shift = max(bits - 8, 0)
         return (left >> shift).astype(np.uint8), (right >> shift).astype(np.uint8)
-    if left.dtype != np.uint8:
-        channels = left.shape[2] if left.ndim == 3 else 1
+    return left, right
+
+
+def _gray(side: str, image: np.ndarray) -> np.ndarray:
+    """One image as 2-D gray of its own depth (uint8 or uint16): each camera on its own, so a
+    mono camera beside a colour one pairs."""
+    channels = image.shape[2] if image.ndim == 3 else 1
+    if channels not in (1, 3, 4):
+        raise _Refused("bad_pixels", f"{side} image has {channels} channels, accepted 1, 3 or 4")
+    if image.dtype not in (np.uint8, np.uint16):
         raise _Refused(
             "bad_pixels",
-            f"pixels are {left.dtype} with {channels} channel(s): "
-            "accepted uint8 (gray, RGB, RGBA) or uint16 mono",
+            f"{side} pixels are {image.dtype} with {channels} channel(s): "
+            "accepted uint8 or uint16, gray, RGB or RGBA",
         )
-    if left.ndim == 2:
-        return left, right
-    code = cv2.COLOR_RGB2GRAY if left.shape[2] == 3 else cv2.COLOR_RGBA2GRAY
-    return np.asarray(cv2.cvtColor(left, code)), np.asarray(cv2.cvtColor(right, code))
+    if image.ndim == 3 and channels == 1:
+        return image[:, :, 0]
+    if image.ndim == 3:
+        code = cv2.COLOR_RGB2GRAY if channels == 3 else cv2.COLOR_RGBA2GRAY
+        return np.asarray(cv2.cvtColor(image, code))
+    return image
 
 
 def decode_calibration(payload: bytes) -> StereoCalibration | Rejection:
@@ -217,6 +224,14 @@ def build_pipeline(calib: StereoCalibration, config: PipelineConfig) -> DepthPip
         pipeline = DepthPipeline(calib, config)
     except (cv2.error, MemoryError, ArithmeticError, np.linalg.LinAlgError) as error:
         raise ValueError(f"{type(error).__name__}: {' '.join(str(error).split())}") from None
+    floor_xy_m = pipeline.floor_xy_m.reshape(2, -1)[:, pipeline.meets_floor]
+    extent_m = np.ptp(floor_xy_m, axis=1) if floor_xy_m.size else np.zeros(2)
+    if float(extent_m.max()) > MAX_VIEW_EXTENT_M:
+        raise ValueError(
+            f"the view spans {extent_m[0]:.4g} × {extent_m[1]:.4g} m of floor from a camera "
+            f"{pipeline.rectifier.C_world[2]:.4g} m up (at most {MAX_VIEW_EXTENT_M:g} m): are the "
+            "poses in metres?"
+        )
     width = pipeline.rectifier.size[0]
     low, count = pipeline.min_disparity, pipeline.num_disparities
     if low + count > width // 2:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 import threading
 import time
 from collections import Counter
@@ -313,8 +314,9 @@ def _serve_frames(
 
 def _recorded_loop(
     settings: DepthSettings, worker: Worker, counts: Counts, stop_wait: StopWait
-) -> None:
-    """Recorded frames pass the same checks and counts as frames over Zenoh."""
+) -> bool:
+    """Recorded frames pass the same checks and counts as frames over Zenoh. Returns whether
+    the recording played to its end (not stopped)."""
     period_s = 1.0 / settings.rate_hz if settings.rate_hz else 0.0
     assert settings.images is not None
     image_size = worker.pipeline.calib.image_size
@@ -329,7 +331,8 @@ def _recorded_loop(
             header = StereoFrameHeader(pair=settings.pair, seq=seq, stamp_ns=time.time_ns())
             _process(worker, counts, *images, header)
         if stop_wait(period_s):
-            return
+            return False
+    return True
 
 
 def main(settings: DepthSettings) -> None:
@@ -340,9 +343,10 @@ def main(settings: DepthSettings) -> None:
     pipeline = _pipeline_from_file(settings)
     if settings.images is not None:
         try:
-            check_recording(settings.images)
+            check_recording(settings.images, pipeline.calib.image_size if pipeline else None)
         except InputError as error:
             startup_error(str(error))
+    played = False
     with open_session(settings) as session:
         counts = Counts()
         claims = Claims(settings.pair, str(session.zid()))
@@ -410,7 +414,7 @@ def main(settings: DepthSettings) -> None:
         )
         summary.start()
         if settings.images is not None:
-            _recorded_loop(settings, worker, counts, stop.wait)
+            played = _recorded_loop(settings, worker, counts, stop.wait)
         else:
             _serve_frames(session, settings.pair, worker, counts, stop)
         stop.set()
@@ -418,6 +422,14 @@ def main(settings: DepthSettings) -> None:
         for declared in (claims_watch, health_queryable, token):
             declared.undeclare()  # type: ignore[no-untyped-call]
     log.info("stopped", extra={"tiles": worker.publisher.published, **counts.snapshot()})
+    if played and worker.publisher.published == 0:
+        # A recording that gave nothing must not look like one that did (exit 0).
+        rejected = counts.snapshot().get("rejected", {})
+        print(
+            f"--images {settings.images}: no frame became a tile (rejected {rejected})",
+            file=sys.stderr,
+        )
+        raise SystemExit(1)
 
 
 def _summaries(

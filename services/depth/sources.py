@@ -1,15 +1,18 @@
 """Inputs of the depth service besides the pipeline: calibration files and recorded stereo images.
 
 Recorded images go through exactly the same pipeline as Zenoh frames, so real cameras can replace the
-simulator. Supported: a folder with ``left/`` and ``right/`` sub-folders (matching sorted file
-names), a folder of ``*_left.*`` / ``*_right.*`` files, or a side-by-side video (left | right).
+simulator. Supported: a folder with ``left/`` and ``right/`` sub-folders (the same file names, or
+names that differ only by the words left and right: ``left_0001.png`` / ``right_0001.png``), a
+folder of ``*_left.*`` / ``*_right.*`` files, or a side-by-side video (left | right). Frames play
+in the numbers' order (``2.png`` before ``10.png``).
 """
 
 from __future__ import annotations
 
 import json
 import os
-from collections.abc import Iterator
+import re
+from collections.abc import Generator
 from pathlib import Path
 
 import cv2
@@ -18,7 +21,7 @@ import yaml
 from pydantic import ValidationError
 
 from common.camera import StereoCalibration
-from services.depth.intake import Rejection
+from services.depth.intake import Rejection, check_images
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"}
 
@@ -31,6 +34,12 @@ def load_calibration(path: Path) -> StereoCalibration:
     """A YAML or JSON file with the fields of :class:`StereoCalibration` (see README)."""
     try:
         text = Path(path).read_text()
+        if text.lstrip().startswith("%YAML:1.0") or "!!opencv-matrix" in text:
+            raise InputError(
+                f"--calib {path}: an OpenCV FileStorage file, which overgrid does not read: write "
+                "each camera's width, height, K, dist and T_world_cam (the camera's pose in the "
+                "world) as plain YAML or JSON (README, Real cameras)"
+            )
         data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
         return StereoCalibration.model_validate(data)
     except ValidationError as error:
@@ -50,8 +59,10 @@ def _video(source: Path) -> cv2.VideoCapture:
     return cv2.VideoCapture(str(source))
 
 
-def check_recording(source: Path) -> None:
-    """Fail at start-up, not at the first frame, on a recording that is not there or not one."""
+def check_recording(source: Path, image_size: tuple[int, int] | None = None) -> None:
+    """Fail at start-up, not at the first frame, on a recording that is not there or not one; with
+    the calibration's ``image_size``, also on one whose first pair the pipeline cannot take (the
+    wrong size, pixels of no gray scale): every frame of it would be refused."""
     if source.is_dir():
         try:
             _image_pairs(source)
@@ -65,17 +76,51 @@ def check_recording(source: Path) -> None:
         capture.release()
         if not opened:
             raise InputError(f"--images {source}: not a folder of image pairs or a readable video")
+    if image_size is None:
+        return
+    frames = recorded_frames(source)
+    first = next(frames, None)
+    frames.close()
+    if first is None:
+        raise InputError(f"--images {source}: the video holds no frame")
+    if isinstance(first, Rejection):  # an unreadable file: the recording goes on after it
+        return
+    checked = check_images(*first, image_size)
+    if isinstance(checked, Rejection):
+        where = _image_pairs(source)[0][0].name if source.is_dir() else "its first frame"
+        raise InputError(f"--images {source}: {where}: {checked.reason}: {checked.detail}")
+
+
+def _natural_key(path: Path) -> list[tuple[int, int | str]]:
+    """The name's runs of digits as numbers: ``2.png`` before ``10.png``."""
+    return [
+        (0, int(part)) if part.isdigit() else (1, part) for part in re.split(r"(\d+)", path.name)
+    ]
+
+
+def _side_free(name: str, side: str) -> str:
+    """A file name without the word of its side: ``left_0001.png`` and ``right_0001.png`` pair."""
+    return re.sub(side, "", name, flags=re.IGNORECASE)
 
 
 def _image_pairs(folder: Path) -> list[tuple[Path, Path]]:
     def images(directory: Path, pattern: str = "*") -> list[Path]:
-        return sorted(p for p in directory.glob(pattern) if p.suffix.lower() in IMAGE_SUFFIXES)
+        found = (p for p in directory.glob(pattern) if p.suffix.lower() in IMAGE_SUFFIXES)
+        return sorted(found, key=_natural_key)
 
     if (folder / "left").is_dir() and (folder / "right").is_dir():
-        lefts, rights = images(folder / "left"), images(folder / "right")
-        if [p.name for p in lefts] != [p.name for p in rights]:
-            raise ValueError(f"{folder}/left and {folder}/right do not hold the same file names")
-        return list(zip(lefts, rights, strict=True))
+        by_name = {_side_free(p.name, "left"): p for p in images(folder / "left")}
+        right_by_name = {_side_free(p.name, "right"): p for p in images(folder / "right")}
+        if not by_name and not right_by_name:
+            raise ValueError(f"{folder}/left and {folder}/right hold no images")
+        if by_name.keys() != right_by_name.keys():
+            only_left = [p.name for k, p in by_name.items() if k not in right_by_name][:3]
+            only_right = [p.name for k, p in right_by_name.items() if k not in by_name][:3]
+            raise ValueError(
+                f"{folder}/left and {folder}/right do not hold the same images: "
+                f"left only {only_left or 'none'}, right only {only_right or 'none'}"
+            )
+        return [(path, right_by_name[key]) for key, path in by_name.items()]
     lefts = images(folder, "*_left.*")
     pairs = [(p, p.with_name(p.name.replace("_left.", "_right."))) for p in lefts]
     missing = [str(r) for _, r in pairs if not r.exists()]
@@ -86,7 +131,9 @@ def _image_pairs(folder: Path) -> list[tuple[Path, Path]]:
     return pairs
 
 
-def recorded_frames(source: Path) -> Iterator[tuple[np.ndarray, np.ndarray] | Rejection]:
+def recorded_frames(
+    source: Path,
+) -> Generator[tuple[np.ndarray, np.ndarray] | Rejection, None, None]:
     """Stereo frames from a folder of image pairs or a side-by-side video file; a pair that does
     not read is a rejection, and the recording goes on."""
     if source.is_dir():

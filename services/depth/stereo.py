@@ -74,7 +74,10 @@ class Rectifier:
     def from_calibration(calib: StereoCalibration, downscale: int = 2) -> Rectifier:
         width, height = calib.image_size
         if width % downscale or height % downscale:
-            raise ValueError(f"image {width}×{height} is not divisible by downscale {downscale}")
+            raise ValueError(
+                f"image {width}×{height} is not divisible by downscale {downscale} "
+                "(--downscale 1 processes it at full resolution)"
+            )
         size = (width // downscale, height // downscale)
         K1 = scale_intrinsics(calib.left.K_array, 1.0 / downscale)
         K2 = scale_intrinsics(calib.right.K_array, 1.0 / downscale)

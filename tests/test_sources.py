@@ -1,0 +1,98 @@
+"""Recordings and calibration files, as a site's own cameras give them to ``overgrid depth``."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from common.camera import StereoCalibration
+from services.camera_sim.rig import RigSpec, layout_pairs
+from services.depth.intake import build_pipeline, check_images
+from services.depth.pipeline import PipelineConfig
+from services.depth.sources import InputError, check_recording, load_calibration, recorded_frames
+
+
+def _calibration() -> StereoCalibration:
+    return layout_pairs(RigSpec(pair_count=1), (12.0, 10.0))[0]
+
+
+def _write(path: Path, value: int, shape: tuple[int, ...] = (480, 640)) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.full(shape, value, np.uint8))
+
+
+def test_frames_play_in_the_numbers_order_and_pair_by_name_without_their_side(
+    tmp_path: Path,
+) -> None:
+    """``0, 1, 10, 11, 2`` was the order of ``0.png … 11.png``; a driver's ``left_0001.png`` /
+    ``right_0001.png`` did not pair."""
+    for index in (0, 1, 2, 10, 11):
+        _write(tmp_path / "left" / f"left_{index}.png", index)
+        _write(tmp_path / "right" / f"right_{index}.png", 100 + index)
+    frames = list(recorded_frames(tmp_path))
+    assert [(int(left[0, 0]), int(right[0, 0])) for left, right in frames] == [  # type: ignore[misc]
+        (i, 100 + i) for i in (0, 1, 2, 10, 11)
+    ]
+
+
+def test_folders_that_do_not_pair_name_the_files_and_empty_ones_are_refused(
+    tmp_path: Path,
+) -> None:
+    for name in ("0001.png", "0002.png"):
+        _write(tmp_path / "left" / name, 0)
+    _write(tmp_path / "right" / "0001.png", 0)
+    with pytest.raises(InputError, match=r"left only \['0002.png'\], right only none"):
+        check_recording(tmp_path)
+    empty = tmp_path / "empty"
+    (empty / "left").mkdir(parents=True)
+    (empty / "right").mkdir()
+    with pytest.raises(InputError, match="hold no images"):
+        check_recording(empty)
+
+
+def test_a_recording_of_the_wrong_size_is_refused_at_start_up_naming_its_first_file(
+    tmp_path: Path,
+) -> None:
+    """It ran to its end with every frame rejected as ``wrong_size``, no tile, exit 0."""
+    _write(tmp_path / "left" / "0000.png", 0, (500, 740))
+    _write(tmp_path / "right" / "0000.png", 0, (500, 740))
+    check_recording(tmp_path)  # a recording, whatever its size
+    with pytest.raises(InputError, match=r"0000\.png: wrong_size"):
+        check_recording(tmp_path, _calibration().image_size)
+
+
+def test_a_mono_camera_pairs_with_a_colour_one_and_16_bit_colour_is_taken() -> None:
+    gray = np.full((480, 640), 90, np.uint8)
+    colour = np.full((480, 640, 3), 90, np.uint8)
+    checked = check_images(gray, colour, (640, 480))
+    assert not hasattr(checked, "reason") and int(checked[1][0, 0]) == 90
+    deep = np.full((480, 640, 3), 90 << 8, np.uint16)
+    left, _ = check_images(deep, deep, (640, 480))  # type: ignore[misc]
+    assert left.dtype == np.uint8 and int(left[0, 0]) == (90 << 8) >> 7  # brightest kept
+    floats = check_images(gray.astype(np.float32), gray, (640, 480))
+    assert getattr(floats, "reason", None) == "bad_pixels"
+
+
+def test_an_opencv_filestorage_calibration_says_which_format_to_write(tmp_path: Path) -> None:
+    path = tmp_path / "stereo.yaml"
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    storage.write("K1", np.eye(3))
+    storage.release()
+    with pytest.raises(InputError, match=r"OpenCV FileStorage file.*T_world_cam"):
+        load_calibration(path)
+
+
+def test_a_calibration_in_millimetres_is_refused_before_it_allocates_gigabytes(
+    tmp_path: Path,
+) -> None:
+    """Every pose ×1000 passed every check; the first frame's tile asked for 21 GB."""
+    data = _calibration().model_dump(mode="json")
+    for side in ("left", "right"):
+        for row in data[side]["T_world_cam"][:3]:
+            row[3] *= 1000.0
+    path = tmp_path / "mm.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ValueError, match="are the poses in metres"):
+        build_pipeline(load_calibration(path), PipelineConfig())
