@@ -123,7 +123,17 @@ class OccupancyMap:
         """The part of the map covering the metric rectangle (x0, y0, x1, y1); no cells when
         the rectangle lies outside the map."""
         x0, y0, x1, y1 = region_of(region_m)
-        part = Window.covering(x0, y0, x1, y1, self.resolution_m).intersect(self.window)
+        # Within a cell of the map first: 1e308 m is a region holding the map, whose cell index
+        # overflowed (answered "does not overlap the map").
+        r = self.resolution_m
+        (mx0, my0), window = self.origin_m, self.window
+        x0, x1 = max(x0, mx0 - r), min(x1, mx0 + (window.cols + 1) * r)
+        y0, y1 = max(y0, my0 - r), min(y1, my0 + (window.rows + 1) * r)
+        part = (
+            Window.covering(x0, y0, x1, y1, r).intersect(self.window)
+            if x1 > x0 and y1 > y0
+            else Window(self.window.i0, self.window.j0, 0, 0)
+        )
         rows, cols = part.slices_in(self.window)
         return replace(
             self,

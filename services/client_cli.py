@@ -93,14 +93,27 @@ def health_cli(argv: Sequence[str] | None = None) -> None:
         f"known {m['known_cells']}"
     )
     print(f"tiles accepted {answer['tiles_accepted']}  rejected {answer['tiles_rejected'] or 0}")
-    print(f"{'pair':<10}{'alive':<7}{'tiles':>8}{'last tile':>12}{'capture→map':>14}")
+    saved = answer.get("state") or {}
+    if saved:
+        errors = saved["save_errors"]
+        print(
+            f"state saved v{saved['saved_version']}"
+            + (f"  SAVE ERRORS {errors}" if errors else "  no save errors")
+        )
+    print(
+        f"{'pair':<10}{'alive':<7}{'tiles':>8}{'rejected':>10}{'last tile':>12}"
+        f"{'capture→map':>14}  note"
+    )
     for pair, row in answer["pairs"].items():
         age = "—" if row["last_tile_age_s"] is None else f"{row['last_tile_age_s']:.1f} s"
         latency = (
             "—" if row["capture_to_fused_ms"] is None else f"{row['capture_to_fused_ms']:.0f} ms"
         )
+        notes = [f"CONFLICT: {len(row['processes'])} processes"] if row["conflict"] else []
+        notes += ["LAGGING"] if row["lagging"] else []
         print(
-            f"{pair:<10}{'yes' if row['alive'] else 'NO':<7}{row['tiles']:>8}{age:>12}{latency:>14}"
+            f"{pair:<10}{'yes' if row['alive'] else 'NO':<7}{row['tiles']:>8}"
+            f"{row.get('rejected', 0):>10}{age:>12}{latency:>14}  {', '.join(notes)}".rstrip()
         )
 
 

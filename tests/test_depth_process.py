@@ -284,6 +284,23 @@ def test_two_depth_processes_on_one_pair_see_each_other(bus: Bus, tmp_path: Path
     )
 
 
+def test_a_pair_no_camera_answers_for_is_told_which_pairs_are(bus: Bus, tmp_path: Path) -> None:
+    """``depth --pair p7`` beside cameras of p0 only logged "waiting for calibration" each second,
+    forever, and nothing else."""
+    good = layout_pairs(RigSpec(pair_count=1), (12.0, 10.0))[0]
+
+    def on_calib(query: zenoh.Query) -> None:
+        query.reply(keys.calib("p0"), encode(CALIB_KIND, good), encoding=WIRE_ENCODING)
+
+    queryable = bus.session.declare_queryable(keys.calib("p0"), on_calib)
+    log = tmp_path / "p7.log"
+    bus.start("depth", "--pair", "p7", log_path=log)
+    wait_for(lambda: "pairs_answering=p0" in log.read_text(), 40, "the pairs answering named")
+    [line] = [row for row in log.read_text().splitlines() if "pairs_answering" in row]
+    assert "level=warning" in line and "no calibration yet" in line and "cam/p7/calib" in line
+    queryable.undeclare()  # type: ignore[no-untyped-call]
+
+
 def test_an_unusable_calibration_over_zenoh_is_counted_and_a_good_one_later_used(
     bus: Bus, tmp_path: Path
 ) -> None:
@@ -317,5 +334,12 @@ def test_an_unusable_calibration_over_zenoh_is_counted_and_a_good_one_later_used
     )
     answer["payload"] = encode(CALIB_KIND, good)
     wait_for(lambda: state().get("state") == "running", 30, "the good calibration used")
-    assert "p0" in _alive(bus.session)
+    assert "p0" in _alive(bus.session) and state()["recalibrated"] == 0
+    # The camera restarts with another calibration (the rig a metre lower): the process, which
+    # kept the first for good, mapped the floor as obstacles everywhere.
+    lower = RigSpec(pair_count=1).model_copy(update={"height_m": 5.0})
+    answer["payload"] = encode(CALIB_KIND, layout_pairs(lower, (12.0, 10.0))[0])
+    wait_for(lambda: state().get("recalibrated") == 1, 30, "the new calibration used")
+    time.sleep(6.0)  # and used once: the same calibration again is no change
+    assert state()["recalibrated"] == 1 and depth.poll() is None
     queryable.undeclare()  # type: ignore[no-untyped-call]

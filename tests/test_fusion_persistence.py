@@ -1,3 +1,4 @@
+import time
 import zlib
 from pathlib import Path
 from typing import Any
@@ -9,7 +10,14 @@ import pytest
 from common.lattice import Window
 from services.fusion import persistence
 from services.fusion.grid import Chunk, FusedGrid, GridParams
-from services.fusion.persistence import CHUNK_LOG, StateWriter, load_grid, read_log, save_now
+from services.fusion.persistence import (
+    CHUNK_LOG,
+    StateOfAnotherMap,
+    StateWriter,
+    load_grid,
+    read_log,
+    save_now,
+)
 
 LAYERS = ("logodds", "height_m", "known", "last_seen_s", "occupancy")
 
@@ -135,9 +143,46 @@ def test_a_record_of_bad_values_is_set_aside_like_a_corrupt_one(
     assert len(list(tmp_path.glob(f"{CHUNK_LOG}.corrupt-*"))) == 1
 
 
-def test_state_of_another_resolution_is_set_aside(tmp_path: Path) -> None:
-    save_now(_grid(), tmp_path)
-    assert not load_grid(GridParams(resolution_m=0.1), tmp_path, 1).chunks
+def test_state_of_another_resolution_stops_start_up_and_stays(tmp_path: Path) -> None:
+    """It was set aside as corrupt and the service started empty: a restart at the old
+    resolution then found the map gone."""
+    grid = _grid()
+    save_now(grid, tmp_path)
+    with pytest.raises(StateOfAnotherMap, match=r"holds a map of 0\.05 m cells.*0\.1 m"):
+        load_grid(GridParams(resolution_m=0.1), tmp_path, 1)
+    _same(load_grid(GridParams(), tmp_path, 1), grid)
+
+
+def test_a_save_that_fails_midway_is_cut_off_and_the_next_rewrites_the_log(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A full disk tore one appended record; the writer appended after it and reported those
+    saves, which loading never reached (it stops at the torn record): a restart lost them."""
+    grid = _grid()
+    save_now(grid, tmp_path)
+    writer = StateWriter(tmp_path)
+    writer._needs_full = False  # as a running writer, past its first save
+    real = persistence.encode_records
+
+    def disk_full(frozen: Any, keys: Any, full: bool) -> Any:
+        for record in real(frozen, keys, full):
+            yield record[: len(record) // 2]
+            raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(persistence, "encode_records", disk_full)
+    _fuse(grid, Window(0, 0, 4, 4), 1.0, 10**10)
+    writer.hand_over(*grid.freeze())
+    deadline = time.monotonic() + 10
+    while writer.errors == 0 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert writer.errors == 1 and writer.saved_version < grid.version
+    assert not read_log(tmp_path / CHUNK_LOG, 0.05).torn  # the half record is cut off
+    monkeypatch.setattr(persistence, "encode_records", real)  # the disk has room again
+    _fuse(grid, Window(300, 300, 4, 4), 2.0, 2 * 10**10)
+    writer.hand_over(*grid.freeze())
+    writer.close()
+    assert writer.saved_version == grid.version
+    _same(load_grid(GridParams(), tmp_path, 1), grid)
 
 
 def test_state_beyond_new_bounds_keeps_what_lies_inside(tmp_path: Path) -> None:

@@ -15,7 +15,14 @@ from common.codec import WIRE_ENCODING
 from common.lattice import Window
 from common.mapfiles import read_map_server
 from common.png import decode_png
-from tests.conftest import REPO, Bus, fusion_answers, wait_for
+from tests.conftest import (
+    REPO,
+    Bus,
+    assert_one_line_exit_2,
+    fusion_answers,
+    run_overgrid,
+    wait_for,
+)
 from tests.tiles import tile_arrays, tile_payload
 
 pytestmark = pytest.mark.process
@@ -70,6 +77,8 @@ def test_fusion_serves_map_and_health_and_survives_bad_tiles(bus: Bus, tmp_path:
     )
     rejected = _health(bus)["tiles_rejected"]
     assert rejected == {"malformed": 1, "resolution": 1, "dimensions": 1, "nan": 1, "stale": 2}
+    pairs = _health(bus)["pairs"]  # and by the pair they came from
+    assert (pairs["p0"]["rejected"], pairs["p1"]["rejected"]) == (6, 0)
     publisher.put(tile_payload("p0", A, 1.0, seq=10, height_m=0.7))
     wait_for(
         lambda: _health(bus)["tiles_accepted"] == 7, 10, "a good tile to land after the bad ones"
@@ -117,7 +126,9 @@ def test_fusion_serves_map_and_health_and_survives_bad_tiles(bus: Bus, tmp_path:
         text=True,
         timeout=60,
     )
-    assert result.returncode == 0 and "p0" in result.stdout and "p1" in result.stdout
+    assert result.returncode == 0 and "no save errors" in result.stdout
+    rows = [line.split()[:4] for line in result.stdout.splitlines()]
+    assert ["p0", "NO", "4", "6"] in rows and ["p1", "NO", "3", "0"] in rows  # tiles, rejected
     assert fusion.poll() is None
 
 
@@ -130,8 +141,16 @@ def test_restart_restores_the_map_and_version_never_goes_back(bus: Bus, tmp_path
         time.sleep(0.05)
     wait_for(lambda: _health(bus)["tiles_accepted"] == 5, 10, "tiles accepted")
     before = latest(bus.session, layers=("logodds",), timeout_s=10)
+    # A second service on the directory: its saves went into the same log, interleaved.
+    second = run_overgrid("fusion", "--state-dir", str(tmp_path / "state"))
+    assert_one_line_exit_2(second, "--state-dir", "in use by another fusion service (pid ")
     fusion.send_signal(signal.SIGTERM)
     assert fusion.wait(10) == 0
+    # Another resolution: the log was set aside as corrupt, gone for the next start at 0.05 m.
+    other = run_overgrid(
+        "fusion", "--state-dir", str(tmp_path / "state"), "--grid.resolution-m", "0.1"
+    )
+    assert_one_line_exit_2(other, "--state-dir", "0.05 m cells", "0.1 m")
 
     _start_fusion(bus, tmp_path / "state")
     wait_for(lambda: fusion_answers(bus), 30, "fusion to restart")

@@ -89,7 +89,8 @@ def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path)
     inside it) that the frames call free, served unknown; so are those within a centimetre
     outside it (its rim, within the footprint's error). An object the frames call free (a floor
     marking tracked for a while) is not outlined: its footprint is served unknown, neither an
-    obstacle nor free floor; the floor around both stays free."""
+    obstacle nor free floor; the floor around both stays free. Once the pair stops, both go
+    with the cells' evidence."""
     bus.start("fusion", "--state-dir", str(tmp_path / "state"), "--publish-interval-s", "0.05")
     tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
     detections = bus.session.declare_publisher(keys.objects("p0"), encoding=WIRE_ENCODING)
@@ -147,6 +148,11 @@ def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path)
     elsewhere = ~inside & ~rim & ~marked
     free = (occupancy[elsewhere] >= 0) & (occupancy[elsewhere] <= 25)  # map.yaml's free_thresh
     assert free.all()
+    # The pair stops: as its cells decay unknown (5 s unseen), the outline and the track go too
+    # (they stayed, obstacles on an unknown map and a list of objects 50 s old).
+    assert _tracked(bus)
+    wait_for(lambda: not outlined() and not _tracked(bus), 20, "outline and track forgotten")
+    assert not (served().occupancy == 100).any()
 
 
 def test_a_movers_top_is_served_occupied_until_captures_stop(bus: Bus, tmp_path: Path) -> None:

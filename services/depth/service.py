@@ -95,12 +95,19 @@ class Counts:
             }
 
 
+CALIB_RECHECK_S = 5.0
+"""A running depth process asks for its calibration again this often (:func:`_watch_calibration`)."""
+CALIB_WAIT_REPORT_S = 10.0
+"""While no calibration comes, a warning this often naming the pairs cameras do answer for."""
+
+
 def fetch_calibration(
     session: zenoh.Session, settings: DepthSettings, counts: Counts, stop_wait: StopWait
 ) -> DepthPipeline | None:
     """Ask cam/{pair}/calib until a usable answer arrives; a bad one is counted and logged and the
     process keeps asking (the camera box may be fixed without restarting this one)."""
     started = time.monotonic()
+    asked, report_at_s = 0, CALIB_WAIT_REPORT_S
     while True:
         for reply in session.get(keys.calib(settings.pair), timeout=2.0):
             if reply.ok is None:
@@ -118,7 +125,26 @@ def fetch_calibration(
                 f"--calib-timeout-s {settings.calib_timeout_s}: no usable calibration on "
                 f"{keys.calib(settings.pair)} (rejected: {dict(counts.calibration_rejected)})"
             )
-        log.info("waiting for calibration", extra={"key": keys.calib(settings.pair)})
+        waited_s = time.monotonic() - started
+        if asked == 0:
+            log.info("waiting for calibration", extra={"key": keys.calib(settings.pair)})
+        elif waited_s >= report_at_s:
+            # Which pairs a camera does answer for: a --pair no camera has waited in silence.
+            answering = sorted(
+                str(reply.ok.key_expr).split("/")[-2]
+                for reply in session.get(keys.CALIB_ALL, timeout=2.0)
+                if reply.ok is not None
+            )
+            log.warning(
+                "no calibration yet",
+                extra={
+                    "key": keys.calib(settings.pair),
+                    "waited_s": round(waited_s),
+                    "pairs_answering": ",".join(answering) or "none",
+                },
+            )
+            report_at_s = waited_s + CALIB_WAIT_REPORT_S
+        asked += 1
         if stop_wait(1.0):
             return None
 
@@ -190,7 +216,8 @@ class FrameIntake:
     one; good frames go to a one-deep slot, where the worker takes the newest."""
 
     def __init__(self, pipeline: DepthPipeline, pair: str, max_bytes: int, counts: Counts) -> None:
-        self._image_size = pipeline.calib.image_size
+        self.image_size = pipeline.calib.image_size
+        """The calibration's (width, height): frames of another size are refused."""
         self._pair = pair
         self._max_bytes = max_bytes
         self._counts = counts
@@ -200,7 +227,7 @@ class FrameIntake:
         self._counts.arrived()
         try:
             frame = decode_stereo_frame(
-                sample.payload.to_bytes(), self._pair, self._image_size, self._max_bytes
+                sample.payload.to_bytes(), self._pair, self.image_size, self._max_bytes
             )
         except Exception as error:  # a defect in decoding: counted, never kills the callback
             frame = Rejection("malformed", f"{type(error).__name__}: {error}")
@@ -264,13 +291,53 @@ def _pipeline_from_file(settings: DepthSettings) -> DepthPipeline | None:
         startup_error(f"--calib {settings.calib}: pair {settings.pair} is unusable: {error}")
 
 
-@dataclass(frozen=True)
+@dataclass
 class Worker:
-    """What exists once the calibration is usable; health reads it, the frame loop uses it."""
+    """What exists once the calibration is usable; health reads it, the frame loop uses it.
+    ``pipeline`` is replaced whole (:meth:`use`) when the camera publishes another calibration;
+    a frame in flight finishes with the one it started with."""
 
     pipeline: DepthPipeline
     publisher: TilePublisher
     intake: FrameIntake
+    recalibrated: int = 0
+
+    def use(self, pipeline: DepthPipeline) -> None:
+        self.intake.image_size = pipeline.calib.image_size
+        self.pipeline = pipeline
+        self.recalibrated += 1
+
+
+def _watch_calibration(
+    session: zenoh.Session,
+    settings: DepthSettings,
+    worker: Worker,
+    counts: Counts,
+    stop: threading.Event,
+) -> None:
+    """Asks the camera's calibration again every CALIB_RECHECK_S and rebuilds the pipeline when
+    it changed: a camera box restarted with another calibration (a rig raised by a metre) had the
+    floor read as obstacles everywhere (IoU 0.80 → 0.05) until the depth process was restarted."""
+    while not stop.wait(CALIB_RECHECK_S):
+        for reply in session.get(keys.calib(settings.pair), timeout=2.0):
+            if reply.ok is None:
+                continue
+            calib = decode_calibration(reply.ok.payload.to_bytes())
+            if isinstance(calib, Rejection):
+                counts.reject_calibration(calib)
+                continue
+            if calib == worker.pipeline.calib:
+                continue
+            try:
+                pipeline = build_pipeline(calib, settings.pipeline_config())
+            except ValueError as error:
+                counts.reject_calibration(Rejection("unusable", str(error)))
+                continue
+            worker.use(pipeline)
+            log.warning(
+                "calibration changed: pipeline rebuilt, the floor model learns again",
+                extra={"pair": settings.pair, "baseline_m": calib.baseline_m},
+            )
 
 
 def _process(
@@ -365,6 +432,7 @@ def main(settings: DepthSettings) -> None:
                 stage_ms_sum = dict(worker.publisher.stage_ms_sum)  # the worker adds to it
                 answer |= {
                     "tiles": published,
+                    "recalibrated": worker.recalibrated,
                     "skipped": worker.intake.slot.replaced,
                     "stage_ms_mean": {k: v / max(published, 1) for k, v in stage_ms_sum.items()},
                     "floor_model": worker.pipeline.floor_health(),
@@ -413,12 +481,23 @@ def main(settings: DepthSettings) -> None:
             target=_summaries, args=(health, settings.summary_s, stop), daemon=True
         )
         summary.start()
+        watch = None
+        if settings.calib is None:  # from the camera: it may publish another
+            watch = threading.Thread(
+                target=_watch_calibration,
+                args=(session, settings, worker, counts, stop),
+                name="depth-calibration",
+                daemon=True,
+            )
+            watch.start()
         if settings.images is not None:
             played = _recorded_loop(settings, worker, counts, stop.wait)
         else:
             _serve_frames(session, settings.pair, worker, counts, stop)
         stop.set()
         summary.join(2.0)
+        if watch is not None:
+            watch.join(3.0)
         for declared in (claims_watch, health_queryable, token):
             declared.undeclare()  # type: ignore[no-untyped-call]
     log.info("stopped", extra={"tiles": worker.publisher.published, **counts.snapshot()})

@@ -550,6 +550,12 @@ class ObjectTracker:
             changed = True
         return changed
 
+    def forget(self) -> None:
+        """Every track ends: no capture has come for longer than the map keeps evidence."""
+        self.tracks = []
+        self.wake_footprints.clear()
+        self.version += 1
+
     def _predict(self, track: Track, stamp_ns: int) -> tuple[F64, F64]:
         dt = (stamp_ns - track.stamp_ns) / 1e9
         f = _transition(dt)

@@ -37,6 +37,7 @@ import msgpack
 import numpy as np
 import numpy.typing as npt
 
+from common.logs import RateLimitedLog
 from services.fusion.grid import (
     CHUNK_CELLS,
     EVIDENCE_LAYERS,
@@ -62,6 +63,8 @@ store it otherwise (see ``_compressible``)."""
 WRITER_NICENESS = 10
 """Niceness of the writer thread: compressing a whole map (the first save after a start, a
 compaction) takes seconds of CPU, which must not come out of the tile intake's share."""
+SAVE_FAILURE_LOG_S = 30.0
+"""At most one line per this many seconds while saves keep failing (with the count)."""
 RECORD_CHUNKS = 64
 """Chunks per record (about 1 MB of layers)."""
 LAYER_DTYPES = {name: np.dtype(dtype) for name, dtype, _ in LAYER_FILLS}
@@ -69,6 +72,11 @@ LAYER_DTYPES = {name: np.dtype(dtype) for name, dtype, _ in LAYER_FILLS}
 
 class StateUnusable(ValueError):
     """A state log that cannot be read at all (its first record is bad), or of another map."""
+
+
+class StateOfAnotherMap(StateUnusable):
+    """A good log of a map of another resolution or chunk size: not this service's to set aside
+    (a restart at the old resolution would find it gone), so start-up stops instead."""
 
 
 def encode_records(frozen: FrozenMap, keys: set[ChunkKey], full: bool) -> Iterator[bytes]:
@@ -165,11 +173,12 @@ def _record_at(data: bytes, offset: int) -> tuple[Any, int] | None:
 def _apply(state: SavedState, record: Any, resolution_m: float, path: Path) -> None:
     try:
         if float(record["resolution_m"]) != resolution_m:
-            raise StateUnusable(
-                f"{path}: saved resolution {record['resolution_m']} m ≠ {resolution_m} m"
+            raise StateOfAnotherMap(
+                f"{path.parent} holds a map of {record['resolution_m']} m cells, this service's "
+                f"are {resolution_m} m: run with that resolution, or another --state-dir"
             )
         if record["chunk_cells"] != CHUNK_CELLS:
-            raise StateUnusable(
+            raise StateOfAnotherMap(
                 f"{path}: chunks of {record['chunk_cells']} cells, not {CHUNK_CELLS}"
             )
         if record["full"]:
@@ -208,8 +217,9 @@ def load_grid(params: GridParams, state_dir: Path, epoch_ns: int) -> FusedGrid:
     """The saved map with a new epoch (``epoch_ns``, or one past the saved epoch if the clock is
     behind it), or an empty one. A log that cannot be used is set aside for inspection (renamed
     ``….corrupt-<time>``) with an error logged, and the map starts empty; the state directory was
-    checked writable before (see the service), so the rename can be made. Chunks beyond today's
-    limits (bounds, extent, cell limit) are left out, not the whole state."""
+    checked writable before (see the service), so the rename can be made. A good log of another
+    resolution raises :class:`StateOfAnotherMap`. Chunks beyond today's limits (bounds, extent,
+    cell limit) are left out, not the whole state."""
     path = state_dir / CHUNK_LOG
     if not path.exists():
         return FusedGrid(params, epoch_ns)
@@ -219,6 +229,8 @@ def load_grid(params: GridParams, state_dir: Path, epoch_ns: int) -> FusedGrid:
         dropped = grid.restore(state.chunks)
         if state.torn:  # cut it off: records appended after it must follow a good one
             os.truncate(path, state.good_bytes)
+    except StateOfAnotherMap:
+        raise
     except (StateUnusable, ValueError, OSError) as error:
         aside = path.with_name(f"{CHUNK_LOG}.corrupt-{int(time.time())}")
         path.rename(aside)
@@ -263,6 +275,7 @@ class StateWriter:
         self.saved_version = -1
         self.saved_s = 0.0
         self.errors = 0
+        self._failures = RateLimitedLog(log, SAVE_FAILURE_LOG_S)
         if start is not None:
             try:
                 self._append(start, set())
@@ -325,11 +338,21 @@ class StateWriter:
             self._failed(error)
 
     def _append(self, frozen: FrozenMap, keys: set[ChunkKey]) -> None:
-        with open(self.path, "ab") as handle:
-            for record in encode_records(frozen, keys, full=False):
-                handle.write(record)
-            handle.flush()
-            os.fsync(handle.fileno())
+        """Appends ``keys``' records; one that fails (a full disk) is cut off again, and until a
+        compaction rewrites the log nothing more is appended: a record written after a torn one
+        is never read (loading stops at the torn one), yet counted as saved."""
+        start = self._log_bytes()
+        try:
+            with open(self.path, "ab") as handle:
+                for record in encode_records(frozen, keys, full=False):
+                    handle.write(record)
+                handle.flush()
+                os.fsync(handle.fileno())
+        except BaseException:
+            self._needs_full = True
+            with contextlib.suppress(OSError):
+                os.truncate(self.path, start)
+            raise
 
     def _compact(self, frozen: FrozenMap, keys: set[ChunkKey]) -> None:
         """Rewrite the log as ``frozen``'s chunks; between records, what is handed over
@@ -380,9 +403,12 @@ class StateWriter:
 
     def _failed(self, error: Exception) -> None:
         self.errors += 1
-        log.error(
+        self._failures.warning(  # a full disk fails every save: one line per period
+            "save",
             "state save failed",
-            extra={"path": str(self.path), "error": f"{type(error).__name__}: {error}"[:200]},
+            path=str(self.path),
+            error=f"{type(error).__name__}: {error}"[:200],
+            errors=self.errors,
         )
 
     def _log_bytes(self) -> int:

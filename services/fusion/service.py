@@ -12,6 +12,8 @@ Threads and who owns what:
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import logging
 import os
@@ -23,7 +25,7 @@ from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import zenoh
@@ -57,11 +59,19 @@ from services.fusion.intake import (
 )
 from services.fusion.object_layers import serve_tracks
 from services.fusion.objects import MapCheck, ObjectTracker
-from services.fusion.persistence import StateWriter, load_grid
+from services.fusion.persistence import StateOfAnotherMap, StateWriter, load_grid
 from services.fusion.settings import FusionSettings
-from services.fusion.snapshot import CONTENT_TYPES, MapQuery, MapSnapshot, parse_map_query
+from services.fusion.snapshot import (
+    CONTENT_TYPES,
+    MapQuery,
+    MapQueryError,
+    MapSnapshot,
+    parse_map_query,
+)
 
 log = logging.getLogger("fusion")
+STATE_LOCK = ".lock"
+"""The state directory's lock file (:func:`lock_state_dir`): it holds the owner's pid."""
 IDLE_WAIT_S = 0.1
 """Longest the owner sleeps without a message: a stop, decay and saves are noticed this soon."""
 DECAY_PERIOD_S = 1.0
@@ -96,6 +106,8 @@ class View:
     processes: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     lagging: frozenset[str] = frozenset()
     """Pairs a capture is no longer held for (:class:`CaptureGroups`)."""
+    rejected_by_pair: Mapping[str, int] = field(default_factory=dict)
+    """Tiles and detections refused, by the pair whose key they came on."""
     objects: ObjectsHeader = field(
         default_factory=lambda: ObjectsHeader(version=0, stamp_ns=0, objects=[])
     )
@@ -118,6 +130,7 @@ class FusionState:
         self.rejected: Counter[str] = Counter()
         self.detections_rejected: Counter[str] = Counter()
         self.liveliness_rejected: Counter[str] = Counter()
+        self.rejected_by_pair: Counter[str] = Counter()
         self.last_tile_s: dict[str, float] = {}
         self.capture_to_fused_ms: dict[str, float] = {}
         self.processes: dict[str, set[str]] = {}
@@ -137,6 +150,9 @@ class FusionState:
         self.tops_until_s = 0.0
         """… shown until this monotonic time: a capture's ``sweep_max_s`` later, no capture since
         means the pairs stopped or died, and the movers have moved on."""
+        self.last_capture_s = time.monotonic()
+        """When the tracker last had a capture: with none for ``decay_after_s`` (every pair
+        stopped or died), the tracks and outlines are forgotten as the cells' evidence is."""
         self.warn = RateLimitedLog(log)
         frozen, self.unsaved = grid.freeze()
         self.view = View(frozen)
@@ -168,6 +184,9 @@ class FusionState:
             "detections": self.detections_rejected,
         }.get(kind, self.liveliness_rejected)
         counters[reason] += 1
+        if kind != "presence":
+            with contextlib.suppress(ValueError):  # a key of no pair: counted by reason only
+                self.rejected_by_pair[keys.pair_of(key)] += 1
         self.warn.warning(
             f"{kind}_{reason}", f"{kind} rejected", reason=reason, on=key, error=detail[:200]
         )
@@ -239,8 +258,19 @@ class FusionState:
                 self.grid, self.tracker, self.settings.outline_static
             )
             self.tops_until_s = time.monotonic() + self.tracker.config.sweep_max_s
+            self.last_capture_s = time.monotonic()
         elif self.tops and time.monotonic() > self.tops_until_s:
             self.tops, expired = [], True
+        if (
+            not changed
+            and (self.outlined or self.tracker.tracks)
+            and time.monotonic() - self.last_capture_s > self.grid.params.decay_after_s
+        ):
+            # No capture for as long as a cell's evidence lasts: what was tracked may have been
+            # moved. An outline served obstacles on a map whose every cell had decayed unknown.
+            self.outlined, self.tops, expired = [], [], True
+            self.tracker.forget()
+            changed = True
         if self.settings.predict_movers:
             until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
             swept = self.tracker.sweep(resolution_m, self.grid.stamp_ns, until_ns)
@@ -297,6 +327,7 @@ class FusionState:
             dict(self.capture_to_fused_ms),
             {pair: tuple(sorted(i)) for pair, i in self.processes.items()},
             frozenset(self.tiles.lagging),
+            dict(self.rejected_by_pair),
             self.objects_header,
         )
 
@@ -460,7 +491,7 @@ def health_of(view: View, writer: StateWriter | None, dropped: Mapping[str, int]
     now = time.time()
     frozen = view.frozen
     window = frozen.window
-    pairs = sorted(set(view.accepted) | set(view.processes))
+    pairs = sorted(set(view.accepted) | set(view.processes) | set(view.rejected_by_pair))
     state: dict[str, Any] = {}
     if writer is not None:
         state = {
@@ -480,6 +511,7 @@ def health_of(view: View, writer: StateWriter | None, dropped: Mapping[str, int]
                 else None,
                 "capture_to_fused_ms": view.capture_to_fused_ms.get(p),
                 "lagging": p in view.lagging,
+                "rejected": view.rejected_by_pair.get(p, 0),
             }
             for p in pairs
         },
@@ -516,6 +548,7 @@ class QueryWorker:
     def __init__(self, name: str, answer: Callable[[zenoh.Query], None], threads: int = 1) -> None:
         self.name = name
         self._answer = answer
+        self._failures = RateLimitedLog(log)
         self._queue: queue.Queue[zenoh.Query | None] = queue.Queue(QUERY_BACKLOG)
         self._threads = [
             threading.Thread(target=self._run, name=f"fusion-{name}-{n}", daemon=True)
@@ -535,8 +568,12 @@ class QueryWorker:
         while (query := self._queue.get()) is not None:
             try:
                 self._answer(query)
+            except MapQueryError as error:  # the asker's mistake: its reply says so, not our log
+                query.reply_err(f"{self.name}: {type(error).__name__}: {error}")
             except Exception as error:  # one odd query must not end the worker, nor go unanswered
-                log.error("query failed", extra={"key": self.name, "error": repr(error)[:200]})
+                self._failures.warning(
+                    type(error).__name__, "query failed", on=self.name, error=repr(error)[:200]
+                )
                 query.reply_err(f"{self.name}: {type(error).__name__}: {error}")
             finally:
                 finish(query)
@@ -555,6 +592,25 @@ def query_parameters(query: zenoh.Query) -> dict[str, str]:
 def finish(query: zenoh.Query) -> None:
     """Finalise the query now (replies sent, the asker's get ends) rather than at garbage collection."""
     query.drop()  # type: ignore[no-untyped-call]
+
+
+def lock_state_dir(state_dir: Path) -> IO[str]:
+    """The state directory's lock, held while the process runs: two fusion services on one
+    directory interleaved their saves in one log (and, on one namespace, answered ``map/latest``
+    by turns from two epochs). A second one stops at start-up, naming the first's process."""
+    handle = open(state_dir / STATE_LOCK, "a+")  # noqa: SIM115 (held until the process ends)
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        handle.seek(0)
+        holder = handle.read().strip() or "another process"
+        handle.close()
+        startup_error(f"--state-dir {state_dir}: in use by another fusion service ({holder})")
+    handle.seek(0)
+    handle.truncate()
+    handle.write(f"pid {os.getpid()}\n")
+    handle.flush()
+    return handle
 
 
 def check_state_dir(state_dir: Path) -> None:
@@ -577,8 +633,12 @@ def main(settings: FusionSettings) -> None:
     stop = stop_on_signals()  # before loading the state: a stop during a long load is clean
     params = settings.grid_params()
     check_state_dir(settings.state_dir)
+    lock = lock_state_dir(settings.state_dir)
     compile_rules()
-    grid = load_grid(params, settings.state_dir, time.time_ns())
+    try:
+        grid = load_grid(params, settings.state_dir, time.time_ns())
+    except StateOfAnotherMap as error:
+        startup_error(f"--state-dir {settings.state_dir}: {error}")
     state = FusionState(settings, grid)
     if grid.version:
         log.info(
@@ -693,7 +753,18 @@ def main(settings: FusionSettings) -> None:
     state.publish()
     writer.hand_over(state.view.frozen, state.unsaved)
     writer.close()
-    log.info("stopped", extra={"version": grid.version, "saved_version": writer.saved_version})
+    if writer.saved_version < grid.version:
+        log.warning(
+            "stopped with changes unsaved",
+            extra={
+                "version": grid.version,
+                "saved_version": writer.saved_version,
+                "save_errors": writer.errors,
+            },
+        )
+    else:
+        log.info("stopped", extra={"version": grid.version, "saved_version": writer.saved_version})
+    lock.close()
 
 
 def run(
