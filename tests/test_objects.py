@@ -25,9 +25,11 @@ from services.depth.objects import (
 )
 from services.depth.projection import WorldPoints
 from services.evaluation.objects import match_static, score_movers
+from services.fusion.capture_merge import merge_capture
 from services.fusion.grid import FusedGrid, GridParams
+from services.fusion.map_check import Outline
 from services.fusion.object_layers import serve_tracks
-from services.fusion.objects import ObjectTracker, Outline, merge_capture
+from services.fusion.objects import ObjectTracker
 from tests.tiles import dirty_window, measure
 
 PITCH_M = 0.02

@@ -17,6 +17,7 @@ import numpy as np
 import zenoh
 
 from common import keys
+from common.camera import StereoCalibration
 from common.codec import WIRE_ENCODING, encode, pack_arrays
 from common.lifecycle import stop_on_signals
 from common.logs import RateLimitedLog, setup_logging
@@ -101,6 +102,30 @@ CALIB_WAIT_REPORT_S = 10.0
 """While no calibration comes, a warning this often naming the pairs cameras do answer for."""
 
 
+def _ask_calibration(
+    session: zenoh.Session,
+    settings: DepthSettings,
+    counts: Counts,
+    current: StereoCalibration | None = None,
+) -> DepthPipeline | None:
+    """One ask of cam/{pair}/calib: the pipeline of the first usable answer other than
+    ``current``; bad answers are counted by reason."""
+    for reply in session.get(keys.calib(settings.pair), timeout=2.0):
+        if reply.ok is None:
+            continue
+        calib = decode_calibration(reply.ok.payload.to_bytes())
+        if isinstance(calib, Rejection):
+            counts.reject_calibration(calib)
+            continue
+        if calib == current:
+            continue
+        try:
+            return build_pipeline(calib, settings.pipeline_config())
+        except ValueError as error:
+            counts.reject_calibration(Rejection("unusable", str(error)))
+    return None
+
+
 def fetch_calibration(
     session: zenoh.Session, settings: DepthSettings, counts: Counts, stop_wait: StopWait
 ) -> DepthPipeline | None:
@@ -109,17 +134,9 @@ def fetch_calibration(
     started = time.monotonic()
     asked, report_at_s = 0, CALIB_WAIT_REPORT_S
     while True:
-        for reply in session.get(keys.calib(settings.pair), timeout=2.0):
-            if reply.ok is None:
-                continue
-            calib = decode_calibration(reply.ok.payload.to_bytes())
-            if isinstance(calib, Rejection):
-                counts.reject_calibration(calib)
-                continue
-            try:
-                return build_pipeline(calib, settings.pipeline_config())
-            except ValueError as error:
-                counts.reject_calibration(Rejection("unusable", str(error)))
+        pipeline = _ask_calibration(session, settings, counts)
+        if pipeline is not None:
+            return pipeline
         if settings.calib_timeout_s and time.monotonic() - started > settings.calib_timeout_s:
             startup_error(
                 f"--calib-timeout-s {settings.calib_timeout_s}: no usable calibration on "
@@ -319,24 +336,12 @@ def _watch_calibration(
     it changed: a camera box restarted with another calibration (a rig raised by a metre) had the
     floor read as obstacles everywhere (IoU 0.80 → 0.05) until the depth process was restarted."""
     while not stop.wait(CALIB_RECHECK_S):
-        for reply in session.get(keys.calib(settings.pair), timeout=2.0):
-            if reply.ok is None:
-                continue
-            calib = decode_calibration(reply.ok.payload.to_bytes())
-            if isinstance(calib, Rejection):
-                counts.reject_calibration(calib)
-                continue
-            if calib == worker.pipeline.calib:
-                continue
-            try:
-                pipeline = build_pipeline(calib, settings.pipeline_config())
-            except ValueError as error:
-                counts.reject_calibration(Rejection("unusable", str(error)))
-                continue
+        pipeline = _ask_calibration(session, settings, counts, worker.pipeline.calib)
+        if pipeline is not None:
             worker.use(pipeline)
             log.warning(
                 "calibration changed: pipeline rebuilt, the floor model learns again",
-                extra={"pair": settings.pair, "baseline_m": calib.baseline_m},
+                extra={"pair": settings.pair, "baseline_m": pipeline.calib.baseline_m},
             )
 
 

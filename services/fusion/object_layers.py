@@ -5,7 +5,8 @@ drift apart. Pure: a grid and a tracker in, layers set."""
 from __future__ import annotations
 
 from services.fusion.grid import CellMasks, FusedGrid
-from services.fusion.objects import MapCheck, ObjectTracker
+from services.fusion.map_check import MapCheck
+from services.fusion.objects import ObjectTracker
 
 
 def serve_tracks(

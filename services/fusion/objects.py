@@ -1,5 +1,5 @@
 """Objects over time: every pair's detections of one capture merged (one object at a seam is one
-object), associated with tracks (Hungarian on centre distance, in turns), each track a
+object: :mod:`services.fusion.capture_merge`), associated with tracks (Hungarian on centre distance, in turns), each track a
 constant-velocity Kalman filter; the cells a moving track sweeps ahead (DESIGN.md, Objects) and
 those it left behind.
 
@@ -26,19 +26,19 @@ Rules that shape the tracks:
 - a moving track's wake (where it stood over the last ``wake_s``, less where any track stands
   now) is handed to the grid, which forgets the hits there that no frame has shown since
   (:meth:`wake`);
-- the map's occupied cells check what the views cannot (:class:`ConnectedCells`): a standing
+- the map's occupied cells check what the views cannot (:mod:`services.fusion.map_check`): a standing
   object they show larger than measured says ``partial``, and where its footprint is such a
   piece or a plain top (the frames' evidence does not agree with it), the
   rectangle its connected cells span is handed to the grid as contested (:meth:`check_against`);
   around a static object the frames agree with, its connected cells 1–10 cm outside its
   footprint (less every track's footprint) are handed over as its fringe (of a ``partial`` one,
   those with free floor beyond them; of a ``size_unsure`` one, none); the cells within 1 cm
-  outside any static object's footprint, its rim, as contested (:attr:`Outline.rim`);
+  outside any static object's footprint, its rim, as contested (``Outline.rim``);
 - a size is the median of the views seen whole; fewer than four of them, or views that disagree,
   make it ``size_unsure`` (:func:`_views_unsure`);
 - the object list (not the tracks, nor the map's outlines) joins static partial tracks a seam's
   blind gap keeps apart into one object, the rectangle around their footprints
-  (:func:`_across_seams`, :mod:`services.fusion.seams`).
+  (:func:`services.fusion.seams.join_across_seams`).
 """
 
 from __future__ import annotations
@@ -47,11 +47,9 @@ import math
 from collections import deque
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
-from scipy.ndimage import label
 from scipy.optimize import linear_sum_assignment
 
 from common.arrays import F64, Mask
@@ -59,24 +57,29 @@ from common.footprints import (
     Rectangle,
     convex_hull,
     corners,
-    fit_rectangle,
     footprint_polygon,
     polygon_cells,
     polygons_overlap,
-    vertices,
 )
 from common.lattice import Window
 from common.messages import DetectionRecord, TrackedObject
+from services.fusion.capture_merge import (
+    Observation,
+    join_pieces,
+    merge_capture,
+    observation_polygon,
+)
 from services.fusion.captures import CaptureGroups
-from services.fusion.seams import MapEvidence, SeamConfig, SeamView, seam_groups
+from services.fusion.map_check import (
+    MapCheck,
+    OccupiedCells,
+    Outline,
+    connected_cells,
+    subtract_cells,
+)
+from services.fusion.seams import MapEvidence, SeamConfig, join_across_seams
 
 NOT_ALLOWED = 1e6
-
-
-class OccupiedCells(MapEvidence, Protocol):
-    """The map's evidence as the tracker checks objects against it (``FusedGrid``)."""
-
-    def agrees(self, window: Window, mask: Mask) -> bool: ...
 
 
 @dataclass(frozen=True)
@@ -210,151 +213,6 @@ class TrackerConfig:
     end (the forklift's 1.3–1.5 m for 1.2). Offline, thirteen scenes (20 s), its cells no frame
     measured served occupied: IoU +0.0013 to +0.011, false-free the same; 5 cm in, −0.0006 to
     +0.0017 more; 15 cm, −0.0019 to +0.0002 (README, "A mover's top no frame measured")."""
-
-
-@dataclass(frozen=True)
-class Observation:
-    """One object in one capture, after merging the pairs' detections of it."""
-
-    center_m: tuple[float, float]
-    size_m: tuple[float, float]
-    yaw_rad: float
-    top_m: float
-    partial: bool
-    pairs: tuple[str, ...]
-    points: int = 0
-    """The world points it was measured on (all its pieces')."""
-    outline_m: tuple[tuple[float, float], ...] = ()
-    """What of its top was seen (``DetectionRecord.outline_m``): empty, the rectangle."""
-    round: bool = False
-    """Its complete view's top is round (``DetectionRecord.round``)."""
-    low: bool = False
-    """Every view of it in this capture is all top (``DetectionRecord.low``)."""
-
-
-def _polygon(record: DetectionRecord | Observation) -> F64:
-    return corners(record.center_m, record.size_m, record.yaw_rad)
-
-
-def _seen(record: DetectionRecord | Observation) -> F64:
-    """What of an object's top a view saw: its outline, else its rectangle."""
-    if len(record.outline_m) >= 3:
-        return np.asarray(record.outline_m, np.float64)
-    return _polygon(record)
-
-
-def _around(views: list[F64]) -> tuple[tuple[float, float], tuple[float, float], float, F64]:
-    """The smallest rectangle around what several partial views saw (centre, size, yaw), and
-    the outline of it all: their outlines' hull, not their rectangles' (a box cut aslant by an
-    image's border is fitted a rectangle along the cut, wider than the box)."""
-    hull = convex_hull(np.vstack(views))
-    cx, cy, length, width, yaw = fit_rectangle(hull)
-    return (cx, cy), (length, width), yaw, hull
-
-
-def merge_capture(detections: list[tuple[str, DetectionRecord]], gap_m: float) -> list[Observation]:
-    """Detections of one capture from every pair → one observation per object. Detections of
-    different pairs whose footprints overlap (within ``gap_m``) are one object: a complete view
-    wins; partial views alone are joined into the rectangle around what they all saw."""
-    parent = list(range(len(detections)))
-
-    def root(k: int) -> int:
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = parent[k]
-        return k
-
-    polygons = [_polygon(d) for _, d in detections]
-    for a in range(len(detections)):
-        for b in range(a + 1, len(detections)):
-            if detections[a][0] != detections[b][0] and polygons_overlap(
-                polygons[a], polygons[b], gap_m
-            ):
-                parent[root(a)] = root(b)
-    groups: dict[int, list[int]] = {}
-    for k in range(len(detections)):
-        groups.setdefault(root(k), []).append(k)
-    out = []
-    for members in groups.values():
-        pairs = tuple(sorted({detections[k][0] for k in members}))
-        complete = [detections[k][1] for k in members if not detections[k][1].partial]
-        top = max(detections[k][1].top_m for k in members)
-        low = all(detections[k][1].low for k in members)
-        if complete or len(members) == 1:  # the best complete view, or the one partial view
-            d = max(complete or [detections[members[0]][1]], key=lambda r: r.points)
-            out.append(
-                Observation(
-                    d.center_m,
-                    d.size_m,
-                    d.yaw_rad,
-                    top,
-                    not complete,
-                    pairs,
-                    d.points,
-                    d.outline_m,
-                    d.round and bool(complete),
-                    low,
-                )
-            )
-            continue
-        points = sum(detections[k][1].points for k in members)
-        center, size, yaw, hull = _around([_seen(detections[k][1]) for k in members])
-        out.append(
-            Observation(center, size, yaw, top, True, pairs, points, vertices(hull), low=low)
-        )
-    return out
-
-
-def _across_seams(
-    objects: list[TrackedObject], cells: MapEvidence, config: SeamConfig
-) -> list[TrackedObject]:
-    """The objects with static partial ones a seam's gap keeps apart (:func:`seam_groups`) joined
-    into one: the rectangle around their footprints, the oldest one's id, ``partial``. The list
-    alone: the map keeps each piece's outline, as measured (its cells, joined, paid: offline
-    ``--seed 2`` IoU −0.005, live −0.011 over four runs)."""
-    candidates = [o for o in objects if o.object_class == "static" and o.partial]
-    views = [
-        SeamView(frozenset(o.pairs), corners(o.center_m, o.size_m, o.yaw_rad), o.top_m)
-        for o in candidates
-    ]
-    joined = [group for group in seam_groups(views, cells, config) if len(group) > 1]
-    if not joined:
-        return objects
-    gone = {candidates[k].id for group in joined for k in group}
-    out = [o for o in objects if o.id not in gone]
-    for group in joined:
-        members = [candidates[k] for k in group]
-        around = SeamView.around([views[k] for k in group])
-        cx, cy, length, width, yaw = fit_rectangle(around.polygon_m)
-        first = min(members, key=lambda o: (o.first_seen_ns, o.id))
-        out.append(
-            first.model_copy(
-                update={
-                    "center_m": (cx, cy),
-                    "size_m": (length, width),
-                    "yaw_rad": yaw,
-                    "top_m": around.top_m,
-                    "last_seen_ns": max(o.last_seen_ns for o in members),
-                    "pairs": sorted(around.pairs),
-                    "size_unsure": any(o.size_unsure for o in members),
-                    "round": False,
-                    "detections": max(o.detections for o in members),
-                }
-            )
-        )
-    return sorted(out, key=lambda o: o.id)
-
-
-def _join(pieces: list[Observation]) -> Observation:
-    """Pieces of one object in one capture → one partial observation around what they saw."""
-    if len(pieces) == 1:
-        return pieces[0]
-    center, size, yaw, hull = _around([_seen(p) for p in pieces])
-    pairs = tuple(sorted({pair for p in pieces for pair in p.pairs}))
-    top = max(p.top_m for p in pieces)
-    points = sum(p.points for p in pieces)
-    low = all(p.low for p in pieces)
-    return Observation(center, size, yaw, top, True, pairs, points, vertices(hull), low=low)
 
 
 View = tuple[float, float, float, float, int, float, bool]
@@ -676,7 +534,9 @@ class ObjectTracker:
             on = [
                 int(row)
                 for row in np.flatnonzero(np.hypot(offsets[:, 0], offsets[:, 1]) <= reach)
-                if polygons_overlap(footprints[row], _polygon(obs), self.config.merge_gap_m)
+                if polygons_overlap(
+                    footprints[row], observation_polygon(obs), self.config.merge_gap_m
+                )
             ]
             taken = [row for row in on if row in matches]
             if not on:
@@ -685,7 +545,7 @@ class ObjectTracker:
                 matches[taken[0]].append(col)
         for row, cols_of in matches.items():
             track = self.tracks[row]
-            obs = _join([observations[col] for col in cols_of])
+            obs = join_pieces([observations[col] for col in cols_of])
             state, covariance = predicted[row]
             if row in turned:
                 self._restart_motion(track, stamp_ns, observations[cols_of[0]])
@@ -853,7 +713,7 @@ class ObjectTracker:
         """Confirmed tracks as ``map/objects`` reports them; those in ``pieces`` (the map's cells
         show them larger than measured: :attr:`MapCheck.pieces`) say ``partial``; given the map's
         ``cells``, static partial ones a seam's gap keeps apart are one object
-        (:func:`_across_seams`)."""
+        (:func:`services.fusion.seams.join_across_seams`)."""
         out = []
         for t in self.tracks:
             if t.detections < self.config.confirm_detections:
@@ -885,7 +745,7 @@ class ObjectTracker:
                     detections=t.detections,
                 )
             )
-        return out if cells is None else _across_seams(out, cells, self.config.seam)
+        return out if cells is None else join_across_seams(out, cells, self.config.seam)
 
     def sweep(
         self, resolution_m: float, from_ns: int, until_ns: int
@@ -1045,7 +905,9 @@ class ObjectTracker:
                 continue
             length, width, yaw, _, partial, unsure, round_ = track.size(config)
             footprint = (*track.center_m, length, width, yaw)
-            connected = connected_cells(cells, footprint, config, round_)
+            connected = connected_cells(
+                cells, footprint, config.max_size_m, config.raster_reach_m, round_
+            )
             if connected is None:
                 continue
             overflow = connected.overflow(footprint, config.raster_margin_m)
@@ -1078,7 +940,13 @@ class ObjectTracker:
         views = self._views_now()
         fringes: list[tuple[Window, Mask]] = []
         for view in views:
-            connected = None if view.partial else connected_cells(cells, view.rectangle, config)
+            connected = (
+                None
+                if view.partial
+                else connected_cells(
+                    cells, view.rectangle, config.max_size_m, config.raster_reach_m
+                )
+            )
             if connected is None:
                 continue
             fringe = [
@@ -1104,203 +972,3 @@ class ObjectTracker:
     def ahead_s(self) -> float:
         """One frame interval: how far past the visible time a sweep must reach."""
         return self.frame_interval_s or self.config.default_frame_interval_s
-
-
-@dataclass(frozen=True)
-class Outline:
-    """A static track's footprint on the lattice (:meth:`ObjectTracker.outlines`)."""
-
-    window: Window
-    cells: Mask
-    """The cells whose centres the footprint holds."""
-    edge: Mask
-    """Those of them whose centres lie within half a cell inside its edge (all of them for a
-    footprint under a cell across): the object's or the floor's by the footprint's error of a
-    centimetre or more (the pallets' sides up to 3 cm, a piece joined from two pairs' views
-    more), and the frames' belief tells the two no better. Fusion serves those the frames call
-    free unknown, not occupied (README, "An outline's edge the frames call free")."""
-    rim: tuple[Window, Mask]
-    """The cells whose centres the footprint grown by a margin (``fringe_margin_m``) holds and the
-    footprint does not. A footprint is measured to a centimetre or so, so such a cell is the
-    object's as often as not, and its pixels (a rim's top, side face and floor) decide it either
-    way: with the band share neutral at ``SensorModelParams.edge_fraction`` (0.6), one whose
-    centre the object holds may keep the free belief of the floor seen there before. Fusion
-    serves these unknown where the frames do not call them occupied (the contested layer). (Empty
-    for a round or low track, whose outline is grown by as much or more already.)"""
-
-    @classmethod
-    def of(
-        cls,
-        center_m: tuple[float, float],
-        size_m: tuple[float, float],
-        yaw_rad: float,
-        round_: bool,
-        resolution_m: float,
-        rim_m: float = 0.0,
-    ) -> Outline:
-        """The outline of a footprint (``round_``: the circle inscribed in it), with a rim
-        ``rim_m`` wide."""
-
-        def cells_of(grown_m: float) -> tuple[Window, Mask]:
-            size = (size_m[0] + 2 * grown_m, size_m[1] + 2 * grown_m)
-            return polygon_cells(footprint_polygon(center_m, size, yaw_rad, round_), resolution_m)
-
-        window, cells = cells_of(0.0)
-        edge = cells.copy()
-        if min(size_m) > resolution_m:  # a point's polygon would hold the cell it lies in
-            subtract_cells([(window, edge)], cells_of(-resolution_m / 2))
-        rim_window, rim = cells_of(rim_m) if rim_m > 0 else (window, np.zeros_like(cells))
-        subtract_cells([(rim_window, rim)], (window, cells))
-        return cls(window, cells, edge, (rim_window, rim))
-
-
-def subtract_cells(cells: list[tuple[Window, Mask]], cut: tuple[Window, Mask]) -> None:
-    """Clear ``cut``'s cells from each of ``cells`` (in place)."""
-    cut_window, cut_mask = cut
-    for window, mask in cells:
-        both = window.intersect(cut_window)
-        if not both.empty:
-            mask[both.slices_in(window)] &= ~cut_mask[both.slices_in(cut_window)]
-
-
-@dataclass(frozen=True)
-class MapCheck:
-    """What the map's cells say of the tracks (:meth:`ObjectTracker.check_against`)."""
-
-    pieces: frozenset[int] = frozenset()
-    """Ids of tracks the cells show larger than measured: their size is a lower bound."""
-    enclosures: list[tuple[Window, Mask]] = field(default_factory=list)
-    """Cells the static tracks' measured rims enclose, for the contested layer."""
-    fringes: list[tuple[Window, Mask]] = field(default_factory=list)
-    """Occupied cells just outside static tracks' footprints (a partial one's: with free floor
-    beyond), for the fringe layer."""
-
-
-@dataclass(frozen=True)
-class ConnectedCells:
-    """The map's occupied cells connected (8-neighbours) to occupied cells inside a footprint,
-    within ``raster_reach_m`` of it: every frame of every pair that saw the object, to a cell."""
-
-    window: Window
-    connected: Mask
-    along_m: F64
-    across_m: F64
-    """Every cell's centre along the footprint's yaw and across it, from its centre."""
-    footprint_cells: tuple[Window, Mask]
-    """The cells whose centres the footprint holds (``polygon_cells``)."""
-    round: bool = False
-    """The footprint is the circle inscribed in its rectangle."""
-
-    def outside_m(self, footprint: Rectangle) -> F64:
-        """Every cell centre's distance outside the footprint (0 inside): the rectangle's, or for
-        a round footprint the circle's (of the mean of length and width)."""
-        _, _, length, width, _ = footprint
-        if self.round:
-            radius_m = (length + width) / 4
-            return np.asarray(
-                np.maximum(np.hypot(self.along_m, self.across_m) - radius_m, 0.0), np.float64
-            )
-        beyond_length = np.maximum(np.abs(self.along_m) - length / 2, 0.0)
-        beyond_width = np.maximum(np.abs(self.across_m) - width / 2, 0.0)
-        return np.asarray(np.hypot(beyond_length, beyond_width), np.float64)
-
-    def overflow(self, footprint: Rectangle, margin_m: float) -> float:
-        """The connected cells more than ``margin_m`` outside the footprint, counted against the
-        cells inside it: a view that saw a piece of a top (a strip of a plain top, a corner a
-        neighbour hides) measures it small while the cells show all of it."""
-        outside = self.connected & (self.outside_m(footprint) > margin_m)
-        return int(np.count_nonzero(outside)) / max(
-            int(np.count_nonzero(self.footprint_cells[1])), 1
-        )
-
-    def fringe(
-        self,
-        footprint: Rectangle,
-        margin_m: float,
-        reach_m: float,
-        free_beyond: Mask | None = None,
-    ) -> tuple[Window, Mask]:
-        """The connected cells whose centres lie more than ``margin_m`` and at most ``reach_m``
-        outside the footprint. A cell is the object's by its centre; the frames make one occupied
-        by a share of its pixels, which its side faces (tens of points on one line) and a pixel
-        or two of fattening reach from beside it. Given ``free_beyond`` (the cells the frames
-        call free, over the window: for a footprint that is a lower bound), only the cells with
-        free floor beyond them, outward through other such cells: where the object goes on past
-        its footprint (a side cut by the image's border, the rest of it seen by another pair)
-        the cells beyond are occupied or unknown, but for the ring's cells at that side's ends,
-        which can reach free floor beside the part that goes on."""
-        outside_m = self.outside_m(footprint)
-        fringe = self.connected & (outside_m > margin_m) & (outside_m <= reach_m)
-        if free_beyond is not None:
-            fringe &= _open_outward(free_beyond, fringe, outside_m)
-        return self.window, fringe
-
-    def enclosure(self, footprint: Rectangle, resolution_m: float) -> tuple[Window, Mask]:
-        """The cells of the rectangle, along the footprint's yaw, through the footprint and the
-        outermost connected cells."""
-        x, y, length, width, yaw = footprint
-        along, across = self.along_m[self.connected], self.across_m[self.connected]
-        a0, a1 = min(float(along.min()), -length / 2), max(float(along.max()), length / 2)
-        b0, b1 = min(float(across.min()), -width / 2), max(float(across.max()), width / 2)
-        c, s = math.cos(yaw), math.sin(yaw)
-        middle_along, middle_across = (a0 + a1) / 2, (b0 + b1) / 2
-        center = (
-            x + middle_along * c - middle_across * s,
-            y + middle_along * s + middle_across * c,
-        )
-        return polygon_cells(corners(center, (a1 - a0, b1 - b0), yaw), resolution_m)
-
-
-def _open_outward(free: Mask, candidates: Mask, outside_m: F64) -> Mask:
-    """The ``candidates`` from which a chain of candidates, each farther out (``outside_m``) than
-    the one before and 8-connected to it, reaches a ``free`` cell."""
-    rows, cols = free.shape
-    padded_out = np.pad(outside_m, 1, constant_values=-np.inf)
-    offsets = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-    farther = [
-        padded_out[1 + dy : 1 + dy + rows, 1 + dx : 1 + dx + cols] > outside_m for dy, dx in offsets
-    ]
-    reached, open_ = free.copy(), np.zeros_like(free)
-    while True:
-        padded = np.pad(reached, 1)
-        step = np.zeros_like(free)
-        for (dy, dx), out in zip(offsets, farther, strict=True):
-            step |= padded[1 + dy : 1 + dy + rows, 1 + dx : 1 + dx + cols] & out
-        grown = candidates & ~open_ & step
-        if not grown.any():
-            return open_
-        open_ |= grown
-        reached |= grown
-
-
-def connected_cells(
-    cells: OccupiedCells, footprint: Rectangle, config: TrackerConfig, round_: bool = False
-) -> ConnectedCells | None:
-    """:class:`ConnectedCells` of a footprint (``round_``: the circle inscribed in it), labelled
-    on its reach alone (the cost follows the object, not the map); None where none of its cells
-    is occupied, or it is longer than ``max_size_m`` (a broken detection)."""
-    x, y, length, width, yaw = footprint
-    if max(length, width) > config.max_size_m:
-        return None
-    resolution_m = cells.resolution_m
-    outline = footprint_polygon((x, y), (length, width), yaw, round_)
-    inner_window, inner = polygon_cells(outline, resolution_m)
-    reach = config.raster_reach_m
-    (x0, y0), (x1, y1) = outline.min(axis=0) - reach, outline.max(axis=0) + reach
-    window = Window.covering(float(x0), float(y0), float(x1), float(y1), resolution_m)
-    labels, _ = label(cells.occupied_in(window), structure=np.ones((3, 3), np.int8))
-    part = inner_window.intersect(window)
-    touched = labels[part.slices_in(window)][inner[part.slices_in(inner_window)]]
-    touched = np.unique(touched[touched > 0])
-    if touched.size == 0:
-        return None
-    x_m, y_m = window.cell_centers(resolution_m)
-    c, s = math.cos(yaw), math.sin(yaw)
-    return ConnectedCells(
-        window=window,
-        connected=np.isin(labels, touched),
-        along_m=(x_m - x) * c + (y_m - y) * s,
-        across_m=(y_m - y) * c - (x_m - x) * s,
-        footprint_cells=(inner_window, inner),
-        round=round_,
-    )

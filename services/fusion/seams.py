@@ -20,8 +20,15 @@ from typing import Protocol
 import numpy as np
 
 from common.arrays import F64, Mask
-from common.footprints import convex_hull, fit_rectangle, polygon_cells, polygons_overlap
+from common.footprints import (
+    convex_hull,
+    corners,
+    fit_rectangle,
+    polygon_cells,
+    polygons_overlap,
+)
 from common.lattice import Window
+from common.messages import TrackedObject
 
 
 class MapEvidence(Protocol):
@@ -149,3 +156,43 @@ def seam_groups(views: list[SeamView], cells: MapEvidence, config: SeamConfig) -
         pieces.pop(j)
         pieces[i] = SeamView.around([views[k] for k in groups[i]])
         judged = {key: d for key, d in judged.items() if groups[i][0] not in key}
+
+
+def join_across_seams(
+    objects: list[TrackedObject], cells: MapEvidence, config: SeamConfig
+) -> list[TrackedObject]:
+    """The objects with static partial ones a seam's gap keeps apart (:func:`seam_groups`) joined
+    into one: the rectangle around their footprints, the oldest one's id, ``partial``. The list
+    alone: the map keeps each piece's outline, as measured (its cells, joined, paid: offline
+    ``--seed 2`` IoU −0.005, live −0.011 over four runs)."""
+    candidates = [o for o in objects if o.object_class == "static" and o.partial]
+    views = [
+        SeamView(frozenset(o.pairs), corners(o.center_m, o.size_m, o.yaw_rad), o.top_m)
+        for o in candidates
+    ]
+    joined = [group for group in seam_groups(views, cells, config) if len(group) > 1]
+    if not joined:
+        return objects
+    gone = {candidates[k].id for group in joined for k in group}
+    out = [o for o in objects if o.id not in gone]
+    for group in joined:
+        members = [candidates[k] for k in group]
+        around = SeamView.around([views[k] for k in group])
+        cx, cy, length, width, yaw = fit_rectangle(around.polygon_m)
+        first = min(members, key=lambda o: (o.first_seen_ns, o.id))
+        out.append(
+            first.model_copy(
+                update={
+                    "center_m": (cx, cy),
+                    "size_m": (length, width),
+                    "yaw_rad": yaw,
+                    "top_m": around.top_m,
+                    "last_seen_ns": max(o.last_seen_ns for o in members),
+                    "pairs": sorted(around.pairs),
+                    "size_unsure": any(o.size_unsure for o in members),
+                    "round": False,
+                    "detections": max(o.detections for o in members),
+                }
+            )
+        )
+    return sorted(out, key=lambda o: o.id)

@@ -57,8 +57,9 @@ from services.fusion.intake import (
     decode_detections,
     decode_presence,
 )
+from services.fusion.map_check import MapCheck
 from services.fusion.object_layers import serve_tracks
-from services.fusion.objects import MapCheck, ObjectTracker
+from services.fusion.objects import ObjectTracker
 from services.fusion.persistence import StateOfAnotherMap, StateWriter, load_grid
 from services.fusion.settings import FusionSettings
 from services.fusion.snapshot import (
