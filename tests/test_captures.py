@@ -6,8 +6,8 @@ from common.lattice import Window
 from services.fusion.captures import CaptureGroups
 from services.fusion.grid import FusedGrid, GridParams
 from services.fusion.inbox import Delivery
-from services.fusion.service import FusionState, health_of
 from services.fusion.settings import FusionSettings
+from services.fusion.state import FusionState, health_of
 from tests.tiles import tile_payload
 
 T0_NS = 1_700_000_000_000_000_000

@@ -24,6 +24,7 @@ from common.png import encode_png
 from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import generate_scene
+from services.depth.service import CALIB_RECHECK_S
 from tests.conftest import Bus, assert_one_line_exit_2, run_overgrid, wait_for
 
 pytestmark = pytest.mark.process
@@ -340,6 +341,6 @@ def test_an_unusable_calibration_over_zenoh_is_counted_and_a_good_one_later_used
     lower = RigSpec(pair_count=1).model_copy(update={"height_m": 5.0})
     answer["payload"] = encode(CALIB_KIND, layout_pairs(lower, (12.0, 10.0))[0])
     wait_for(lambda: state().get("recalibrated") == 1, 30, "the new calibration used")
-    time.sleep(6.0)  # and used once: the same calibration again is no change
+    time.sleep(2 * CALIB_RECHECK_S + 1.0)  # and used once: the same again is no change
     assert state()["recalibrated"] == 1 and depth.poll() is None
     queryable.undeclare()  # type: ignore[no-untyped-call]

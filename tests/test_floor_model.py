@@ -873,7 +873,9 @@ def test_column_support_holds_a_floor_reading_its_columns_nearest_measurements_a
     anchors[9, 4] = True
     candidates[18, 5], anchors[19, 5] = True, True  # a row plain along x
     held = np.zeros_like(candidates)
-    floor_rows.column_support(gradient_x, height, anchors, candidates, 2, 6, 0.1, held)
+    floor_rows.column_support(
+        gradient_x, height, anchors, candidates, 2, plane_consistency.X_ENERGY_MIN, 6, 0.1, held
+    )
     assert held.tolist()[10] == [True, False, False, False, True, False]
     assert not held[18].any()
 
@@ -1432,7 +1434,7 @@ def test_a_plain_top_is_filled_from_its_outlines_measurements_in_the_band_only()
 
 
 def test_the_foot_of_a_point_is_the_pixel_that_sees_the_floor_below_it() -> None:
-    """floor_geometry.foot_px against the rectified camera's own projection, the default rig's
+    """floor_model.foot_px against the rectified camera's own projection, the default rig's
     camera tilted 25° and 10° about its axes (its nadir off the image's centre, a point moving
     down gains 0.89 m of depth a metre): the point at a height on each pixel's ray, moved
     straight down to the floor and projected, lands on the foot to the rounding."""
@@ -1448,7 +1450,7 @@ def test_the_foot_of_a_point_is_the_pixel_that_sees_the_floor_below_it() -> None
     heights_m = rng.uniform(0.1, 2.0, 200).astype(np.float32)
     foot_rows, foot_cols = np.array(
         [
-            floor_geometry.foot_px(int(r), int(c), float(h), geometry.foot_terms)
+            floor_model.foot_px(int(r), int(c), float(h), geometry.foot_terms)
             for r, c, h in zip(rows, cols, heights_m, strict=True)
         ]
     ).T

@@ -1338,3 +1338,20 @@ def test_a_frame_of_more_objects_than_a_message_holds_keeps_the_best_measured() 
     header = detections_header(many, "p0", 1, 10**9)
     assert len(header.detections) == MAX_DETECTIONS
     assert min(d.points for d in header.detections) == 10
+
+
+def test_forgotten_tracks_leave_the_frame_interval_as_it_was() -> None:
+    """Fusion forgets every track when no capture comes for long (the pairs stopped); the pause
+    until the next capture was taken as a frame interval (60 s: paths swept seconds ahead)."""
+    tracker = ObjectTracker()
+    box = DetectionRecord(
+        center_m=(1.0, 1.0), size_m=(0.5, 0.4), yaw_rad=0.0, top_m=1.0, points=500, partial=False
+    )
+    for k in range(4):
+        tracker.update(1 + k * 500_000_000, merge_capture([("p0", box)], 0.1))
+    assert tracker.tracks and tracker.frame_interval_s == pytest.approx(0.5)
+    version = tracker.version
+    tracker.forget()
+    assert not tracker.tracks and tracker.version == version + 1
+    tracker.update(60 * 10**9, merge_capture([("p0", box)], 0.1))
+    assert len(tracker.tracks) == 1 and tracker.frame_interval_s == pytest.approx(0.5)

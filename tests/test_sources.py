@@ -37,6 +37,22 @@ def test_frames_play_in_the_numbers_order_and_pair_by_name_without_their_side(
     ]
 
 
+def test_names_pair_as_they_are_first_and_only_a_whole_side_word_is_set_aside(
+    tmp_path: Path,
+) -> None:
+    """``cleft_01.png`` on both sides, or ``²`` in a name, were refused; two names of one frame
+    once the side's word is gone are refused, not one dropped."""
+    for name in ("cleft_01.png", "bright_²_02.png"):
+        _write(tmp_path / "same" / "left" / name, 1)
+        _write(tmp_path / "same" / "right" / name, 2)
+    assert len(list(recorded_frames(tmp_path / "same"))) == 2
+    for name in ("1left.png", "left1.png"):
+        _write(tmp_path / "twice" / "left" / name, 1)
+    _write(tmp_path / "twice" / "right" / "right1.png", 2)
+    with pytest.raises(InputError, match=r"1left\.png and left1\.png in left/ are one frame's"):
+        check_recording(tmp_path / "twice")
+
+
 def test_folders_that_do_not_pair_name_the_files_and_empty_ones_are_refused(
     tmp_path: Path,
 ) -> None:

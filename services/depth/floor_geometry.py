@@ -8,24 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.arrays import F32, Mask
-from common.compiled import compiled
 from services.depth.stereo import Rectifier
-
-
-@compiled
-def foot_px(
-    row: int, col: int, height_m: float, terms: tuple[F32, float, float, float, float]
-) -> tuple[int, int]:
-    """Where the floor straight below the point at ``height_m`` on the pixel's ray shows: on the
-    line from the pixel to the nadir, where vertical lines vanish. Its image is z·p + h·μ·n over
-    z + h·μ (z the point's depth, μ the depth a metre down adds), to the nearest pixel."""
-    ray_down, camera_height_m, depth_per_m_down, nadir_row, nadir_col = terms
-    depth = (camera_height_m - height_m) / ray_down[row, col]
-    weight = height_m * depth_per_m_down / (depth + height_m * depth_per_m_down)
-    return (
-        int(np.rint(row + weight * (nadir_row - row))),
-        int(np.rint(col + weight * (nadir_col - col))),
-    )
 
 
 @dataclass(frozen=True)

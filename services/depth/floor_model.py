@@ -190,7 +190,7 @@ from services.depth.floor_background import (
     texture_checks,
 )
 from services.depth.floor_config import FloorModelConfig
-from services.depth.floor_geometry import FloorGeometry, foot_px
+from services.depth.floor_geometry import FloorGeometry
 from services.depth.floor_offset import (
     MIN_FIT_PIXELS,
     coarse_floor_offset,
@@ -200,7 +200,7 @@ from services.depth.floor_offset import (
 from services.depth.floor_rows import column_support, row_support
 from services.depth.image_windows import blur, probed, window_max_at
 from services.depth.line_of_sight import LineOfSight
-from services.depth.plane_consistency import FloorTest, floor_shift_2d, floor_test
+from services.depth.plane_consistency import X_ENERGY_MIN, FloorTest, floor_shift_2d, floor_test
 
 FLOOR_WINDOW_SHARE = 0.75
 """A stereo seed needs this share of its window measured at the floor's disparity."""
@@ -271,6 +271,22 @@ PAINT_GAP_M = 0.16
 """Rule 11: a gap up to this tall between floor rows the background confirms, across paint along
 the baseline, is the paint's (lane lines are 5–10 cm wide; the model's growth stops a pixel or
 two before each of their edges)."""
+
+
+@compiled
+def foot_px(
+    row: int, col: int, height_m: float, terms: tuple[F32, float, float, float, float]
+) -> tuple[int, int]:
+    """Where the floor straight below the point at ``height_m`` on the pixel's ray shows: on the
+    line from the pixel to the nadir, where vertical lines vanish. Its image is z·p + h·μ·n over
+    z + h·μ (z the point's depth, μ the depth a metre down adds), to the nearest pixel."""
+    ray_down, camera_height_m, depth_per_m_down, nadir_row, nadir_col = terms
+    depth = (camera_height_m - height_m) / ray_down[row, col]
+    weight = height_m * depth_per_m_down / (depth + height_m * depth_per_m_down)
+    return (
+        int(np.rint(row + weight * (nadir_row - row))),
+        int(np.rint(col + weight * (nadir_col - col))),
+    )
 
 
 @compiled
@@ -546,6 +562,7 @@ class FloorModel:
             no_runs.view(np.bool_),
             no_runs.view(np.bool_),
             1,
+            X_ENERGY_MIN,
             1,
             ROW_TOLERANCE_M,
             no_runs.view(np.bool_).copy(),
@@ -838,6 +855,7 @@ class FloorModel:
             anchors,
             candidates,
             self.config.window_px // 2,
+            X_ENERGY_MIN,
             EDGE_REACH_PX,
             ROW_TOLERANCE_M,
             held,

@@ -10,7 +10,6 @@ import numpy.typing as npt
 
 from common.arrays import F32, Mask
 from common.compiled import compiled
-from services.depth.plane_consistency import X_ENERGY_MIN
 
 
 @dataclass(frozen=True)
@@ -111,12 +110,15 @@ def column_support(
     anchors: Mask,
     candidates: Mask,
     half_px: int,
+    energy_min: float,
     reach_px: int,
     tolerance_m: float,
     held: Mask,
 ) -> None:
     """Rule 6b at the ``candidates``: texture along x in the pixel's own row (the x-gradient's
-    variance over ``2·half_px + 1`` columns above X_ENERGY_MIN), and a measurement (``anchors``)
+    variance over ``2·half_px + 1`` columns above ``energy_min``: the floor test's
+    ``X_ENERGY_MIN``, an argument because numba's cache does not see another file's constants
+    change), and a measurement (``anchors``)
     within ``reach_px`` up or down its column, every such nearest one agreeing with its height
     (as :func:`_scan_rows` along a row; NaN never agrees). At the candidates alone: over the
     whole image (the row's variance by blurs, the row scan on the transpose) the rule cost 0.87
@@ -126,15 +128,15 @@ def column_support(
     for row in range(height):
         for col in range(width):
             if candidates[row, col]:
-                held[row, col] = _row_textured(gradient_x, row, col, half_px) and _column_agrees(
-                    height_m, anchors, row, col, reach_px, tolerance
-                )
+                held[row, col] = _row_textured(
+                    gradient_x, row, col, half_px, energy_min
+                ) and _column_agrees(height_m, anchors, row, col, reach_px, tolerance)
 
 
 @compiled
-def _row_textured(gradient_x: F32, row: int, col: int, half_px: int) -> bool:
+def _row_textured(gradient_x: F32, row: int, col: int, half_px: int, energy_min: float) -> bool:
     """The x-gradient's variance over the pixel's row, ``half_px`` either side (fewer at the
-    image's edges), is above X_ENERGY_MIN."""
+    image's edges), is above ``energy_min``."""
     first, last = max(col - half_px, 0), min(col + half_px, gradient_x.shape[1] - 1)
     total, squares = np.float32(0.0), np.float32(0.0)
     for c in range(first, last + 1):
@@ -143,7 +145,7 @@ def _row_textured(gradient_x: F32, row: int, col: int, half_px: int) -> bool:
         squares += g * g
     count = np.float32(last - first + 1)
     mean = total / count
-    return bool(squares / count - mean * mean > np.float32(X_ENERGY_MIN))
+    return bool(squares / count - mean * mean > np.float32(energy_min))
 
 
 @compiled

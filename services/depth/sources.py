@@ -93,14 +93,25 @@ def check_recording(source: Path, image_size: tuple[int, int] | None = None) -> 
 
 def _natural_key(path: Path) -> list[tuple[int, int | str]]:
     """The name's runs of digits as numbers: ``2.png`` before ``10.png``."""
-    return [
-        (0, int(part)) if part.isdigit() else (1, part) for part in re.split(r"(\d+)", path.name)
-    ]
+    parts = re.split(r"([0-9]+)", path.name)  # odd parts are the runs of ASCII digits
+    return [(0, int(part)) if k % 2 else (1, part) for k, part in enumerate(parts) if part]
 
 
 def _side_free(name: str, side: str) -> str:
-    """A file name without the word of its side: ``left_0001.png`` and ``right_0001.png`` pair."""
-    return re.sub(side, "", name, flags=re.IGNORECASE)
+    """A file name without the word of its side: ``left_0001.png`` and ``right_0001.png`` pair
+    (a whole word only: ``cleft_01.png`` keeps its name)."""
+    return re.sub(rf"(?<![a-z]){side}(?![a-z])", "", name, flags=re.IGNORECASE)
+
+
+def _by_name(paths: list[Path], side: str) -> dict[str, Path]:
+    """``paths`` by name without the side's word; two files of one name that way are refused."""
+    named: dict[str, Path] = {}
+    for path in paths:
+        key = _side_free(path.name, side)
+        if key in named:
+            raise ValueError(f"{named[key].name} and {path.name} in {side}/ are one frame's name")
+        named[key] = path
+    return named
 
 
 def _image_pairs(folder: Path) -> list[tuple[Path, Path]]:
@@ -109,10 +120,12 @@ def _image_pairs(folder: Path) -> list[tuple[Path, Path]]:
         return sorted(found, key=_natural_key)
 
     if (folder / "left").is_dir() and (folder / "right").is_dir():
-        by_name = {_side_free(p.name, "left"): p for p in images(folder / "left")}
-        right_by_name = {_side_free(p.name, "right"): p for p in images(folder / "right")}
-        if not by_name and not right_by_name:
+        lefts, rights = images(folder / "left"), images(folder / "right")
+        if not lefts and not rights:
             raise ValueError(f"{folder}/left and {folder}/right hold no images")
+        if [p.name for p in lefts] == [p.name for p in rights]:
+            return list(zip(lefts, rights, strict=True))
+        by_name, right_by_name = _by_name(lefts, "left"), _by_name(rights, "right")
         if by_name.keys() != right_by_name.keys():
             only_left = [p.name for k, p in by_name.items() if k not in right_by_name][:3]
             only_right = [p.name for k, p in right_by_name.items() if k not in by_name][:3]

@@ -387,6 +387,8 @@ class ObjectTracker:
     version: int = 0
     stamp_ns: int = 0
     frame_interval_s: float = 0.0
+    paused: bool = False
+    """The tracks were forgotten (:meth:`forget`) since the last capture."""
     captures: CaptureGroups[DetectionRecord] = field(default_factory=CaptureGroups)
     """Detections waiting for the rest of their capture."""
     wake_footprints: deque[MoverView] = field(default_factory=deque)
@@ -409,10 +411,13 @@ class ObjectTracker:
         return changed
 
     def forget(self) -> None:
-        """Every track ends: no capture has come for longer than the map keeps evidence."""
+        """Every track ends: no capture has come for longer than the map keeps evidence. The gap
+        until the next capture is no frame interval (a minute's pause taken as one had movers'
+        paths swept a dozen seconds ahead)."""
         self.tracks = []
         self.wake_footprints.clear()
         self.version += 1
+        self.paused = True
 
     def _predict(self, track: Track, stamp_ns: int) -> tuple[F64, F64]:
         dt = (stamp_ns - track.stamp_ns) / 1e9
@@ -428,11 +433,12 @@ class ObjectTracker:
     def update(self, stamp_ns: int, observations: list[Observation]) -> None:
         """One capture's observations: predict, associate (in turns, see the module's rules),
         update, start and end tracks."""
-        if self.stamp_ns:
+        if self.stamp_ns and not self.paused:
             gap_s = (stamp_ns - self.stamp_ns) / 1e9
             self.frame_interval_s = (
                 gap_s if not self.frame_interval_s else 0.8 * self.frame_interval_s + 0.2 * gap_s
             )
+        self.paused = False
         predicted = [self._predict(t, stamp_ns) for t in self.tracks]
         sizes = [t.size(self.config) for t in self.tracks]  # a median: once
         gates = [self._gate_m(covariance) for _, covariance in predicted]

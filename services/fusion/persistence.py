@@ -338,9 +338,9 @@ class StateWriter:
             self._failed(error)
 
     def _append(self, frozen: FrozenMap, keys: set[ChunkKey]) -> None:
-        """Appends ``keys``' records; one that fails (a full disk) is cut off again, and until a
-        compaction rewrites the log nothing more is appended: a record written after a torn one
-        is never read (loading stops at the torn one), yet counted as saved."""
+        """Appends ``keys``' records; one that fails (a full disk) is cut off again, or, if even
+        that fails, nothing more is appended until a compaction rewrites the log: a record written
+        after a torn one is never read (loading stops at the torn one), yet counted as saved."""
         start = self._log_bytes()
         try:
             with open(self.path, "ab") as handle:
@@ -349,9 +349,10 @@ class StateWriter:
                 handle.flush()
                 os.fsync(handle.fileno())
         except BaseException:
-            self._needs_full = True
-            with contextlib.suppress(OSError):
+            try:
                 os.truncate(self.path, start)
+            except OSError:
+                self._needs_full = True
             raise
 
     def _compact(self, frozen: FrozenMap, keys: set[ChunkKey]) -> None:

@@ -61,8 +61,9 @@ def _reason(payload: bytes) -> str:
         np.dstack([np.repeat(GRAY[:, :, None], 3, axis=2), np.full_like(GRAY, 255)]),  # RGBA
         GRAY.astype(np.uint16) << 4,  # a 12-bit camera in 16-bit words
         (GRAY.astype(np.uint16) << 8)[:, :, None],  # 16-bit, one channel
+        np.repeat((GRAY.astype(np.uint16) << 8)[:, :, None], 3, axis=2),  # 16-bit RGB
     ],
-    ids=["gray", "gray1", "rgb", "rgba", "mono12in16", "mono16x1"],
+    ids=["gray", "gray1", "rgb", "rgba", "mono12in16", "mono16x1", "rgb16"],
 )
 def test_camera_pixel_formats_become_the_same_gray_image(image: np.ndarray) -> None:
     frame = _decode(_raw(image))
@@ -88,7 +89,6 @@ def test_a_16_bit_pair_keeps_one_scale_for_both_images() -> None:
         (GRAY.astype(np.uint32), "bad_pixels"),
         (np.zeros((SIZE[1], SIZE[0], 2), np.uint8), "bad_pixels"),
         (np.zeros((SIZE[1], SIZE[0], 5), np.uint8), "bad_pixels"),
-        (np.zeros((SIZE[1], SIZE[0], 3), np.uint16), "bad_pixels"),
         (np.zeros((SIZE[1], SIZE[0], 1, 1), np.uint8), "bad_pixels"),
         (np.zeros(SIZE[0], np.uint8), "bad_pixels"),
         (np.zeros((SIZE[0], SIZE[1]), np.uint8), "wrong_size"),  # transposed
@@ -112,7 +112,8 @@ def test_messages_that_are_no_frame_are_refused_by_reason() -> None:
     envelope["arrays"]["left"]["shape"] = [SIZE[1] * 2, SIZE[0]]  # shape disagrees with its bytes
     assert _reason(msgpack.packb(envelope)) == "malformed"
     assert _reason(_raw(GRAY, pair="p1")) == "wrong_pair"
-    assert _reason(_raw(GRAY, GRAY[:, :, None])) == "bad_pixels"  # left and right differ
+    assert _reason(_raw(GRAY, GRAY.astype(np.uint16))) == "bad_pixels"  # 8 and 16 bits
+    assert isinstance(_decode(_raw(GRAY, GRAY[:, :, None])), StereoFrame)  # each its own layout
     assert decode_stereo_frame(good, "p0", SIZE, len(good) - 1) == Rejection(
         "oversize", f"{len(good)} bytes exceed the limit of {len(good) - 1}"
     )

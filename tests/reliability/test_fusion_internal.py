@@ -15,8 +15,9 @@ from services.fusion import persistence
 from services.fusion.grid import FusedGrid, GridParams
 from services.fusion.inbox import Delivery, Inbox
 from services.fusion.persistence import StateWriter, load_grid
-from services.fusion.service import FusionState, run
+from services.fusion.service import run
 from services.fusion.settings import FusionSettings
+from services.fusion.state import FusionState
 from tests.conftest import wait_for
 from tests.tiles import tile_payload
 

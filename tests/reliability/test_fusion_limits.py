@@ -41,7 +41,9 @@ def test_the_pair_is_the_keys_and_a_future_stamp_locks_nobody_out(bus: Bus, tmp_
     p0.put(tile_payload("p0", W, 1.0, seq=2))  # p0's real next tile, stamped now
     wait_for(lambda: _health(bus)["tiles_accepted"] == 1, 10, "p0's real tile to land")
     answer = _health(bus)
-    assert answer["pairs"]["p0"]["tiles"] == 1 and "p1" not in answer["pairs"]
+    assert answer["pairs"]["p0"]["tiles"] == 1 and answer["pairs"]["p0"]["rejected"] == 1
+    # The refusal is the key's pair's: p1 sent it, and contributed nothing.
+    assert answer["pairs"]["p1"]["tiles"] == 0 and answer["pairs"]["p1"]["rejected"] == 1
 
 
 def test_far_first_tiles_are_refused_and_the_real_map_survives_a_restart(

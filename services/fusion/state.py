@@ -1,0 +1,379 @@
+"""The map's owner (DESIGN.md, fusion): the fused grid, the tracker, the counters and the
+immutable :class:`View` readers on other threads take. One thread (the service's main loop) owns
+a :class:`FusionState`; nothing here touches Zenoh."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+import traceback
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common import keys
+from common.codec import encode
+from common.lattice import Window
+from common.logs import RateLimitedLog
+from common.messages import MAP_UPDATE_KIND, MapUpdateHeader, ObjectsHeader
+from services.fusion.captures import CaptureGroups
+from services.fusion.grid import (
+    CellMasks,
+    FrozenMap,
+    FusedGrid,
+    TileOutsideMap,
+    update_parts,
+)
+from services.fusion.inbox import Delivery
+from services.fusion.intake import (
+    AcceptedTile,
+    Rejected,
+    TileGate,
+    decode_detections,
+    decode_presence,
+)
+from services.fusion.map_check import MapCheck
+from services.fusion.object_layers import serve_tracks
+from services.fusion.objects import ObjectTracker
+from services.fusion.persistence import StateWriter
+from services.fusion.settings import FusionSettings
+
+log = logging.getLogger("fusion")
+FORGET_AFTER_FRAMES = 4
+"""The tracks end with no capture for ``decay_after_s`` or this many frame intervals, whichever
+is longer: a pair replaying at one frame in 10 s keeps its tracks between frames."""
+
+
+@dataclass(frozen=True)
+class View:
+    """What readers see: made by the owner after each change, never changed after."""
+
+    frozen: FrozenMap
+    pairs: tuple[str, ...] = ()
+    accepted: Mapping[str, int] = field(default_factory=dict)
+    rejected: Mapping[str, int] = field(default_factory=dict)
+    detections_rejected: Mapping[str, int] = field(default_factory=dict)
+    liveliness_rejected: Mapping[str, int] = field(default_factory=dict)
+    last_tile_s: Mapping[str, float] = field(default_factory=dict)
+    capture_to_fused_ms: Mapping[str, float] = field(default_factory=dict)
+    processes: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    lagging: frozenset[str] = frozenset()
+    """Pairs a capture is no longer held for (:class:`CaptureGroups`)."""
+    rejected_by_pair: Mapping[str, int] = field(default_factory=dict)
+    """Tiles and detections refused, by the pair whose key they came on."""
+    objects: ObjectsHeader = field(
+        default_factory=lambda: ObjectsHeader(version=0, stamp_ns=0, objects=[])
+    )
+
+
+class FusionState:
+    """The map and its bookkeeping, owned by one thread (the service's main loop)."""
+
+    def __init__(self, settings: FusionSettings, grid: FusedGrid) -> None:
+        self.settings = settings
+        self.grid = grid
+        self.gate = TileGate(
+            settings.resolution_m,
+            settings.max_tile_age_s,
+            int(settings.max_message_mb * 1024 * 1024),
+            site=grid.params.site_window(),
+            bounded=grid.params.bounds is not None,
+        )
+        self.accepted: Counter[str] = Counter()
+        self.rejected: Counter[str] = Counter()
+        self.detections_rejected: Counter[str] = Counter()
+        self.liveliness_rejected: Counter[str] = Counter()
+        self.rejected_by_pair: Counter[str] = Counter()
+        self.last_tile_s: dict[str, float] = {}
+        self.capture_to_fused_ms: dict[str, float] = {}
+        self.processes: dict[str, set[str]] = {}
+        """Each pair's depth processes alive (liveliness tokens ``depth/{pair}/alive/{instance}``)."""
+        self.contributors: set[str] = set()
+        self.tiles: CaptureGroups[tuple[str, AcceptedTile]] = CaptureGroups(
+            wait_s=settings.capture_wait_s
+        )
+        """Admitted tiles (with their keys) waiting for the rest of their capture."""
+        self.tracker = ObjectTracker(captures=CaptureGroups(wait_s=settings.capture_wait_s))
+        self.objects_header = ObjectsHeader(version=0, stamp_ns=0, objects=[])
+        self.outlined: CellMasks = []
+        """The static objects' footprints the map agrees with, less their edge cells the frames
+        call free (``serve_tracks``), as of the newest capture."""
+        self.tops: CellMasks = []
+        """The movers' tops no frame measured (``serve_tracks``), as of the newest capture …"""
+        self.tops_until_s = 0.0
+        """… shown until this monotonic time: a capture's ``sweep_max_s`` later, no capture since
+        means the pairs stopped or died, and the movers have moved on."""
+        self.last_capture_s = time.monotonic()
+        """When the tracker last had a capture: with none for ``decay_after_s`` (every pair
+        stopped or died), the tracks and outlines are forgotten as the cells' evidence is."""
+        self.warn = RateLimitedLog(log)
+        frozen, self.unsaved = grid.freeze()
+        self.view = View(frozen)
+        """Replaced, never changed: readers on other threads take the reference and keep it."""
+
+    @property
+    def alive(self) -> set[str]:
+        return {pair for pair, instances in self.processes.items() if instances}
+
+    def handle(self, delivery: Delivery) -> None:
+        """One message from the inbox; a bad one is counted by reason, never raised. Whatever
+        else fusing it raises (a bug, memory) is counted as ``internal`` and logged with the
+        exception: the owner's loop, and with it the map, outlives any one message."""
+        try:
+            if delivery.kind == "tile":
+                self._tile(delivery)
+            elif delivery.kind == "detections":
+                self._detections(delivery)
+            else:
+                self._presence(delivery)
+        except Rejected as rejection:
+            self._count(delivery.kind, delivery.key, rejection.reason, str(rejection))
+        except Exception as error:
+            self._count(delivery.kind, delivery.key, "internal", _internal(error))
+
+    def _count(self, kind: str, key: str, reason: str, detail: str) -> None:
+        counters = {
+            "tile": self.rejected,
+            "detections": self.detections_rejected,
+        }.get(kind, self.liveliness_rejected)
+        counters[reason] += 1
+        if kind != "presence":
+            with contextlib.suppress(ValueError):  # a key of no pair: counted by reason only
+                self.rejected_by_pair[keys.pair_of(key)] += 1
+        self.warn.warning(
+            f"{kind}_{reason}", f"{kind} rejected", reason=reason, on=key, error=detail[:200]
+        )
+
+    def _tile(self, delivery: Delivery) -> None:
+        """A pair's tile: checked now, fused with the rest of its capture (:meth:`fuse_captures`)."""
+        tile = self.gate.admit(delivery.payload, delivery.arrival_ns, delivery.key)
+        self.gate.accepted(tile)
+        pair = tile.header.pair
+        self.last_tile_s[pair] = time.time()
+        self.tiles.add(pair, tile.header.stamp_ns, [(delivery.key, tile)], time.monotonic())
+
+    def fuse_captures(self, everything: bool = False) -> None:
+        """Fuse the tiles of every complete capture (``everything``: all held, at shutdown)."""
+        for _, tiles in self.tiles.ready(time.monotonic(), self.alive, everything):
+            for pair, (key, tile) in tiles:
+                try:
+                    self.grid.integrate_tile(tile, tile.header.stamp_ns)
+                except TileOutsideMap as error:
+                    self._count("tile", key, error.reason, str(error))
+                    continue
+                except Exception as error:
+                    self._count("tile", key, "internal", _internal(error))
+                    continue
+                self.accepted[pair] += 1
+                self.contributors.add(pair)
+                self.capture_to_fused_ms[pair] = (time.time_ns() - tile.header.stamp_ns) / 1e6
+
+    def _detections(self, delivery: Delivery) -> None:
+        """One pair's objects of one frame: held until the rest of the capture arrives."""
+        h = decode_detections(delivery.payload, delivery.key, delivery.arrival_ns, self.gate)
+        self.tracker.add(h.pair, h.stamp_ns, list(h.detections), time.monotonic())
+
+    def _presence(self, delivery: Delivery) -> None:
+        presence = decode_presence(delivery.key, delivery.alive)
+        instances = self.processes.setdefault(presence.pair, set())
+        if presence.alive:
+            if instances - {presence.instance}:
+                log.warning(
+                    "a second depth process claims the pair",
+                    extra={
+                        "pair": presence.pair,
+                        "processes": ",".join(sorted(instances | {presence.instance})),
+                    },
+                )
+            instances.add(presence.instance)
+        else:
+            instances.discard(presence.instance)
+        log.info(
+            "depth process joined" if presence.alive else "depth process left",
+            extra={"pair": presence.pair, "instance": presence.instance},
+        )
+
+    def refresh_objects(self) -> ObjectsHeader | None:
+        """Merge and track the captures that are complete; the predicted layer holds the static
+        objects' footprints the frames agree with, less their edge cells the frames call free (the
+        contested layer those, the other footprints, the cells within a centimetre outside every
+        static one, and the moving and unsettled tracks' footprints now; the fringe layer the
+        occupied cells just outside static ones), the movers' tops no frame measured and, with
+        ``predict_movers``, the moving tracks' paths up to one frame interval past now (the map's
+        visible time); returns the new object list if the tracks changed."""
+        now_ns = time.time_ns()
+        resolution_m = self.grid.params.resolution_m
+        changed = self.tracker.flush(time.monotonic(), self.alive)
+        check = MapCheck()
+        expired = False
+        if changed:  # once a capture: tracks and evidence both moved
+            self.outlined, self.tops, check = serve_tracks(
+                self.grid, self.tracker, self.settings.outline_static
+            )
+            self.tops_until_s = time.monotonic() + self.tracker.config.sweep_max_s
+            self.last_capture_s = time.monotonic()
+        elif self.tops and time.monotonic() > self.tops_until_s:
+            self.tops, expired = [], True
+        if (
+            not changed
+            and (self.outlined or self.tracker.tracks)
+            and time.monotonic() - self.last_capture_s
+            > max(
+                self.grid.params.decay_after_s,
+                FORGET_AFTER_FRAMES * self.tracker.frame_interval_s,
+            )
+        ):
+            # No capture for as long as a cell's evidence lasts: what was tracked may have been
+            # moved. An outline served obstacles on a map whose every cell had decayed unknown.
+            self.outlined, self.tops, expired = [], [], True
+            self.tracker.forget()
+            changed = True
+        if self.settings.predict_movers:
+            until_ns = now_ns + int(self.tracker.ahead_s() * 1e9)
+            swept = self.tracker.sweep(resolution_m, self.grid.stamp_ns, until_ns)
+            self.grid.set_predicted(self.outlined + self.tops + swept)
+        elif changed or expired:
+            self.grid.set_predicted(self.outlined + self.tops)
+        if not changed:
+            return None
+        self.objects_header = ObjectsHeader(
+            version=self.tracker.version,
+            stamp_ns=self.tracker.stamp_ns,
+            objects=self.tracker.objects(check.pieces, self.grid),
+        )
+        return self.objects_header
+
+    def publish(self) -> list[bytes]:
+        """Freeze the changes (copy-on-write of the changed chunks) for readers; returns the
+        ``map/updates`` payloads of the changed cells: one per group of changed chunks
+        (:func:`update_parts`), so their size follows the change, not its bounding box.
+
+        The messages of one publish form a chain (previous_version → version, each continuing
+        the last): a follower applies them in turn with nothing new to learn, and reaches the
+        version ``map/latest`` serves after the last. The counter jumps ahead to make room for the
+        chain when fewer tiles than messages came (versions only count up; they are not tiles)."""
+        previous = self.view.frozen
+        parts = [
+            part.intersect(self.grid.window) for part in update_parts(self.grid.take_dirty_parts())
+        ]
+        parts = [part for part in parts if not part.empty]
+        if self.grid.version != previous.version:
+            self.grid.version = max(self.grid.version, previous.version + len(parts))
+        frozen, changed = self.grid.freeze()
+        self.unsaved |= changed
+        self.update_view(frozen)
+        if not parts or frozen.version == previous.version:
+            return []
+        payloads = []
+        for k, part in enumerate(parts):
+            version = frozen.version if k == len(parts) - 1 else previous.version + k + 1
+            occupancy = self.grid.window_of("served", part)
+            payloads.append(update_payload(frozen, part, previous.version + k, occupancy, version))
+        return payloads
+
+    def update_view(self, frozen: FrozenMap | None = None) -> None:
+        """A new View with the counters as they are now."""
+        self.view = View(
+            frozen or self.view.frozen,
+            tuple(sorted(self.contributors)),
+            dict(self.accepted),
+            dict(self.rejected),
+            dict(self.detections_rejected),
+            dict(self.liveliness_rejected),
+            dict(self.last_tile_s),
+            dict(self.capture_to_fused_ms),
+            {pair: tuple(sorted(i)) for pair, i in self.processes.items()},
+            frozenset(self.tiles.lagging),
+            dict(self.rejected_by_pair),
+            self.objects_header,
+        )
+
+
+def _internal(error: Exception) -> str:
+    """What an unexpected exception says, with where it was raised."""
+    frames = traceback.extract_tb(error.__traceback__)
+    where = f" at {Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else ""
+    return f"{type(error).__name__}: {error}{where}"
+
+
+def update_payload(
+    frozen: FrozenMap,
+    part: Window,
+    previous_version: int,
+    occupancy: np.ndarray,
+    version: int | None = None,
+) -> bytes:
+    header = MapUpdateHeader(
+        version=frozen.version if version is None else version,
+        previous_version=previous_version,
+        epoch=frozen.epoch_ns,
+        stamp_ns=frozen.stamp_ns,
+        resolution_m=frozen.resolution_m,
+        i0=part.i0,
+        j0=part.j0,
+        cols=part.cols,
+        rows=part.rows,
+        map_i0=frozen.window.i0,
+        map_j0=frozen.window.j0,
+        map_cols=frozen.window.cols,
+        map_rows=frozen.window.rows,
+    )
+    return encode(MAP_UPDATE_KIND, header, {"occupancy": np.ascontiguousarray(occupancy)})
+
+
+def health_of(view: View, writer: StateWriter | None, dropped: Mapping[str, int]) -> dict[str, Any]:
+    now = time.time()
+    frozen = view.frozen
+    window = frozen.window
+    pairs = sorted(set(view.accepted) | set(view.processes) | set(view.rejected_by_pair))
+    state: dict[str, Any] = {}
+    if writer is not None:
+        state = {
+            "saved_version": writer.saved_version,
+            "last_save_age_s": round(now - writer.saved_s, 3) if writer.saved_s else None,
+            "save_errors": writer.errors,
+        }
+    return {
+        "pairs": {
+            p: {
+                "alive": bool(view.processes.get(p)),
+                "processes": list(view.processes.get(p, ())),
+                "conflict": len(view.processes.get(p, ())) > 1,
+                "tiles": view.accepted.get(p, 0),
+                "last_tile_age_s": round(now - view.last_tile_s[p], 3)
+                if p in view.last_tile_s
+                else None,
+                "capture_to_fused_ms": view.capture_to_fused_ms.get(p),
+                "lagging": p in view.lagging,
+                "rejected": view.rejected_by_pair.get(p, 0),
+            }
+            for p in pairs
+        },
+        "tiles_accepted": sum(view.accepted.values()),
+        "tiles_rejected": _with_overload(view.rejected, dropped.get("tile", 0)),
+        "detections_rejected": _with_overload(
+            view.detections_rejected, dropped.get("detections", 0)
+        ),
+        "liveliness_rejected": dict(view.liveliness_rejected),
+        "objects": len(view.objects.objects),
+        "map": {
+            "epoch": frozen.epoch_ns,
+            "version": frozen.version,
+            "cols": window.cols,
+            "rows": window.rows,
+            "resolution_m": frozen.resolution_m,
+            "origin_m": list(window.origin_m(frozen.resolution_m)),
+            "known_cells": frozen.known_cells(),
+            "chunks": len(frozen.chunks),
+        },
+        "state": state,
+    }
+
+
+def _with_overload(counts: Mapping[str, int], overload: int) -> dict[str, int]:
+    return {**counts, "overload": overload} if overload else dict(counts)
