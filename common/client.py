@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import threading
 import time
 from collections import deque
@@ -26,6 +28,7 @@ from common.messages import (
 from common.occupancy_map import OccupancyMap
 
 Region = tuple[float, float, float, float]
+log = logging.getLogger("overgrid.client")
 
 
 class MapUnavailable(RuntimeError):
@@ -42,11 +45,14 @@ def query_all(session: zenoh.Session, selector: str, timeout_s: float) -> list[b
     while True:
         remaining = deadline - time.monotonic()
         answers, errors = [], []
-        for reply in session.get(selector, timeout=max(remaining, 0.1)):
-            if reply.ok is not None:
-                answers.append(bytes(reply.ok.payload.to_bytes()))
-            else:
-                errors.append(reply.err.payload.to_string() if reply.err is not None else "?")
+        try:
+            for reply in session.get(selector, timeout=max(remaining, 0.1)):
+                if reply.ok is not None:
+                    answers.append(bytes(reply.ok.payload.to_bytes()))
+                else:
+                    errors.append(reply.err.payload.to_string() if reply.err is not None else "?")
+        except zenoh.ZError as error:  # the session closed: the client's own error type
+            raise MapUnavailable(f"{selector}: {error}") from None
         if answers:
             return answers
         if errors:
@@ -67,9 +73,7 @@ def latest(
     timeout_s: float = 5.0,
 ) -> OccupancyMap:
     """The current map (or a region of it, in metres), with optional ``logodds``/``height`` layers."""
-    parameters = []
-    if region is not None:
-        parameters.append("region=" + ",".join(f"{v:g}" for v in region))
+    parameters = [] if region is None else [_region_parameter(region)]
     if layers:
         parameters.append("layers=" + ",".join(layers))
     selector = keys.MAP_LATEST + ("?" + ";".join(parameters) if parameters else "")
@@ -80,10 +84,14 @@ def latest_encoded(
     session: zenoh.Session, fmt: str, region: Region | None = None, timeout_s: float = 5.0
 ) -> bytes:
     """The map as the service encodes it: ``png``, ``pgm`` or ``yaml``."""
-    parameters = [f"format={fmt}"] + (
-        ["region=" + ",".join(f"{v:g}" for v in region)] if region else []
-    )
+    parameters = [f"format={fmt}"] + ([_region_parameter(region)] if region else [])
     return query_first(session, keys.MAP_LATEST + "?" + ";".join(parameters), timeout_s)
+
+
+def _region_parameter(region: Region) -> str:
+    """``region=x0,y0,x1,y1`` at full precision (``:g``'s six digits moved a bound by a cell, and
+    made a region 1e-7 m wide an error)."""
+    return "region=" + ",".join(repr(float(v)) for v in region)
 
 
 def health(session: zenoh.Session, timeout_s: float = 5.0) -> dict[str, Any]:
@@ -104,7 +112,7 @@ def objects(session: zenoh.Session, timeout_s: float = 5.0) -> ObjectsHeader:
 
 def calibrations(session: zenoh.Session, timeout_s: float = 5.0) -> list[StereoCalibration]:
     """Every pair's published calibration (``cam/*/calib``), sorted by pair; an answer that does
-    not decode is skipped; empty when no camera source answers."""
+    not decode is skipped; MapUnavailable when no camera source answers."""
     found: dict[str, StereoCalibration] = {}
     for payload in query_all(session, keys.CALIB_ALL, timeout_s):
         try:
@@ -147,9 +155,15 @@ class MapFollower:
         self.refetches = 0
         self.applied = 0
         self._recent: deque[Message[MapUpdateHeader]] = deque(maxlen=UPDATES_BACKLOG)
-        self._subscriber = session.declare_subscriber(
-            keys.MAP_UPDATES, zenoh.handlers.RingChannel(UPDATES_BACKLOG)
-        )
+        self.callback_errors = 0
+        """``on_change`` calls that raised (logged; the follower goes on)."""
+        self._closed = False
+        try:
+            self._subscriber = session.declare_subscriber(
+                keys.MAP_UPDATES, zenoh.handlers.RingChannel(UPDATES_BACKLOG)
+            )
+        except zenoh.ZError as error:
+            raise MapUnavailable(f"{keys.MAP_UPDATES}: {error}") from None
         try:
             self._map = latest(session, timeout_s=timeout_s)
         except MapUnavailable:
@@ -163,12 +177,21 @@ class MapFollower:
         with self._lock:
             return self._map
 
+    @property
+    def alive(self) -> bool:
+        """Still following: False once closed or once its session closed (its copy then ages;
+        ``map.stamp_ns`` says how much)."""
+        return self._thread.is_alive()
+
     def _run(self) -> None:
         for sample in self._subscriber:  # ends when the subscriber is undeclared
             try:
                 self._on_update(sample.payload.to_bytes(), time.time())
             except (MapUnavailable, CodecError, ValueError, zenoh.ZError):
                 continue  # fusion gone mid-fetch: the next update or epoch tries again
+            except Exception:  # the robot's on_change: one failure must not stop the copy
+                self.callback_errors += 1
+                log.exception("map follower: on_change raised; following goes on")
 
     def _on_update(self, payload: bytes, arrival_s: float) -> None:
         message = decode(payload, MAP_UPDATE_KIND, MapUpdateHeader)
@@ -242,7 +265,11 @@ class MapFollower:
         return self._map
 
     def close(self) -> None:
-        self._subscriber.undeclare()  # type: ignore[no-untyped-call]
+        if self._closed:
+            return
+        self._closed = True
+        with contextlib.suppress(zenoh.ZError):  # its session closed first: nothing to undeclare
+            self._subscriber.undeclare()  # type: ignore[no-untyped-call]
         if threading.current_thread() is not self._thread:
             self._thread.join(self._timeout_s + 1.0)
 

@@ -241,8 +241,12 @@ class DetectionsHeader(_Header):
 
 
 class TrackedObject(Footprint):
-    """One tracked obstacle of ``map/objects``. ``class`` is ``static`` or ``moving``; a static
-    object never becomes moving (a moved one ends and a new track begins)."""
+    """One tracked obstacle of ``map/objects``. ``class`` is ``static`` or ``moving``; a track is
+    static until it is seen to move, and ``settled`` once it has stood still for the tracker's
+    ``static_after_s``: a settled object never becomes moving (a moved one ends and a new track
+    begins), while one not yet settled may (a mover entering a view reads static for its first
+    second). The footprint is where it was last measured (``last_seen_ns``): for a mover out of
+    view since, its velocity says where it has gone."""
 
     model_config = ConfigDict(
         extra="forbid", frozen=True, validate_by_name=True, serialize_by_alias=True
@@ -266,12 +270,18 @@ class TrackedObject(Footprint):
         "confident measure",
     )
     detections: int = Field(ge=0, description="frames it was measured in")
+    settled: bool = Field(
+        default=False, description="static for good: stood still for the tracker's static_after_s"
+    )
 
 
 class ObjectsHeader(_Header):
     """``map/objects`` reply and put: every current track at ``stamp_ns`` (newest capture), the
-    pieces of one object across a seam's gap as one."""
+    pieces of one object across a seam's gap as one. Its revision is (``epoch``, ``version``), as
+    the map's: a restarted fusion service starts a new epoch, with versions and track ids from 1
+    again (an id names one object within an epoch)."""
 
+    epoch: int = Field(default=0, ge=0, description="the map's epoch (ns) this list belongs to")
     version: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
     objects: list[TrackedObject]

@@ -147,7 +147,10 @@ class OccupancyMap:
         )
 
     def value_at(self, x_m: float, y_m: float) -> int:
-        """Occupancy of the cell holding world point (x, y); unknown outside the map."""
+        """Occupancy of the cell holding world point (x, y); unknown outside the map (and at a
+        point that is not finite)."""
+        if not (math.isfinite(x_m) and math.isfinite(y_m)):
+            return UNKNOWN
         i, j = (int(v) for v in cell_of((x_m, y_m), self.resolution_m))
         row, col = j - self.j0, i - self.i0
         if 0 <= row < self.occupancy.shape[0] and 0 <= col < self.occupancy.shape[1]:

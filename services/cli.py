@@ -38,6 +38,20 @@ COMMANDS = {
 }
 
 
+EXTRAS = {
+    "cv2": "depth",
+    "numba": "depth,fusion",
+    "scipy": "fusion",
+    "mujoco": "sim",
+    "aiohttp": "view",
+    "rclpy": "ros2",
+    "rosbags": "rmw-zenoh",
+    "xxhash": "rmw-zenoh",
+}
+"""The extra (pyproject's optional dependencies) that installs each module a command may need: a
+robot's base install ran ``overgrid eval`` into a ModuleNotFoundError traceback."""
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
     if not args or args[0] in ("-h", "--help") or args[0] not in COMMANDS:
@@ -46,7 +60,19 @@ def main(argv: Sequence[str] | None = None) -> None:
         print("usage: overgrid COMMAND [options]\n\ncommands:\n" + "\n".join(lines))
         raise SystemExit(0 if args and args[0] in ("-h", "--help") else 2)
     catch_stop_signals()  # before the heavy imports: a stop while starting is a clean exit
-    module = importlib.import_module(COMMANDS[args[0]][0])
+    try:
+        module = importlib.import_module(COMMANDS[args[0]][0])
+    except ModuleNotFoundError as error:
+        missing = (error.name or "").split(".")[0]
+        extra = EXTRAS.get(missing)
+        if extra is None:
+            raise
+        print(
+            f"overgrid {args[0]} needs {missing}, which this install lacks: "
+            f"pip install 'overgrid[{extra}]'",
+            file=sys.stderr,
+        )
+        raise SystemExit(2) from None
     entry = {"map": "map_cli", "health": "health_cli", "objects": "objects_cli"}.get(args[0], "cli")
     try:
         try:

@@ -144,4 +144,5 @@ def objects_cli(argv: Sequence[str] | None = None) -> None:
             f"{o.velocity_mps[0]:>8.2f}{o.velocity_mps[1]:>8.2f}{sigma_v:>6.2f}  {age_s:>6.1f}  "
             f"{','.join(o.pairs)}{'  partial' if o.partial else ''}"
             f"{'  size unsure' if o.size_unsure else ''}{'  round' if o.round else ''}"
+            f"{'  settled' if o.settled else ''}"
         )

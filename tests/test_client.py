@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from common.client import MapFollower
+from common.client import MapFollower, MapUnavailable, latest
 from common.codec import WIRE_ENCODING, encode
 from common.lattice import Window
 from common.messages import MAP_UPDATE_KIND, MapUpdateHeader
@@ -85,3 +85,15 @@ def test_a_follower_behind_a_grown_map_fetches_until_it_has_the_newest(bus: Bus)
         assert follower.map.window == grown.window
         follower.close()
     queryable.undeclare()  # type: ignore[no-untyped-call]
+
+
+def test_a_closed_session_is_the_clients_own_error() -> None:
+    """After ``session.close()`` the calls raised zenoh.ZError, not MapUnavailable."""
+    config = zenoh.Config()
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(config)
+    session.close()  # type: ignore[no-untyped-call]
+    with pytest.raises(MapUnavailable, match="map/latest"):
+        latest(session, timeout_s=0.5)
+    with pytest.raises(MapUnavailable, match="map/updates"):
+        MapFollower(session, timeout_s=0.5)

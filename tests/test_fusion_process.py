@@ -14,6 +14,7 @@ from common.client import MapFollower, MapUnavailable, health, latest, latest_en
 from common.codec import WIRE_ENCODING
 from common.lattice import Window
 from common.mapfiles import read_map_server
+from common.occupancy_map import OccupancyMap
 from common.png import decode_png
 from tests.conftest import (
     REPO,
@@ -172,7 +173,14 @@ def test_follower_keeps_a_copy_current_from_updates(bus: Bus, tmp_path: Path) ->
     wait_for(lambda: fusion_answers(bus), 30, "fusion to start")
     publisher.put(tile_payload("p0", Window(0, 0, 64, 64), -0.4, seq=0))
     wait_for(lambda: latest(bus.session, timeout_s=10).version >= 1, 10, "a first map")
-    follower = MapFollower(bus.session, timeout_s=10)
+    changes: list[int] = []
+
+    def robot_bug(changed: OccupancyMap, arrival_s: float) -> None:
+        changes.append(changed.version)
+        if len(changes) == 1:
+            raise RuntimeError("a robot's own bug")  # it ended the follower's thread, silently
+
+    follower = MapFollower(bus.session, timeout_s=10, on_change=robot_bug)
     for seq in range(1, 6):
         publisher.put(tile_payload("p0", Window(5 * seq, 5, 4, 4), 3.0, seq=seq))
         time.sleep(0.15)
@@ -184,8 +192,16 @@ def test_follower_keeps_a_copy_current_from_updates(bus: Bus, tmp_path: Path) ->
     np.testing.assert_array_equal(
         follower.map.occupancy, latest(bus.session, timeout_s=10).occupancy
     )
-    assert follower.applied >= 1
+    assert follower.applied >= 1 and follower.alive
+    assert follower.callback_errors == 1 and len(changes) >= 2
+    # A region as the robot gives it, to the last digit (":g" moved 0.2499999 to 0.25: a cell).
+    region = (0.2499999, 0.1, 0.6, 0.4)
+    assert latest(bus.session, region=region, timeout_s=10).window == (
+        follower.map.crop(region).window
+    )
     follower.close()
+    follower.close()  # twice: no error
+    assert not follower.alive
 
 
 def test_updates_carry_the_changed_cells_not_their_bounding_box(bus: Bus, tmp_path: Path) -> None:

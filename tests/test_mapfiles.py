@@ -72,6 +72,9 @@ def test_occupancy_convention_and_crop() -> None:
     part = m.crop((-1.0, 2.0, -0.9, 2.1))
     assert part.window.cols == 2 and part.window.rows == 2 and part.occupancy[0, 0] == 100
     assert m.value_at(-0.99, 2.01) == 100 and m.value_at(100.0, 100.0) == UNKNOWN
+    with warnings.catch_warnings():  # numpy's "invalid value encountered in cast" was printed
+        warnings.simplefilter("error")
+        assert m.value_at(float("nan"), 2.0) == UNKNOWN
     # A region holding the whole map, however large, is the whole map (1e308 m overflowed the
     # cell index: "does not overlap the map", and numpy's warning on fusion's stderr).
     with warnings.catch_warnings():

@@ -131,6 +131,10 @@ def test_a_static_objects_footprint_is_served_occupied(bus: Bus, tmp_path: Path)
 
     wait_for(outlined, 10, "the footprint in the predicted layer")
     grid = served()
+    # The list is of the map's epoch (ids restart with a new one) and the box has settled.
+    listed = objects(bus.session, timeout_s=5)
+    assert listed.epoch == grid.epoch > 0
+    assert all(o.settled and o.object_class == "static" for o in listed.objects)
     assert grid.predicted is not None
     where = floor.slices_in(grid.window)
     occupancy, predicted = grid.occupancy[where], grid.predicted[where]
@@ -197,5 +201,5 @@ def test_a_movers_top_is_served_occupied_until_captures_stop(bus: Bus, tmp_path:
 
     wait_for(lambda: at(top) == (True, 100), 1.0, "the top of the newest view occupied")
     assert at(left) == (False, -1)
-    assert [t.object_class for t in _tracked(bus)] == ["moving"]
+    assert [(t.object_class, t.settled) for t in _tracked(bus)] == [("moving", False)]
     wait_for(lambda: at(top) == (False, -1), 10, "the top gone once captures stopped")

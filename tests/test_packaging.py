@@ -27,3 +27,21 @@ def test_cli_lists_every_command() -> None:
     assert result.returncode == 0
     for command in ("camera-sim", "depth", "fusion", "map", "health"):
         assert command in result.stdout
+
+
+def test_a_command_whose_extra_is_not_installed_names_the_extra() -> None:
+    """On a robot's base install, ``overgrid eval`` and ``overgrid fusion`` ended in a
+    ModuleNotFoundError traceback."""
+    for command, module, extra in (("eval", "cv2", "depth"), ("fusion", "scipy", "fusion")):
+        code = (
+            f"import sys; sys.modules[{module!r}] = None;"  # as if not installed
+            f"from services.cli import main; main([{command!r}])"
+        )
+        result = subprocess.run(
+            [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60
+        )
+        assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+        assert result.stderr.strip() == (
+            f"overgrid {command} needs {module}, which this install lacks: "
+            f"pip install 'overgrid[{extra}]'"
+        )

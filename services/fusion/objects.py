@@ -749,6 +749,7 @@ class ObjectTracker:
                     size_unsure=unsure,
                     round=round_,
                     detections=t.detections,
+                    settled=t.static,
                 )
             )
         return out if cells is None else join_across_seams(out, cells, self.config.seam)

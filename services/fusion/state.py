@@ -99,7 +99,7 @@ class FusionState:
         )
         """Admitted tiles (with their keys) waiting for the rest of their capture."""
         self.tracker = ObjectTracker(captures=CaptureGroups(wait_s=settings.capture_wait_s))
-        self.objects_header = ObjectsHeader(version=0, stamp_ns=0, objects=[])
+        self.objects_header = ObjectsHeader(epoch=grid.epoch_ns, version=0, stamp_ns=0, objects=[])
         self.outlined: CellMasks = []
         """The static objects' footprints the map agrees with, less their edge cells the frames
         call free (``serve_tracks``), as of the newest capture."""
@@ -242,6 +242,7 @@ class FusionState:
         if not changed:
             return None
         self.objects_header = ObjectsHeader(
+            epoch=self.grid.epoch_ns,
             version=self.tracker.version,
             stamp_ns=self.tracker.stamp_ns,
             objects=self.tracker.objects(check.pieces, self.grid),
