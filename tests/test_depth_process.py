@@ -181,6 +181,41 @@ def test_recorded_images_and_calibration_file_go_through_the_same_pipeline(
     assert all(t.cols * t.rows > 10_000 for t in sink.tiles)
 
 
+def test_left_and_right_swapped_are_named_in_the_log(tmp_path: Path) -> None:
+    """Swapped streams mapped on (valid disparity 0.71 → 0.08) and nothing said why."""
+    scene = generate_scene(1)
+    calib = layout_pairs(RigSpec(pair_count=1), scene.floor_size_m)[0]
+    renderer = SceneRenderer(scene, [calib])
+    sides = {"left": "p0_right", "right": "p0_left"}  # swapped
+    for side, camera in sides.items():
+        (tmp_path / side).mkdir()
+        image = encode_png(renderer.render_gray(camera, 640, 480))
+        for index in range(60):
+            (tmp_path / side / f"{index:04d}.png").write_bytes(image)
+    renderer.close()
+    calib_file = tmp_path / "calib.yaml"
+    calib_file.write_text(yaml.safe_dump(calib.model_dump(mode="json")))
+    done = run_overgrid(
+        "depth",
+        "--pair",
+        "p0",
+        "--calib",
+        str(calib_file),
+        "--images",
+        str(tmp_path),
+        "--rate-hz",
+        "20",
+        "--summary-s",
+        "0.5",
+        "--no-multicast-scouting",
+        "--namespace",
+        f"test_swapped_{os.getpid()}",
+    )
+    assert done.returncode == 0, done.stderr
+    assert "left and right the right way round" in done.stderr
+    assert "'state': 'no_floor'" in done.stderr  # the summary's floor_model
+
+
 def test_a_video_that_does_not_read_is_one_line_at_start_up(tmp_path: Path) -> None:
     """FFmpeg's own reason ("moov atom not found") came as a second line."""
     video = tmp_path / "notavideo.mp4"

@@ -33,6 +33,7 @@ from services.camera_sim.settings import CameraSimParams
 from services.camera_sim.truth import footprint_mask
 from services.depth import (
     floor_background,
+    floor_config,
     floor_geometry,
     floor_model,
     floor_offset,
@@ -1650,3 +1651,26 @@ def test_on_a_plain_floor_a_floor_reading_never_modelled_needs_the_floor_test() 
     assert max(free_cells[8:]) == 0, free_cells
     # The floor around it is still free.
     assert min(free_floor[8:]) > 0.9 * max(free_floor[8:]) > 2000, free_floor
+
+
+def test_a_pair_given_left_and_right_swapped_says_it_finds_no_floor() -> None:
+    """Swapped cameras (or a calibration not the pair's) mapped on with the floor model learning
+    forever and nothing in health said why."""
+    rng = np.random.default_rng(11)
+    geometry = _synthetic_geometry()
+    width, height = SYNTHETIC_SIZE
+    texture = cv2.GaussianBlur(
+        rng.uniform(40, 220, (height, width)).astype(np.float32), (0, 0), 1.2
+    )
+    chain = DisparityChain(MatcherConfig(), 16, 32)
+    config = floor_config.FloorModelConfig(no_floor_frames=12)
+    states = []
+    for swapped in (False, True):
+        model = floor_model.FloorModel(geometry, (0.1, 2.0), config)
+        for _ in range(config.no_floor_frames):
+            left, right = _textured_pair(geometry.floor_disparity_px, rng, texture)
+            if swapped:
+                left, right = right, left
+            model.update(left, right, chain(left, right))
+        states.append(model.state())
+    assert states == ["ready", "no_floor"]

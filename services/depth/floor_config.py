@@ -46,7 +46,12 @@ class FloorModelConfig:
     """Learn (grow, line of sight, update) every this many frames; the floor changes slowly."""
     confirm_frames: int = 2
     ready_share: float = 0.3
-    """The model reports *ready* once this share of the image is modelled."""
+    """The model reports *ready* once this share of the image is modelled …"""
+    no_floor_frames: int = 40
+    no_floor_share: float = 0.01
+    """… and *no_floor* when after ``no_floor_frames`` frames under this share is: left and right
+    swapped, or a calibration not this pair's (renders, 24 frames: 0.00–0.04 % modelled so, 65–85 %
+    right, on concrete and on a plain floor)."""
     relearn_share: float = 0.5
     """Re-learn when more than this share of the modelled pixels departs at once."""
     stale_learning_frames: int = 3

@@ -682,7 +682,14 @@ class FloorModel:
         return float(np.count_nonzero(self._modelled)) / float(self._modelled.size)
 
     def state(self) -> str:
-        return "ready" if self.modelled_share() >= self.config.ready_share else "learning"
+        """``ready``, ``learning``, or ``no_floor``: long past learning with nearly nothing
+        learned, the floor test finds no floor where the calibration puts it."""
+        share, cfg = self.modelled_share(), self.config
+        if share >= cfg.ready_share:
+            return "ready"
+        if self.frames >= cfg.no_floor_frames and share < cfg.no_floor_share:
+            return "no_floor"
+        return "learning"
 
     # -- one frame --------------------------------------------------------------------------
 

@@ -533,6 +533,12 @@ def _summaries(
             continue
         stage_ms = counters.pop("stage_ms_mean", {})
         log.info("summary", extra={**counters, **{f"{k}_ms": v for k, v in stage_ms.items()}})
+        if counters.get("floor_model", {}).get("state") == "no_floor":
+            log.warning(
+                "the floor model finds no floor where the calibration puts it: is the "
+                "calibration this pair's, and are left and right the right way round?",
+                extra={"pair": counters.get("pair")},
+            )
 
 
 def cli(argv: Sequence[str] | None = None) -> None:
