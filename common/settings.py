@@ -185,7 +185,8 @@ def describe_validation_error(error: ValidationError, settings_cls: type[BaseSet
         aliases = " ".join(f"--{alias}" for alias in flats.get(flag[2:], []))
         names = (f"{aliases} ({flag})" if aliases else flag) + f" / {env_name(path)}"
         got = item.get("input")
-        suffix = f" (got {got!r})" if got is not None and not isinstance(got, dict) else ""
+        said = ", got " in message  # the check named the value itself: once is enough
+        suffix = "" if got is None or isinstance(got, dict) or said else f" (got {got!r})"
         parts.append(f"invalid setting {names}: {message}{suffix}")
     return "; ".join(parts)
 

@@ -54,7 +54,10 @@ robot's base install ran ``overgrid eval`` into a ModuleNotFoundError traceback.
 
 def main(argv: Sequence[str] | None = None) -> None:
     args = list(sys.argv[1:] if argv is None else argv)
-    if not args or args[0] in ("-h", "--help") or args[0] not in COMMANDS:
+    if args and args[0] not in COMMANDS and args[0] not in ("-h", "--help"):
+        print(f"overgrid: no command {args[0]!r} (overgrid --help lists them)", file=sys.stderr)
+        raise SystemExit(2)
+    if not args or args[0] in ("-h", "--help"):
         width = max(len(name) for name in COMMANDS)
         lines = [f"  {name:<{width}}  {help_text}" for name, (_, help_text) in COMMANDS.items()]
         print("usage: overgrid COMMAND [options]\n\ncommands:\n" + "\n".join(lines))

@@ -34,6 +34,7 @@ def test_a_bad_flag_is_one_line_naming_it(
 ) -> None:
     done = map_get(*args, "--no-multicast-scouting", "--timeout-s", "0.5", cwd=tmp_path)
     assert_one_line_exit_2(done, flag, reason)
+    assert done.stderr.count("got ") <= 1  # the value once ("got '0,0,1' (got '0,0,1')")
     assert not list(tmp_path.iterdir())
 
 

@@ -45,3 +45,16 @@ def test_a_command_whose_extra_is_not_installed_names_the_extra() -> None:
             f"overgrid {command} needs {module}, which this install lacks: "
             f"pip install 'overgrid[{extra}]'"
         )
+
+
+def test_an_unknown_command_is_one_line_naming_it() -> None:
+    """It printed the usage to stdout and nothing on stderr."""
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "frobnicate"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2 and not result.stdout
+    assert result.stderr == "overgrid: no command 'frobnicate' (overgrid --help lists them)\n"
