@@ -1,7 +1,7 @@
 import subprocess
 import sys
 
-from tests.conftest import REPO
+from tests.conftest import REPO, run_overgrid
 
 
 def test_robot_client_imports_no_renderer_no_opencv_no_compiler() -> None:
@@ -17,13 +17,7 @@ def test_robot_client_imports_no_renderer_no_opencv_no_compiler() -> None:
 
 
 def test_cli_lists_every_command() -> None:
-    result = subprocess.run(
-        [sys.executable, "-m", "services.cli", "--help"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = run_overgrid("--help")
     assert result.returncode == 0
     for command in ("camera-sim", "depth", "fusion", "map", "health"):
         assert command in result.stdout
@@ -49,12 +43,6 @@ def test_a_command_whose_extra_is_not_installed_names_the_extra() -> None:
 
 def test_an_unknown_command_is_one_line_naming_it() -> None:
     """It printed the usage to stdout and nothing on stderr."""
-    result = subprocess.run(
-        [sys.executable, "-m", "services.cli", "frobnicate"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = run_overgrid("frobnicate")
     assert result.returncode == 2 and not result.stdout
     assert result.stderr == "overgrid: no command 'frobnicate' (overgrid --help lists them)\n"
