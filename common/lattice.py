@@ -75,6 +75,11 @@ class Window:
         """World coordinates of the window's lower-left corner (the map_server ``origin``)."""
         return (self.i0 * resolution_m, self.j0 * resolution_m)
 
+    def bounds_m(self, resolution_m: float) -> tuple[float, float, float, float]:
+        """World rectangle the window's cells cover: x0, y0, x1, y1."""
+        r = resolution_m
+        return (self.i0 * r, self.j0 * r, self.i1 * r, self.j1 * r)
+
     def intersect(self, other: Window) -> Window:
         i0, j0 = max(self.i0, other.i0), max(self.j0, other.j0)
         i1, j1 = min(self.i1, other.i1), min(self.j1, other.j1)

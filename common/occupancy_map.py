@@ -126,9 +126,9 @@ class OccupancyMap:
         # Within a cell of the map first: 1e308 m is a region holding the map, whose cell index
         # overflowed (answered "does not overlap the map").
         r = self.resolution_m
-        (mx0, my0), window = self.origin_m, self.window
-        x0, x1 = max(x0, mx0 - r), min(x1, mx0 + (window.cols + 1) * r)
-        y0, y1 = max(y0, my0 - r), min(y1, my0 + (window.rows + 1) * r)
+        mx0, my0, mx1, my1 = self.window.bounds_m(r)
+        x0, x1 = max(x0, mx0 - r), min(x1, mx1 + r)
+        y0, y1 = max(y0, my0 - r), min(y1, my1 + r)
         part = (
             Window.covering(x0, y0, x1, y1, r).intersect(self.window)
             if x1 > x0 and y1 > y0

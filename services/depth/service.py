@@ -132,7 +132,7 @@ def fetch_calibration(
     """Ask cam/{pair}/calib until a usable answer arrives; a bad one is counted and logged and the
     process keeps asking (the camera box may be fixed without restarting this one)."""
     started = time.monotonic()
-    asked, report_at_s = 0, CALIB_WAIT_REPORT_S
+    waiting, report_at_s = False, CALIB_WAIT_REPORT_S
     while True:
         pipeline = _ask_calibration(session, settings, counts)
         if pipeline is not None:
@@ -143,12 +143,13 @@ def fetch_calibration(
                 f"{keys.calib(settings.pair)} (rejected: {dict(counts.calibration_rejected)})"
             )
         waited_s = time.monotonic() - started
-        if asked == 0:
+        if not waiting:
             log.info("waiting for calibration", extra={"key": keys.calib(settings.pair)})
         elif waited_s >= report_at_s:
             # Which pairs a camera does answer for: a --pair no camera has waited in silence.
             answering = sorted(
-                keys.pair_of(str(reply.ok.key_expr))
+                str(reply.ok.key_expr).split("/")[1]  # cam/{pair}/calib, as named (keys.pair_of
+                # would raise on a pair id it refuses, and end the wait)
                 for reply in session.get(keys.CALIB_ALL, timeout=2.0)
                 if reply.ok is not None
             )
@@ -161,7 +162,7 @@ def fetch_calibration(
                 },
             )
             report_at_s = waited_s + CALIB_WAIT_REPORT_S
-        asked += 1
+        waiting = True
         if stop_wait(1.0):
             return None
 

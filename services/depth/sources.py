@@ -63,9 +63,10 @@ def check_recording(source: Path, image_size: tuple[int, int] | None = None) -> 
     """Fail at start-up, not at the first frame, on a recording that is not there or not one; with
     the calibration's ``image_size``, also on one whose first pair the pipeline cannot take (the
     wrong size, pixels of no gray scale): every frame of it would be refused."""
+    first_name = "its first frame"
     if source.is_dir():
         try:
-            _image_pairs(source)
+            first_name = _image_pairs(source)[0][0].name
         except ValueError as error:
             raise InputError(f"--images {source}: {error}") from None
     elif not source.exists():
@@ -87,8 +88,7 @@ def check_recording(source: Path, image_size: tuple[int, int] | None = None) -> 
         return
     checked = check_images(*first, image_size)
     if isinstance(checked, Rejection):
-        where = _image_pairs(source)[0][0].name if source.is_dir() else "its first frame"
-        raise InputError(f"--images {source}: {where}: {checked.reason}: {checked.detail}")
+        raise InputError(f"--images {source}: {first_name}: {checked.reason}: {checked.detail}")
 
 
 def _natural_key(path: Path) -> list[tuple[int, int | str]]:

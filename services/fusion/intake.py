@@ -192,8 +192,7 @@ def check_on_site(
     """Every detection's centre on the site the tiles may land on, and no footprint longer than
     the site: elsewhere a detection is a forged or broken one that would only start tracks the
     map never shows (as a tile there is rejected)."""
-    (x0, y0), span_m = site.origin_m(resolution_m), max(site.cols, site.rows) * resolution_m
-    x1, y1 = x0 + site.cols * resolution_m, y0 + site.rows * resolution_m
+    (x0, y0, x1, y1), span_m = site.bounds_m(resolution_m), max(site.cols, site.rows) * resolution_m
     for detection in header.detections:
         x, y = detection.center_m
         if not (x0 <= x < x1 and y0 <= y < y1):

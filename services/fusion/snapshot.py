@@ -104,8 +104,7 @@ class MapSnapshot:
             return view
         if self.map.occupancy.size == 0:
             raise MapQueryError("the map has no cells yet (no tile fused): nothing to serve")
-        (x0, y0), r = self.map.origin_m, self.map.resolution_m
-        x1, y1 = x0 + self.map.window.cols * r, y0 + self.map.window.rows * r
+        x0, y0, x1, y1 = self.map.window.bounds_m(self.map.resolution_m)
         raise MapQueryError(
             "region {:g},{:g},{:g},{:g} does not overlap the map, which covers x {:g}…{:g} m, "
             "y {:g}…{:g} m".format(*(query.region or ()), x0, x1, y0, y1)

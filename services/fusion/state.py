@@ -104,10 +104,9 @@ class FusionState:
         """The static objects' footprints the map agrees with, less their edge cells the frames
         call free (``serve_tracks``), as of the newest capture."""
         self.tops: CellMasks = []
-        """The movers' tops no frame measured (``serve_tracks``), as of the newest capture …"""
-        self.tops_until_s = 0.0
-        """… shown until this monotonic time: a capture's ``sweep_max_s`` later, no capture since
-        means the pairs stopped or died, and the movers have moved on."""
+        """The movers' tops no frame measured (``serve_tracks``), as of the newest capture, shown
+        until ``sweep_max_s`` after it: no capture since means the pairs stopped or died, and the
+        movers have moved on."""
         self.last_capture_s = time.monotonic()
         """When the tracker last had a capture: with none for ``decay_after_s`` (every pair
         stopped or died), the tracks and outlines are forgotten as the cells' evidence is."""
@@ -215,9 +214,8 @@ class FusionState:
             self.outlined, self.tops, check = serve_tracks(
                 self.grid, self.tracker, self.settings.outline_static
             )
-            self.tops_until_s = time.monotonic() + self.tracker.config.sweep_max_s
             self.last_capture_s = time.monotonic()
-        elif self.tops and time.monotonic() > self.tops_until_s:
+        elif self.tops and time.monotonic() > self.last_capture_s + self.tracker.config.sweep_max_s:
             self.tops, expired = [], True
         if (
             not changed
