@@ -37,11 +37,16 @@ missing one do not name it ("Invalid TLS certificate file: No such file or direc
 a client's certificate blame the network ("Unable to connect to any of [tls/…]")."""
 
 
-def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
+def zenoh_config(settings: ZenohSettings, *, timestamping: bool = False) -> zenoh.Config:
+    """The session's configuration; ``timestamping`` stamps every sample with the session's
+    clock, as an advanced publisher with a cache and no miss detection needs (rmw_zenoh turns
+    it on for every session: a best-effort transient_local topic)."""
     config_path = settings.config or os.environ.get("ZENOH_CONFIG")
     where = f"--config / ZENOH_CONFIG {config_path}" if config_path else "Zenoh settings"
     try:
         config = _config(settings, config_path)
+        if timestamping:
+            config.insert_json5("timestamping/enabled", "true")
     except zenoh.ZError as error:
         startup_error(f"{where}: {zenoh_reason(error)}")
     for key in CONFIG_FILES:
@@ -70,10 +75,10 @@ def _config(settings: ZenohSettings, config_path: str | os.PathLike[str] | None)
 
 
 @contextmanager
-def open_session(settings: ZenohSettings) -> Iterator[zenoh.Session]:
+def open_session(settings: ZenohSettings, *, timestamping: bool = False) -> Iterator[zenoh.Session]:
     """A session, or one line and exit 2 when the configuration cannot open one (a bad endpoint,
     a port already in use)."""
-    config = zenoh_config(settings)
+    config = zenoh_config(settings, timestamping=timestamping)
     try:
         session = zenoh.open(config)
     except zenoh.ZError as error:

@@ -86,6 +86,10 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
         "600",  # one /map only, at start: the late joiner below can get it from the cache alone
         "--height-interval-s",
         "0.2",
+        # Best effort and transient_local: a cache without miss detection, which needs the
+        # session's timestamping (the process stopped at start without it).
+        "--height-reliability",
+        "best_effort",
         log_path=log,
     )
     wait_for(lambda: b"first map published" in log.read_bytes(), 30, "the first /map")
@@ -115,8 +119,9 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
     image_hash = cdr.type_hash("jazzy", cdr.IMAGE)
     marker_hash = cdr.type_hash("jazzy", cdr.MARKER_ARRAY)
     detections_hash = cdr.type_hash("jazzy", cdr.DETECTION_3D_ARRAY)
+    height = f"3/MP/%/%/overgrid_map/%map_height/sensor_msgs::msg::dds_::Image_/{image_hash}"
+    assert f"@ros2_lv/{DOMAIN}/{zid}/0/{height}/2:1:,1:,:,:,," in tokens  # best effort
     latched = [  # transient_local, depth 1, like /map: a late joiner gets the last one
-        f"3/MP/%/%/overgrid_map/%map_height/sensor_msgs::msg::dds_::Image_/{image_hash}",
         f"4/MP/%/%/overgrid_map/%map_objects/visualization_msgs::msg::dds_::MarkerArray_/"
         f"{marker_hash}",
         f"6/MP/%/%/overgrid_map/%map_detections/vision_msgs::msg::dds_::Detection3DArray_/"

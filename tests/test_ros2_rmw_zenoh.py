@@ -212,6 +212,21 @@ def test_native_keys_for_humble_carry_no_type_hash() -> None:
     )
 
 
+def test_a_relative_topic_is_published_under_its_fully_qualified_name() -> None:
+    # rcl resolves every name before rmw_zenoh sees it: a token of ``map`` (not ``%map``) would
+    # list a second topic in the robots' graph, with no publisher on /map.
+    relative = RmwZenohSettings(no_multicast_scouting=True, domain_id=0, map_topic="map")
+    _, keys, tokens = _sink_keys(relative)
+    _, absolute_keys, absolute_tokens = _sink_keys(
+        RmwZenohSettings(no_multicast_scouting=True, domain_id=0)
+    )
+    assert keys[0] == absolute_keys[0]
+    assert tokens[0].split("/")[9:] == absolute_tokens[0].split("/")[9:]
+    assert tokens[0].split("/")[9] == "%map"
+    site = NodeIdentity(0, "zid", 0, "overgrid_map", namespace="/site")
+    assert site.resolve("map") == "/site/map" and site.resolve("/map") == "/map"
+
+
 def test_settings_give_the_map_qos_and_pose() -> None:
     settings = Ros2Settings(world_in_map=["1", "-2", "0.5"])
     assert settings.map_qos == MAP_QOS

@@ -60,6 +60,7 @@ class NativePublisher:
         qos: TopicQos,
     ) -> None:
         type_hash = cdr.type_hash(distro, ros_type)
+        topic = node.resolve(topic)
         self.key = topic_keyexpr(node.domain_id, topic, ros_type, type_hash)
         self.token_key = node.publisher_token(publisher_id, topic, ros_type, type_hash, qos)
         self.gid = gid_of(self.token_key)
@@ -161,7 +162,7 @@ def ros_domain_id() -> int:
 
 def main(settings: RmwZenohSettings) -> None:
     setup_logging("rmw-zenoh", settings.log_level)
-    with open_session(settings) as session:
+    with open_session(settings, timestamping=True) as session:
         sink = NativeSink(session, settings)
         relay = MapRelay(session, settings, sink)
         stop = stop_on_signals(relay.wake)

@@ -1,7 +1,9 @@
 """rmw_zenoh's wire conventions, as strings and bytes: data key expressions, liveliness graph
 tokens with the QoS encoded, the per-sample attachment and the entity GID.
 
-Followed from rmw_zenoh (ros2/rmw_zenoh, rolling, which Jazzy ≥ 0.2.2 and Kilted share):
+Followed from rmw_zenoh (ros2/rmw_zenoh, rolling, which Kilted, Jazzy ≥ 0.2.4 and Humble ≥ 0.1.2
+share; older releases wrote a labelled attachment their readers throw on, and robots on them
+cannot read these samples):
 - docs/design.md: one liveliness token per entity under ``@ros2_lv``; "NN" node, "MP" publisher;
   transient_local publishers keep a cache that late-joining subscriptions query;
 - rmw_zenoh_cpp/src/detail/liveliness_utils.cpp: ``TopicInfo`` (data key
@@ -133,6 +135,11 @@ class NodeIdentity:
         parts = [ADMIN_SPACE, str(self.domain_id), self.zid, str(self.node_id), str(entity_id)]
         parts += [kind, mangle(self.enclave), mangle(self.namespace), mangle(self.name)]
         return "/".join(parts)
+
+    def resolve(self, topic: str) -> str:
+        """A topic's fully qualified name, as rcl hands rmw_zenoh every name: a relative one in
+        the node's namespace (the graph lists ``map`` and ``/map`` as two topics)."""
+        return topic if topic.startswith("/") else f"{self.namespace.rstrip('/')}/{topic}"
 
     def node_token(self) -> str:
         """The node's ``NN`` token: rmw_node_data.cpp gives a node its own id as both ids."""
