@@ -41,3 +41,9 @@ def stop_on_signals(*wake: threading.Event) -> threading.Event:
     _claimed = True
     catch_stop_signals()
     return _stop
+
+
+def wait_for_stop(timeout_s: float) -> bool:
+    """Whether SIGINT or SIGTERM came within ``timeout_s`` (for a wait before the service's
+    own loops run: a signal before ``stop_on_signals`` already ends the process)."""
+    return _stop.wait(timeout_s)

@@ -8,12 +8,22 @@ from __future__ import annotations
 import json
 import logging
 import os
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any, Literal
 
 import zenoh
 
+from common.lifecycle import wait_for_stop
 from common.settings import ZenohSettings, startup_error
+from common.zenoh_diagnosis import TLS_KEY, certificate_problem, probe_endpoints
+
+log = logging.getLogger("overgrid.zenoh")
+ROUTER_RETRY_S = 2.0
+ROUTER_WAIT_LOG_S = 10.0
+"""A service waiting for its router tries every 2 s and says so every 10 s."""
+ROUTER_CHECK_S = 1.0
 
 
 def zenoh_reason(error: Exception) -> str:
@@ -42,7 +52,7 @@ def zenoh_config(settings: ZenohSettings, *, timestamping: bool = False) -> zeno
     clock, as an advanced publisher with a cache and no miss detection needs (rmw_zenoh turns
     it on for every session: a best-effort transient_local topic)."""
     config_path = settings.config or os.environ.get("ZENOH_CONFIG")
-    where = f"--config / ZENOH_CONFIG {config_path}" if config_path else "Zenoh settings"
+    where = _config_source(settings) or "Zenoh settings"
     try:
         config = _config(settings, config_path)
         if timestamping:
@@ -50,13 +60,44 @@ def zenoh_config(settings: ZenohSettings, *, timestamping: bool = False) -> zeno
     except zenoh.ZError as error:
         startup_error(f"{where}: {zenoh_reason(error)}")
     for key in CONFIG_FILES:
-        try:
-            named = json.loads(config.get_json(key))
-        except zenoh.ZError:  # no such setting in this Zenoh's schema: nothing to check
-            continue
+        named = _setting(config, key)
         if isinstance(named, str) and not os.path.isfile(named):
             startup_error(f"{where}: {key} {named}: no such file")
+    problem = certificate_problem(tls_files(config))
+    if problem:
+        startup_error(f"{where}: {problem}")
     return config
+
+
+def _config_source(settings: ZenohSettings) -> str | None:
+    config_path = settings.config or os.environ.get("ZENOH_CONFIG")
+    return f"--config / ZENOH_CONFIG {config_path}" if config_path else None
+
+
+def _setting(config: zenoh.Config, key: str) -> Any:
+    """A setting's value, None where this Zenoh's schema has no such setting."""
+    try:
+        return json.loads(config.get_json(key))
+    except zenoh.ZError:
+        return None
+
+
+def tls_files(config: zenoh.Config) -> dict[str, str]:
+    """The TLS files the config names, by setting name (``root_ca_certificate`` → path)."""
+    files = {
+        key.removeprefix(TLS_KEY): _setting(config, key)
+        for key in CONFIG_FILES
+        if key.startswith(TLS_KEY)
+    }
+    return {name: path for name, path in files.items() if isinstance(path, str) and path}
+
+
+def endpoints(config: zenoh.Config, side: Literal["connect", "listen"]) -> list[str]:
+    """The endpoints the session connects to or listens on (a list, or one list per mode)."""
+    listed = _setting(config, f"{side}/endpoints")
+    if isinstance(listed, dict):
+        listed = listed.get(_setting(config, "mode") or "peer", [])
+    return [str(endpoint) for endpoint in listed or []]
 
 
 def _config(settings: ZenohSettings, config_path: str | os.PathLike[str] | None) -> zenoh.Config:
@@ -75,22 +116,72 @@ def _config(settings: ZenohSettings, config_path: str | os.PathLike[str] | None)
 
 
 @contextmanager
-def open_session(settings: ZenohSettings, *, timestamping: bool = False) -> Iterator[zenoh.Session]:
+def open_session(
+    settings: ZenohSettings, *, timestamping: bool = False, wait_for_router: bool = False
+) -> Iterator[zenoh.Session]:
     """A session, or one line and exit 2 when the configuration cannot open one (a bad endpoint,
-    a port already in use)."""
+    a port already in use, a certificate or password the router refuses: probed, since Zenoh
+    names none of them). ``wait_for_router``: a service started before its router waits for it
+    (logged every 10 s) instead of exiting; a command run once exits. While the session is open,
+    losing the router and finding it again are logged."""
     config = zenoh_config(settings, timestamping=timestamping)
-    try:
-        session = zenoh.open(config)
-    except zenoh.ZError as error:
-        startup_error(f"cannot open the Zenoh session: {zenoh_reason(error)}")
+    source = _config_source(settings)
+    where = f" ({source})" if source else ""
+    waited_s = 0.0
+    while True:
+        try:
+            session = zenoh.open(config)
+            break
+        except zenoh.ZError as error:
+            reason = zenoh_reason(error)
+            connect = endpoints(config, "connect")
+            if not reason.startswith("Unable to connect") or not connect:
+                startup_error(f"cannot open the Zenoh session{where}: {reason}")
+            probes = probe_endpoints(connect, tls_files(config))
+            if not wait_for_router or any(probe.reachable for probe in probes):
+                why = "; ".join(str(probe) for probe in probes)
+                startup_error(f"cannot reach the Zenoh router{where}: {why}")
+            if waited_s % ROUTER_WAIT_LOG_S == 0:
+                log.warning(
+                    "waiting for the Zenoh router",
+                    extra={"waited_s": waited_s, "why": "; ".join(map(str, probes))},
+                )
+            if wait_for_stop(ROUTER_RETRY_S):
+                raise SystemExit(0) from None
+            waited_s += ROUTER_RETRY_S
+    if waited_s:
+        log.info("connected to the Zenoh router", extra={"waited_s": waited_s})
+    watching = threading.Event()
+    watch = threading.Thread(
+        target=_watch_router, args=(session, watching), name="zenoh-router-watch", daemon=True
+    )
+    if endpoints(config, "connect"):
+        watch.start()
     try:
         yield session
     finally:
+        watching.set()
+        if watch.is_alive():
+            watch.join(2 * ROUTER_CHECK_S)
         try:
             session.close()  # type: ignore[no-untyped-call]
         except zenoh.ZError as error:
             # "close operation timed out" (seen at the end of a recording, with a router's
             # link still draining): the process is ending anyway; the service's own end stands.
-            logging.getLogger("overgrid.zenoh").warning(
-                "session close failed", extra={"error": zenoh_reason(error)}
-            )
+            log.warning("session close failed", extra={"error": zenoh_reason(error)})
+
+
+def _watch_router(session: zenoh.Session, stop: threading.Event) -> None:
+    """Log the router's loss and its return: Zenoh reconnects by itself, silently, and meanwhile a
+    service would go on counting frames nobody receives."""
+    had_router = bool(session.info.routers_zid())
+    while not stop.wait(ROUTER_CHECK_S):
+        try:
+            has_router = bool(session.info.routers_zid())
+        except zenoh.ZError:  # closing
+            return
+        if had_router and not has_router:
+            log.warning("lost the Zenoh router: reconnecting")
+        elif has_router and not had_router:
+            log.info("reconnected to the Zenoh router")
+        had_router = has_router

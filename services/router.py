@@ -16,7 +16,7 @@ from pydantic import Field
 from common.lifecycle import stop_on_signals
 from common.logs import setup_logging
 from common.settings import ZenohSettings, parse_settings
-from common.zenoh_session import open_session
+from common.zenoh_session import endpoints, open_session, zenoh_config
 
 log = logging.getLogger("router")
 
@@ -40,7 +40,7 @@ def main(settings: RouterSettings) -> None:
             "started",
             extra={
                 "zid": str(session.zid()),
-                "listen": ",".join(settings.listen),
+                "listen": ",".join(endpoints(zenoh_config(settings), "listen")),
                 "config": str(settings.config or ""),
             },
         )

@@ -226,3 +226,31 @@ def test_the_router_lets_the_ros2_user_publish_the_map_and_no_more(
         for each in (robot, rogue_robot, depth):
             each.close()  # type: ignore[no-untyped-call]
         router.close()  # type: ignore[no-untyped-call]
+
+
+def test_make_certs_takes_an_ipv6_router_address_and_names_a_bad_name(tmp_path: Path) -> None:
+    script = str(REPO / "deploy" / "make-certs.sh")
+    made = subprocess.run(["bash", script, str(tmp_path / "v6"), "::1", "box"], capture_output=True)
+    assert made.returncode == 0, made.stderr
+    names = subprocess.run(
+        [
+            "openssl",
+            "x509",
+            "-in",
+            str(tmp_path / "v6" / "::1.pem"),
+            "-noout",
+            "-ext",
+            "subjectAltName",
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert "IP Address:0:0:0:0:0:0:0:1" in names.stdout  # it was DNS:::1, refused by every client
+    bad = subprocess.run(
+        ["bash", script, str(tmp_path / "bad"), "localhost", "bad,name"],
+        capture_output=True,
+        text=True,
+    )
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "'bad,name'" in bad.stderr
+    assert not (tmp_path / "bad").exists()  # nothing half made

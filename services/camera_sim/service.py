@@ -200,7 +200,7 @@ def main(settings: CameraSimSettings) -> None:
     period_s = 1.0 / settings.rate_hz
     stats = {"published": 0, "skipped": 0, "render_ms": 0.0}
 
-    with open_session(settings) as session:
+    with open_session(settings, wait_for_router=True) as session:
         publishers = {
             # BLOCK: a frame is never dropped by Zenoh on the way; depth keeps only the latest, so the
             # queue behind a slow consumer is one frame deep, not unbounded.

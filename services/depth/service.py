@@ -425,7 +425,7 @@ def main(settings: DepthSettings) -> None:
         except InputError as error:
             startup_error(str(error))
     played = False
-    with open_session(settings) as session:
+    with open_session(settings, wait_for_router=True) as session:
         counts = Counts()
         claims = Claims(settings.pair, str(session.zid()))
         worker: Worker | None = None
@@ -525,7 +525,9 @@ def main(settings: DepthSettings) -> None:
 def _summaries(
     health: Callable[[], dict[str, Any]], period_s: float, stop: threading.Event
 ) -> None:
-    """One summary log line per period, off the worker's path."""
+    """One summary log line per period, off the worker's path; a warning when a period brought
+    no frame (a camera or a router gone: the process itself is well and would say nothing)."""
+    received_before, silent = 0, False
     while not stop.wait(period_s):
         try:
             counters = health()
@@ -534,6 +536,15 @@ def _summaries(
             continue
         stage_ms = counters.pop("stage_ms_mean", {})
         log.info("summary", extra={**counters, **{f"{k}_ms": v for k, v in stage_ms.items()}})
+        received = counters.get("received", 0)
+        if received == received_before and not silent:
+            log.warning(
+                "no frame from the camera in the last summary period",
+                extra={"pair": counters.get("pair"), "period_s": period_s},
+            )
+        elif received != received_before and silent:
+            log.info("frames again", extra={"pair": counters.get("pair")})
+        silent, received_before = received == received_before, received
         if counters.get("floor_model", {}).get("state") == "no_floor":
             log.warning(
                 "the floor model finds no floor where the calibration puts it: is the "

@@ -238,7 +238,7 @@ def main(settings: FusionSettings) -> None:
         QueryWorker(keys.MAP_HEALTH, answer_health),
         QueryWorker(keys.MAP_OBJECTS, answer_objects),
     ]
-    with open_session(settings) as session:
+    with open_session(settings, wait_for_router=True) as session:
         declared: list[Any] = [
             session.declare_subscriber(keys.TILES_ALL, hand_over("tile")),
             session.declare_subscriber(keys.OBJECTS_ALL, hand_over("detections")),

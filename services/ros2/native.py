@@ -162,7 +162,7 @@ def ros_domain_id() -> int:
 
 def main(settings: RmwZenohSettings) -> None:
     setup_logging("rmw-zenoh", settings.log_level)
-    with open_session(settings, timestamping=True) as session:
+    with open_session(settings, timestamping=True, wait_for_router=True) as session:
         sink = NativeSink(session, settings)
         relay = MapRelay(session, settings, sink)
         stop = stop_on_signals(relay.wake)

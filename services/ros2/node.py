@@ -310,7 +310,7 @@ def main(settings: Ros2Settings, ros_args: Sequence[str] = ()) -> None:
         # Spinning serves the node's parameter and graph services; publishing needs no spin.
         spinner = threading.Thread(target=executor.spin, name="rclpy-spin")
         spinner.start()
-        with open_session(settings) as session:
+        with open_session(settings, wait_for_router=True) as session:
             relay = MapRelay(session, settings, sink)
             stop = stop_on_signals(relay.wake)
             log.info(

@@ -416,7 +416,7 @@ def main(settings: ViewSettings) -> None:
         log.warning(warning)
     stop = stop_on_signals()
     periods = FeedPeriods(health_s=settings.health_period_s, height_s=settings.height_period_s)
-    with open_session(settings) as session:
+    with open_session(settings, wait_for_router=True) as session:
         feed = MapFeed(session, lambda: None, periods)
         feed.start(stop)
         try:
