@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import zenoh
 
-from common import keys
+from common import client, keys
 from common.camera import StereoCalibration
 from common.codec import WIRE_ENCODING, encode, pack_arrays
 from common.lifecycle import stop_on_signals
@@ -488,8 +488,17 @@ def main(settings: DepthSettings) -> None:
                 "input": str(settings.images or keys.stereo(settings.pair)),
             },
         )
+
+        def fusion_health() -> dict[str, Any] | None:
+            try:
+                return client.health(session, timeout_s=1.0)
+            except client.MapUnavailable:
+                return None
+
         summary = threading.Thread(
-            target=_summaries, args=(health, settings.summary_s, stop), daemon=True
+            target=_summaries,
+            args=(settings.pair, health, fusion_health, settings.summary_s, stop),
+            daemon=True,
         )
         summary.start()
         watch = None
@@ -523,11 +532,18 @@ def main(settings: DepthSettings) -> None:
 
 
 def _summaries(
-    health: Callable[[], dict[str, Any]], period_s: float, stop: threading.Event
+    pair: str,
+    health: Callable[[], dict[str, Any]],
+    fusion_health: Callable[[], dict[str, Any] | None],
+    period_s: float,
+    stop: threading.Event,
 ) -> None:
     """One summary log line per period, off the worker's path; a warning when a period brought
-    no frame (a camera or a router gone: the process itself is well and would say nothing)."""
-    received_before, silent = 0, False
+    no frame (a camera or a router gone: the process itself is well and would say nothing), and
+    one when fusion answers but takes none of the tiles (a router's access rules drop a user's
+    puts on keys it may not write without a word to the writer)."""
+    received_before, silent, tiles_before = 0, False, 0
+    takes = FusionTakes(pair)
     while not stop.wait(period_s):
         try:
             counters = health()
@@ -545,11 +561,44 @@ def _summaries(
         elif received != received_before and silent:
             log.info("frames again", extra={"pair": counters.get("pair")})
         silent, received_before = received == received_before, received
+        tiles = counters.get("tiles", 0)
+        if tiles > tiles_before:
+            takes.period(tiles - tiles_before, fusion_health())
+        tiles_before = tiles
         if counters.get("floor_model", {}).get("state") == "no_floor":
             log.warning(
                 "the floor model finds no floor where the calibration puts it: is the "
                 "calibration this pair's, and are left and right the right way round?",
                 extra={"pair": counters.get("pair")},
+            )
+
+
+MISSED_PERIODS_WARNED = 2
+
+
+@dataclass
+class FusionTakes:
+    """Whether fusion takes this pair's tiles: its count of them must grow over a summary period
+    in which this process published some. Two such periods in a row (fusion compiles its update
+    at its first tile, and may lag a period) are worth one warning."""
+
+    pair: str
+    taken_before: int = 0
+    missed_periods: int = 0
+
+    def period(self, published: int, fused: dict[str, Any] | None) -> None:
+        if fused is None or published == 0:  # no fusion answers: a recording may run alone
+            return
+        seen = fused.get("pairs", {}).get(self.pair, {})
+        taken = int(seen.get("tiles", 0))
+        self.missed_periods = self.missed_periods + 1 if taken == self.taken_before else 0
+        self.taken_before = taken
+        if self.missed_periods == MISSED_PERIODS_WARNED:
+            log.warning(
+                "fusion took none of this pair's tiles of the last two summary periods: does the "
+                "router let this user put on depth/PAIR/**, or does fusion refuse them (its "
+                "health)?",
+                extra={"pair": self.pair, "fusion_rejected": seen.get("rejected", 0)},
             )
 
 

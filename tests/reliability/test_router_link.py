@@ -11,9 +11,13 @@ import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 import zenoh
 
+from common.client import MapUnavailable, latest
+from common.lattice import Window
 from tests.conftest import (
     PROCESS_LIFETIME_S,
     REPO,
@@ -24,6 +28,7 @@ from tests.conftest import (
 )
 from tests.reliability.test_security import DEPLOY, PASSWORDS, _client_config, certs  # noqa: F401
 from tests.test_depth_process import _calibration_file
+from tests.tiles import tile_payload
 
 pytestmark = pytest.mark.process
 
@@ -187,3 +192,67 @@ def test_a_service_waits_for_its_router_and_says_when_it_loses_and_finds_it(tmp_
         if depth.poll() is None:
             depth.kill()
             depth.wait()
+
+
+def test_a_depth_process_whose_tiles_the_router_drops_says_so(
+    tls_router: str,
+    certs: Path,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    """The router drops a user's puts on keys it may not write, and tells the writer nothing:
+    depth user p0 speaking for p1 published its tiles into the void, logging all was well."""
+    recording = tmp_path / "recording"
+    rng = np.random.default_rng(0)
+    for side in ("left", "right"):
+        (recording / side).mkdir(parents=True)
+        for index in range(40):
+            image = rng.integers(0, 255, (480, 640), dtype=np.uint8)
+            cv2.imwrite(str(recording / side / f"{index:04d}.png"), image)
+
+    def config(user: str) -> Path:
+        return _client_config(tmp_path / f"{user}.json5", tls_router, certs, user, PASSWORDS[user])
+
+    command = ["timeout", "-s", "INT", "-k", "5", str(PROCESS_LIFETIME_S), sys.executable, "-m"]
+    command += ["services.cli"]
+    fusion = [*command, "fusion", "--config", str(config("fusion"))]
+    processes = [subprocess.Popen([*fusion, "--state-dir", str(tmp_path / "state")], cwd=REPO)]
+    # Fusion compiles its update at its first tile: warmed up first, so the allowed pair's
+    # tiles are taken within the check's two periods.
+    depth_p0 = zenoh.open(zenoh.Config.from_file(str(config("depth-p0"))))
+
+    def fused() -> bool:
+        depth_p0.put("depth/p0/tile", tile_payload("p0", Window(0, 0, 20, 20), 1.0))
+        try:
+            return latest(depth_p0, timeout_s=1).version >= 1
+        except MapUnavailable:
+            return False
+
+    wait_for(fused, 60, "fusion to take a first tile")
+    depth_p0.close()  # type: ignore[no-untyped-call]
+    logs = {pair: tmp_path / f"depth-{pair}.log" for pair in ("p0", "p1")}
+    for pair, log in logs.items():
+        depth = [
+            *command,
+            "depth",
+            "--pair",
+            pair,
+            "--calib",
+            str(_calibration_file(tmp_path, pair)),
+        ]
+        depth += ["--images", str(recording), "--rate-hz", "4", "--summary-s", "1"]
+        depth += ["--config", str(config("depth-p0"))]  # p0's user: it may write p0's keys only
+        processes.append(
+            subprocess.Popen(depth, cwd=REPO, stdout=log.open("wb"), stderr=subprocess.STDOUT)
+        )
+    try:
+        dropped = "fusion took none of this pair's tiles"
+        wait_for(lambda: dropped.encode() in logs["p1"].read_bytes(), 60, "p1's warning")
+        wait_for(lambda: b"msg=summary" in logs["p0"].read_bytes(), 30, "p0's summaries")
+        assert processes[1].wait(30) == 0 and processes[2].wait(30) == 0
+        assert b"tiles=" in logs["p0"].read_bytes()
+        assert dropped.encode() not in logs["p0"].read_bytes()  # its tiles were taken
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+                process.wait(10)
