@@ -48,8 +48,8 @@ class SensorModelParams:
     the matcher's fattening and a side face's points (tens of pixels on one line) add band pixels
     that no top covers. Measured (default scene, 8 frames of 4 pairs): cells an object covers
     0.2–0.6 of read a median share of 0.46–0.65, those it covers 0.9 or more 0.93. At 0.5 the rims
-    came out a cell too large; at 0.6, offline over 13 scenes, IoU +0.003 to +0.015 (README, "A
-    rim cell's share"). The cost: a rim cell reading 0.5–0.6 keeps its belief (the floor's, free,
+    came out a cell too large; at 0.6, offline over 13 scenes, IoU +0.003 to +0.015
+    (docs/accuracy-journal.md, "A rim cell's share"). The cost: a rim cell reading 0.5–0.6 keeps its belief (the floor's, free,
     where an object was put down or a mover came), and one reading 0.65 needs about seven frames
     from clamped free to occupied, not two; a static track's rim is served unknown, never free,
     for it (``services.fusion.objects.Outline.rim``), walls and movers' rims are not."""

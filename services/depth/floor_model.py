@@ -819,7 +819,7 @@ class FloorModel:
         edge over the plain floor beyond, which nothing bounds on the far side, and a textured
         top does not turn plain at its edge; a plain top is measured at its edges only, a few
         pixels each, and keeps its filling (a plain top of the floor's grey, learned as floor,
-        holds its cells on it: README, "One-sided rows on a plain floor")."""
+        holds its cells on it: docs/accuracy-journal.md, "One-sided rows on a plain floor")."""
         with np.errstate(invalid="ignore"):
             raised = interpolated & (height_m >= self.obstacle_min_m)
         one_sided = raised & (one_sided_run >= TEXTURED_ANCHOR_PX)
@@ -1077,8 +1077,8 @@ class FloorModel:
         nadir's side of them, the face beyond; a face crept onto under a top's edge is taken off
         by the line of sight). Without it the plain floor along the walls along the baseline, a
         cell or two wide, was never learned, so never seen free (offline, ``--floor plain``:
-        unknown 4.99 → 3.53 % of the seen floor, IoU +0.017; README, "The floor at a wall's
-        foot")."""
+        unknown 4.99 → 3.53 % of the seen floor, IoU +0.017; docs/accuracy-journal.md, "The
+        floor at a wall's foot")."""
         reach = grown.copy()
         rising = (probed(gradient, self._step_out_probe, np.float32(0.0)) > gradient) & ~contradict
         for _ in range(EDGE_CREEP_PX):

@@ -113,7 +113,7 @@ def _lone_hits(
     true (42 %, 36 %), but stays: a post a cell wide near the camera gives its cell that many.
     Offline, thirteen scenes (20 s): IoU +0.0012 to +0.0055, false-free the same but for
     ``--seed 4``'s static 0.09 → 0.10 %; every lone hit dropped, +0.0018 to +0.0076, but such a
-    post would never be mapped (README, "A lone hit")."""
+    post would never be mapped (docs/accuracy-journal.md, "A lone hit")."""
     ring = np.ones((3, 3), np.uint8)
     ring[1, 1] = 0  # the eight cells around, not the cell itself
     beside = cv2.dilate(
@@ -128,7 +128,7 @@ side face (or on a low surface beside a taller one: a pallet's deck by a shelf).
 SIDE_FACE_BEYOND_M = 0.01
 """A face point lies beyond a cell's centre only this much farther from the camera's nadir: a
 face within a centimetre of the centre keeps the cell occupied (the error it leaves is a detour,
-not a collision; README, "How good is the map", for the figures with and without it)."""
+not a collision; docs/accuracy-journal.md, for the figures with and without it)."""
 SIDE_FACE_MIN_POINTS = 2
 """A cell's face points are judged only when it holds this many: a face crossing a cell fills it
 with tens, and its scatter spills a few into the cells beside; one alone says nothing of where a
@@ -221,7 +221,7 @@ def _behind_taller(
     the points the model keeps, so a surface above the band, out of its range, hides nothing).
     Offline, thirteen scenes (20 s): IoU −0.0001 to +0.0027, precision up to +0.3 points,
     false-free the same or lower; one blocking cell enough, +0.0000 to +0.0051 offline but live
-    more false-free (README, "Points a taller top hides from the camera")."""
+    more false-free (docs/accuracy-journal.md, "Points a taller top hides from the camera")."""
     i0, j0, cols, rows = window_ij
     camera_x, camera_y, camera_z = camera_m
     behind = np.zeros(flat.size, np.bool_)

@@ -40,7 +40,8 @@ class Outline:
     footprint under a cell across): the object's or the floor's by the footprint's error of a
     centimetre or more (the pallets' sides up to 3 cm, a piece joined from two pairs' views
     more), and the frames' belief tells the two no better. Fusion serves those the frames call
-    free unknown, not occupied (README, "An outline's edge the frames call free")."""
+    free unknown, not occupied (docs/accuracy-journal.md, "An outline's edge the frames call
+    free")."""
     rim: tuple[Window, Mask]
     """The cells whose centres the footprint grown by a margin (``fringe_margin_m``) holds and the
     footprint does not. A footprint is measured to a centimetre or so, so such a cell is the

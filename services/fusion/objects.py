@@ -172,7 +172,7 @@ class TrackerConfig:
     fringe (:meth:`ConnectedCells.fringe`):
     the cells its side faces and the matcher's fattening make occupied, that its footprint,
     measured to a centimetre or two, does not hold. Offline, nine scenes (20 s), served unknown:
-    IoU +0.007 to +0.025 on eight, false-free unchanged (README, "How good is the map"). A
+    IoU +0.007 to +0.025 on eight, false-free unchanged (docs/accuracy-journal.md). A
     ``partial`` object's (its size a lower bound) only where free floor lies beyond it; a
     ``size_unsure`` one has none."""
     default_frame_interval_s: float = 0.5
@@ -187,13 +187,13 @@ class TrackerConfig:
     (``fringe_margin_m``; served unknown). 0.1 m before the fringe: offline, nine scenes and
     four plain ones (20 s), the fringe, the faces' edges (``services.depth.object_edges``) and
     this margin together IoU +0.001 to +0.006 on twelve, −0.001 on ``--floor plain --seed 1
-    --pairs 6``; false-free within +0.03 points (README, "How good is the map") …"""
+    --pairs 6``; false-free within +0.03 points (docs/accuracy-journal.md) …"""
     wake_missed_frames: float = 0.5
     """… and occupied wake cells no frame has shown for this many frame intervals are forgotten:
     half a frame, so those the newest capture did not show (the floor a mover uncovered in its own
     shadow for the camera, or too sparse in pixels to be measured free again). With 1.5 frames a
     forklift at 2 m/s trailed a band of false obstacles a frame deep; offline, IoU +0.003 to
-    +0.013 on nine scenes at the same false-free to the digit (README, "How good is the map")."""
+    +0.013 on nine scenes at the same false-free to the digit (docs/accuracy-journal.md)."""
     low_margin_m: float = 0.02
     """A low track's (a pallet's) outline is its footprint grown by this on every side: its sides
     are where its points' density halves less the matcher's fattening along the baseline
@@ -212,7 +212,8 @@ class TrackerConfig:
     (:meth:`ObjectTracker.mover_tops`): its views run a few centimetres to 0.15 m long at each
     end (the forklift's 1.3–1.5 m for 1.2). Offline, thirteen scenes (20 s), its cells no frame
     measured served occupied: IoU +0.0013 to +0.011, false-free the same; 5 cm in, −0.0006 to
-    +0.0017 more; 15 cm, −0.0019 to +0.0002 (README, "A mover's top no frame measured")."""
+    +0.0017 more; 15 cm, −0.0019 to +0.0002 (docs/accuracy-journal.md, "A mover's top no frame
+    measured")."""
 
 
 View = tuple[float, float, float, float, int, float, bool]
