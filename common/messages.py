@@ -23,6 +23,13 @@ class _Header(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+SERVED = ConfigDict(extra="ignore", frozen=True)
+"""What fusion serves robots (the map, its updates, the objects) takes fields it does not know:
+a fleet's robots are not upgraded with the map box, and an old client must read a newer
+service's messages. What services send each other stays strict: a field there that nobody
+reads is a mistake to refuse where it enters."""
+
+
 class _OnLattice(_Header):
     """A header describing arrays over lattice window (i0, j0, cols, rows) at ``resolution_m``."""
 
@@ -130,6 +137,7 @@ class MapHeader(_OnLattice):
     """``map/latest`` reply: array ``occupancy`` (i1, nav_msgs/OccupancyGrid: -1 unknown, 0..100),
     row-major from the origin cell; optional ``logodds`` (f4) and ``height_m`` (f4) layers."""
 
+    model_config = SERVED
     version: int = Field(ge=0, description="change counter within the epoch")
     epoch: int = Field(0, ge=0, description=EPOCH_DESCRIPTION)
     stamp_ns: int = Field(ge=0, description="newest capture stamp fused into the map")
@@ -140,6 +148,7 @@ class MapUpdateHeader(_OnLattice):
     """``map/updates``: the changed rectangle (i0, j0, cols, rows) of the map (like nav2's
     OccupancyGridUpdate), plus the whole map's window so a follower can grow its copy."""
 
+    model_config = SERVED
     version: int = Field(ge=0, description="change counter within the epoch")
     previous_version: int = Field(ge=0, description="the version this update applies to")
     epoch: int = Field(0, ge=0, description=EPOCH_DESCRIPTION)
@@ -248,9 +257,7 @@ class TrackedObject(Footprint):
     second). The footprint is where it was last measured (``last_seen_ns``): for a mover out of
     view since, its velocity says where it has gone."""
 
-    model_config = ConfigDict(
-        extra="forbid", frozen=True, validate_by_name=True, serialize_by_alias=True
-    )
+    model_config = ConfigDict(**SERVED, validate_by_name=True, serialize_by_alias=True)
 
     id: int = Field(ge=0)
     object_class: Literal["static", "moving"] = Field(alias="class")
@@ -280,6 +287,8 @@ class ObjectsHeader(_Header):
     pieces of one object across a seam's gap as one. Its revision is (``epoch``, ``version``), as
     the map's: a restarted fusion service starts a new epoch, with versions and track ids from 1
     again (an id names one object within an epoch)."""
+
+    model_config = SERVED
 
     epoch: int = Field(default=0, ge=0, description="the map's epoch (ns) this list belongs to")
     version: int = Field(ge=0)

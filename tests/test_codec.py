@@ -5,7 +5,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from common.codec import CodecError, decode, encode
-from common.messages import STEREO_KIND, TILE_KIND, StereoFrameHeader, TileHeader
+from common.messages import (
+    STEREO_KIND,
+    TILE_KIND,
+    MapHeader,
+    ObjectsHeader,
+    StereoFrameHeader,
+    TileHeader,
+)
 
 
 def _frame() -> bytes:
@@ -138,3 +145,20 @@ def test_compressed_arrays_round_trip_and_bombs_are_refused() -> None:
     )
     with pytest.raises(CodecError, match="compression"):
         decode(bad, STEREO_KIND, StereoFrameHeader)
+
+
+def test_what_fusion_serves_reads_past_fields_it_does_not_know_and_intake_does_not() -> None:
+    """A robot's client older than the map box reads its messages; a service's input stays
+    strict."""
+    served: dict[str, object] = {"resolution_m": 0.05, "i0": 0, "j0": 0, "cols": 1, "rows": 1}
+    served |= {"version": 3, "stamp_ns": 1, "added_in_a_later_version": [1, 2]}
+    assert MapHeader.model_validate(served).version == 3
+    track: dict[str, object] = {"id": 1, "class": "static", "top_m": 1.0, "velocity_mps": (0, 0)}
+    track |= {"velocity_cov_m2ps2": ((0, 0), (0, 0)), "first_seen_ns": 0, "last_seen_ns": 0}
+    track |= {"pairs": ["p0"], "partial": False, "detections": 1, "later": True}
+    track |= {"center_m": (1.0, 2.0), "size_m": (1.0, 0.5), "yaw_rad": 0.0}
+    listed = ObjectsHeader.model_validate({"version": 1, "stamp_ns": 1, "objects": [track]})
+    assert listed.objects[0].object_class == "static"
+    tile = {"pair": "p0", "seq": 0, "stamp_ns": 1, "resolution_m": 0.05, "i0": 0, "j0": 0}
+    with pytest.raises(ValueError, match="extra"):
+        TileHeader.model_validate(tile | {"cols": 1, "rows": 1, "added_in_a_later_version": 1})
