@@ -72,6 +72,7 @@ class OvergridSettings(BaseSettings):
         cli_implicit_flags=True,
         cli_exit_on_error=False,  # parse errors become one line (startup_error), not a usage dump
         cli_show_env_vars=True,
+        cli_hide_none_type=True,  # "--config Path", not "--config {Path,null}"
     )
 
 

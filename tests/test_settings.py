@@ -12,6 +12,7 @@ from services.depth.settings import DepthSettings
 from services.depth.stereo import MatcherConfig
 from services.fusion.params import GridParams
 from services.fusion.settings import FusionSettings
+from tests.conftest import run_overgrid
 
 
 def test_bad_value_names_the_flag_and_env_var(capsys: pytest.CaptureFixture[str]) -> None:
@@ -160,3 +161,10 @@ def test_a_session_that_times_out_closing_ends_with_a_warning_not_a_traceback(
     with caplog.at_level("WARNING"), zenoh_session.open_session(settings):
         pass
     assert closed and "session close failed" in caplog.text
+
+
+def test_help_names_types_as_a_user_types_them() -> None:
+    shown = run_overgrid("fusion", "--help")
+    assert shown.returncode == 0, shown.stderr
+    assert "--config Path" in shown.stdout and "--mode {peer,client,router}" in shown.stdout
+    assert "null" not in shown.stdout.replace("(default: null)", "")
