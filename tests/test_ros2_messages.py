@@ -23,6 +23,7 @@ from services.ros2.grid_message import (
     grid_message,
     grid_update,
     height_image,
+    map_values,
     stamp_parts,
     world_transform,
 )
@@ -41,7 +42,7 @@ def a_map(i0: int = -3, j0: int = 4, cols: int = 5, rows: int = 3) -> OccupancyM
 
 
 def test_grid_is_the_lattice_row_major_from_the_origin_cell() -> None:
-    message = grid_message(a_map(), "map", PlanarPose())
+    message = grid_message(a_map(), "map", PlanarPose(), "raw")
     info = message.info
     assert (info.width, info.height, info.resolution_m) == (5, 3, 0.05)
     assert info.origin_xyz_m == pytest.approx((-0.15, 0.2, 0.0))
@@ -50,9 +51,24 @@ def test_grid_is_the_lattice_row_major_from_the_origin_cell() -> None:
     assert (message.data == UNKNOWN).sum() == 13
 
 
+def test_map_values_are_map_servers_by_the_map_files_thresholds() -> None:
+    """The belief's free floor reads 18 (its clamp), never 0: AMCL took no cell for free and the
+    static layer (trinary) a 65..99 cell for free, where the map files call it occupied."""
+    belief = np.array([[-1, 18, 25, 26, 45, 64, 65, 99, 100]], np.int8)
+    assert map_values(belief, "trinary").tolist() == [[-1, 0, 0, -1, -1, -1, 100, 100, 100]]
+    assert map_values(belief, "scale").tolist() == [[-1, 0, 0, 2, 50, 97, 100, 100, 100]]
+    assert map_values(belief, "raw") is belief
+    occupancy_map = a_map()
+    occupancy_map.occupancy[1, 1] = 18
+    trinary = grid_message(occupancy_map, "map", PlanarPose(), "trinary").data
+    assert trinary[5 + 1] == 0 and set(np.unique(trinary).tolist()) == {-1, 0, 100}
+    changed = Window(occupancy_map.i0 + 1, occupancy_map.j0 + 1, 1, 1)
+    assert grid_update(occupancy_map, changed, "map", "trinary").data.tolist() == [0]
+
+
 def test_world_in_map_pose_moves_and_turns_the_origin() -> None:
     pose = PlanarPose(10.0, -1.0, math.pi / 2)
-    info = grid_message(a_map(), "site", pose).info
+    info = grid_message(a_map(), "site", pose, "raw").info
     # origin (-0.15, 0.2) turned by 90°: (-0.2, -0.15), then shifted.
     assert info.origin_xyz_m == pytest.approx((9.8, -1.15, 0.0))
     assert info.origin_xyzw == pytest.approx((0.0, 0.0, math.sqrt(0.5), math.sqrt(0.5)))
@@ -69,7 +85,7 @@ def test_changed_window_is_the_bounding_box_of_changed_cells() -> None:
     changed = changed_window(before, after)
     assert changed == Window(-3, 5, 3, 2)
     assert changed is not None
-    update = grid_update(after, changed, "map")
+    update = grid_update(after, changed, "map", "raw")
     assert (update.x, update.y, update.width, update.height) == (0, 1, 3, 2)
     assert update.data.reshape(2, 3).tolist() == [[50, -1, -1], [-1, -1, 20]]
     grown = a_map(cols=6)
@@ -93,7 +109,9 @@ def test_stamp_parts() -> None:
 @pytest.mark.parametrize("distro", ["humble", "jazzy", "kilted"])
 def test_cdr_round_trips_through_rosbags(distro: cdr.Distro) -> None:
     occupancy_map = a_map()
-    raw = cdr.occupancy_grid_cdr(distro, grid_message(occupancy_map, "map", PlanarPose(1, 2, 0)))
+    raw = cdr.occupancy_grid_cdr(
+        distro, grid_message(occupancy_map, "map", PlanarPose(1, 2, 0), "raw")
+    )
     assert raw[:4] == b"\x00\x01\x00\x00"  # little-endian CDR encapsulation header
     grid = cdr.decode(distro, raw, cdr.OCCUPANCY_GRID)
     assert (grid.info.width, grid.info.height) == (5, 3)
@@ -104,7 +122,7 @@ def test_cdr_round_trips_through_rosbags(distro: cdr.Distro) -> None:
     changed = Window(-2, 4, 2, 1)
     update = cdr.decode(
         distro,
-        cdr.occupancy_grid_update_cdr(distro, grid_update(occupancy_map, changed, "map")),
+        cdr.occupancy_grid_update_cdr(distro, grid_update(occupancy_map, changed, "map", "raw")),
         cdr.OCCUPANCY_GRID_UPDATE,
     )
     assert (update.x, update.y, update.width, update.height) == (1, 0, 2, 1)
@@ -203,7 +221,7 @@ def test_tf_static_carries_the_world_in_the_map_frame(distro: cdr.Distro) -> Non
     turned = stamped.transform.rotation
     assert (turned.x, turned.y, turned.z, turned.w) == pytest.approx(pose.quaternion_xyzw)
     # The same pose moves /map's origin: the world's origin cell lands where tf2 puts it.
-    origin = grid_message(a_map(i0=0, j0=0), "map", pose).info.origin_xyz_m
+    origin = grid_message(a_map(i0=0, j0=0), "map", pose, "raw").info.origin_xyz_m
     assert origin == pytest.approx((10.0, -1.0, 0.0))
     if distro != "humble":
         assert cdr.type_hash(distro, cdr.TF_MESSAGE) == TF_MESSAGE_HASH
@@ -318,7 +336,7 @@ def test_cdr_equals_rclpys_serialize_message_outside_alignment_padding() -> None
     nav, sensor = node.ros_messages("nav_msgs"), node.ros_messages("sensor_msgs")
     visualization = node.ros_messages("visualization_msgs")
     occupancy_map = a_map()
-    grid = grid_message(occupancy_map, "map", PlanarPose(1.0, 2.0, 0.3))
+    grid = grid_message(occupancy_map, "map", PlanarPose(1.0, 2.0, 0.3), "raw")
     image = height_image(occupancy_map, "map")
     markers = object_markers(tracked_objects(drum=True), "map", PlanarPose(1.0, 2.0, 0.3))
     cases = [

@@ -20,7 +20,7 @@ import zenoh
 import zenoh.ext
 
 from common import keys
-from common.client import MapUnavailable, latest
+from common.client import MapUnavailable, health, latest
 from common.codec import WIRE_ENCODING, encode
 from common.lattice import Window
 from common.messages import OBJECTS_KIND
@@ -90,6 +90,9 @@ def test_native_output_follows_rmw_zenoh(bus: Bus, tmp_path: Path) -> None:
         # session's timestamping (the process stopped at start without it).
         "--height-reliability",
         "best_effort",
+        # The belief as is (the default is map_server's trinary values, tested with the node).
+        "--map-mode",
+        "raw",
         log_path=log,
     )
     wait_for(lambda: b"first map published" in log.read_bytes(), 30, "the first /map")
@@ -317,3 +320,33 @@ def _rclpy_reads_and_writes(tmp_path: Path, raw: bytes, ros_type: str) -> bool:
     store = cdr.typestore("jazzy")
     again = store.serialize_cdr(store.deserialize_cdr(path.read_bytes(), ros_type), ros_type)
     return bytes(again) == raw
+
+
+def test_no_empty_map_is_latched_and_a_silent_fusion_is_said(bus: Bus, tmp_path: Path) -> None:
+    """A fusion with no tile yet serves a 0 × 0 map: latched as /map, stamped 1970, it was all a
+    late joiner got. And a fusion gone left the topics latched with nothing said."""
+    fusion = bus.start("fusion", "--state-dir", str(tmp_path / "state"))
+    log = tmp_path / "rmw-zenoh.log"
+    bus.start("rmw-zenoh", "--domain-id", str(DOMAIN), log_path=log)
+    wait_for(lambda: b"msg=started" in log.read_bytes(), 30, "rmw-zenoh to start")
+    wait_for(lambda: health_answers(bus), 30, "fusion to answer")
+    time.sleep(2.0)  # the relay has followed the empty map by now
+    assert b"first map published" not in log.read_bytes()
+    tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
+
+    def published() -> bool:
+        tiles.put(tile_payload("p0", FIRST, 1.0, seq=time.monotonic_ns() // 1000))
+        return b"first map published" in log.read_bytes()
+
+    wait_for(published, 30, "the first /map, once the map has cells")
+    fusion.send_signal(signal.SIGTERM)
+    fusion.wait(10)
+    wait_for(lambda: b"fusion does not answer" in log.read_bytes(), 20, "the silence, said")
+    assert b"svc=ros2" not in log.read_bytes()  # its own service's name on every line
+
+
+def health_answers(bus: Bus) -> bool:
+    try:
+        return "map" in health(bus.session, timeout_s=1)
+    except MapUnavailable:
+        return False

@@ -30,6 +30,7 @@ from common.codec import encode
 from common.lattice import Window
 from common.messages import OBJECTS_KIND
 from common.occupancy_map import OccupancyMap
+from services.ros2.grid_message import map_values
 from tests.conftest import REPO, Bus, assert_one_line_exit_2, run_overgrid, wait_for
 from tests.test_ros2_messages import tracked_objects
 from tests.test_ros2_native import start_fusion_with_a_tile
@@ -162,6 +163,8 @@ def test_rclpy_subscriber_gets_map_then_each_newer_map(
         log_path=node_log,
     )
     wait_for(lambda: b"first map published" in node_log.read_bytes(), 60, "the node's first /map")
+    # The names as remapped, as the robots' graph shows them.
+    assert f"map_topic={prefix}/site/map" in node_log.read_text()
     # No wheel ships map_msgs, tf2_msgs or vision_msgs: the node says at start what it does not
     # publish.
     said = node_log.read_text()
@@ -191,7 +194,9 @@ def test_rclpy_subscriber_gets_map_then_each_newer_map(
         assert first["resolution"] == pytest.approx(0.05)
         x0, y0 = fused.origin_m
         assert first["origin"] == pytest.approx([x0 + 1, y0 + 2, 0.0, 1.0])
-        assert np.array_equal(cells(first), fused.occupancy)
+        # map_server's values (the default mode), not the belief's 18..100.
+        assert np.array_equal(cells(first), map_values(fused.occupancy, "trinary"))
+        assert set(np.unique(cells(first)).tolist()) <= {-1, 0, 100}
         height = lines.next("height", lambda _: True, "height image")
         assert height == {"encoding": "32FC1", "width": cols, "height": rows, "step": cols * 4}
 
@@ -204,7 +209,9 @@ def test_rclpy_subscriber_gets_map_then_each_newer_map(
             now = newer_map(bus, before.version, f"tile change {change} fused")
             assert not np.array_equal(now.occupancy, before.occupancy)
 
-            def is_now(grid: dict[str, Any], target: npt.NDArray[np.int8] = now.occupancy) -> bool:
+            target = map_values(now.occupancy, "trinary")
+
+            def is_now(grid: dict[str, Any], target: npt.NDArray[np.int8] = target) -> bool:
                 return bool(np.array_equal(cells(grid), target))
 
             lines.next("map", is_now, f"/map equal to map/latest after tile change {change}")
@@ -235,3 +242,27 @@ def test_a_bad_node_parameter_is_one_line_naming_it(
     pydantic or rclpy traceback."""
     done = run_overgrid("ros2", "--no-multicast-scouting", "--ros-args", "-p", parameter)
     assert_one_line_exit_2(done, f"ROS parameter {named}")
+
+
+@pytest.mark.parametrize(
+    ("environment", "args", "named"),
+    [
+        ({}, ("--ros-args", "--bogus"), "--ros-args --bogus"),
+        ({}, ("--ros-args", "-r", "/map:=bad topic"), "--ros-args"),
+        ({"ROS_DOMAIN_ID": "abc"}, (), "ROS_DOMAIN_ID"),
+        ({"ROS_DOMAIN_ID": "300"}, (), "ROS_DOMAIN_ID"),
+    ],
+)
+def test_a_bad_ros_argument_or_domain_is_one_line(
+    ros_env: dict[str, str],
+    monkeypatch: pytest.MonkeyPatch,
+    environment: dict[str, str],
+    args: tuple[str, ...],
+    named: str,
+) -> None:
+    """rclpy's and rcl's refusals were tracebacks (exit 1); Fast DDS refused domain 300 only
+    when it computed its ports."""
+    for name, value in environment.items():
+        monkeypatch.setenv(name, value)
+    done = run_overgrid("ros2", "--no-multicast-scouting", *args)
+    assert_one_line_exit_2(done, named)

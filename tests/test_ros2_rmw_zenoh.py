@@ -281,3 +281,12 @@ def test_a_name_ros_refuses_is_one_line_at_start_up(command: str, flag: str, val
     """rclpy raised on such names only once the node started (a traceback), rmw_zenoh's keys took
     a space, and a NaN pose went out on /tf_static."""
     assert_one_line_exit_2(run_overgrid(command, flag, value, "--no-multicast-scouting"), flag)
+
+
+@pytest.mark.parametrize("domain", ["300", "abc"])
+def test_a_ros_domain_no_ros_takes_is_one_line(
+    monkeypatch: pytest.MonkeyPatch, domain: str
+) -> None:
+    """A traceback for ``abc``; for 300 a silent start on a domain no robot can use."""
+    monkeypatch.setenv("ROS_DOMAIN_ID", domain)
+    assert_one_line_exit_2(run_overgrid("rmw-zenoh", "--no-multicast-scouting"), "ROS_DOMAIN_ID")

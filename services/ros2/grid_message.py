@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
 
 from common.lattice import Window
+from common.mapfiles import FREE_MAX, OCCUPIED_MIN
 from common.occupancy_map import OccupancyMap
 
 NS_PER_S = 1_000_000_000
@@ -138,12 +140,36 @@ def grid_info(occupancy_map: OccupancyMap, frame_id: str, world_in_map: PlanarPo
     )
 
 
+MapMode = Literal["trinary", "scale", "raw"]
+
+
+def map_values(occupancy: npt.NDArray[np.int8], mode: MapMode) -> npt.NDArray[np.int8]:
+    """The map's occupancy (-1 never seen, else its probability 0..100: free floor reads about
+    18, at the belief's clamp) as nav2's map_server would give it from the map files' yaml (the
+    same thresholds, common.mapfiles): ``trinary`` 0 free, 100 occupied, -1 unknown or
+    undecided (AMCL and the costmap's static layer take only 0 and 100 at their word);
+    ``scale`` the same with the undecided cells scaled 1..99 between the thresholds; ``raw``
+    the probability."""
+    if mode == "raw":
+        return occupancy
+    known = occupancy >= 0
+    free, occupied = known & (occupancy <= FREE_MAX), occupancy >= OCCUPIED_MIN
+    values = np.full(occupancy.shape, -1, np.int8)
+    if mode == "scale":
+        between = known & ~free & ~occupied
+        scaled = 99.0 * (occupancy[between] - FREE_MAX) / (OCCUPIED_MIN - FREE_MAX)
+        values[between] = np.rint(scaled).astype(np.int8)
+    values[free] = 0
+    values[occupied] = 100
+    return values
+
+
 def grid_message(
-    occupancy_map: OccupancyMap, frame_id: str, world_in_map: PlanarPose
+    occupancy_map: OccupancyMap, frame_id: str, world_in_map: PlanarPose, mode: MapMode
 ) -> GridMessage:
     return GridMessage(
         grid_info(occupancy_map, frame_id, world_in_map),
-        np.ascontiguousarray(occupancy_map.occupancy).reshape(-1),
+        np.ascontiguousarray(map_values(occupancy_map.occupancy, mode)).reshape(-1),
     )
 
 
@@ -165,7 +191,9 @@ def changed_window(before: OccupancyMap, after: OccupancyMap) -> Window | None:
     )
 
 
-def grid_update(occupancy_map: OccupancyMap, changed: Window, frame_id: str) -> GridUpdate:
+def grid_update(
+    occupancy_map: OccupancyMap, changed: Window, frame_id: str, mode: MapMode
+) -> GridUpdate:
     rows, cols = changed.slices_in(occupancy_map.window)
     return GridUpdate(
         stamp_ns=occupancy_map.stamp_ns,
@@ -174,7 +202,9 @@ def grid_update(occupancy_map: OccupancyMap, changed: Window, frame_id: str) -> 
         y=changed.j0 - occupancy_map.j0,
         width=changed.cols,
         height=changed.rows,
-        data=np.ascontiguousarray(occupancy_map.occupancy[rows, cols]).reshape(-1),
+        data=np.ascontiguousarray(map_values(occupancy_map.occupancy[rows, cols], mode)).reshape(
+            -1
+        ),
     )
 
 

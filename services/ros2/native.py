@@ -11,7 +11,6 @@ says which source each convention comes from).
 from __future__ import annotations
 
 import logging
-import os
 import time
 from collections.abc import Sequence
 
@@ -38,7 +37,7 @@ from services.ros2.rmw_zenoh import (
     gid_of,
     topic_keyexpr,
 )
-from services.ros2.settings import RmwZenohSettings
+from services.ros2.settings import RmwZenohSettings, ros_domain_id
 
 log = logging.getLogger("rmw-zenoh")
 NODE_ID = 0
@@ -155,16 +154,11 @@ class NativeSink:
         self._node_token.undeclare()  # type: ignore[no-untyped-call]
 
 
-def ros_domain_id() -> int:
-    """ROS 2's own setting, as rmw_zenoh reads it; 0 when unset."""
-    return int(os.environ.get("ROS_DOMAIN_ID") or 0)
-
-
 def main(settings: RmwZenohSettings) -> None:
     setup_logging("rmw-zenoh", settings.log_level)
     with open_session(settings, timestamping=True, wait_for_router=True) as session:
         sink = NativeSink(session, settings)
-        relay = MapRelay(session, settings, sink)
+        relay = MapRelay(session, settings, sink, log)
         stop = stop_on_signals(relay.wake)
         log.info(
             "started",

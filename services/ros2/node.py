@@ -24,9 +24,12 @@ from __future__ import annotations
 import array
 import importlib
 import logging
+import os
 import sys
+import tempfile
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 from pydantic import ValidationError
@@ -46,7 +49,7 @@ from services.ros2.grid_message import (
 from services.ros2.object_markers import NAMESPACE, TRACK_SCORE, ObjectMarkers
 from services.ros2.relay import MapRelay
 from services.ros2.rmw_zenoh import TopicQos
-from services.ros2.settings import TOPIC_FIELDS, Ros2Settings
+from services.ros2.settings import TOPIC_FIELDS, Ros2Settings, ros_domain_id
 
 log = logging.getLogger("ros2")
 ROS_ARGS = "--ros-args"
@@ -65,6 +68,7 @@ ROS_PARAMETERS = (
     "objects_durability",
     "objects_reliability",
     "world_in_map",
+    "map_mode",
     "map_interval_s",
     "height_interval_s",
 )
@@ -217,6 +221,11 @@ class RclpySink:
                 TFMessage, settings.tf_static_topic, rclpy_qos(settings.tf_static_qos)
             )
 
+    @property
+    def map_topic(self) -> str:
+        """/map's name as remapped."""
+        return str(self._map.topic_name)
+
     def publish_map(self, message: GridMessage) -> None:
         self._map.publish(occupancy_grid_msg(self._grid_type, message))
 
@@ -271,15 +280,18 @@ def rclpy_qos(qos: TopicQos) -> Any:
 def with_ros_parameters(node: Any, settings: Ros2Settings) -> Ros2Settings:
     """Declare ``ROS_PARAMETERS`` with the settings as defaults; a value given as a parameter
     (``-p name:=value``, a parameter file) wins, and is validated like a flag."""
+    from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
+    # Read once, at start: a later set would be taken and not applied, so it is refused.
+    fixed = ParameterDescriptor(read_only=True)
     values: dict[str, Any] = {}
     for name in ROS_PARAMETERS:
         default = getattr(settings, name)
         if isinstance(default, list):
             default = ",".join(default)
         try:
-            values[name] = node.declare_parameter(name, default).value
+            values[name] = node.declare_parameter(name, default, fixed).value
         except (InvalidParameterTypeException, InvalidParameterValueException) as error:
             startup_error(f"ROS parameter {name}: {error}")
     try:
@@ -296,10 +308,20 @@ def main(settings: Ros2Settings, ros_args: Sequence[str] = ()) -> None:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init(
-        args=["overgrid-ros2", ROS_ARGS, *ros_args] if ros_args else None,
-        signal_handler_options=SignalHandlerOptions.NO,
-    )
+    ros_domain_id()  # checked here: rcl's own refusal is a traceback
+    refused: Exception | None = None
+    with _stderr_held() as drop_held:
+        try:
+            rclpy.init(
+                args=["overgrid-ros2", ROS_ARGS, *ros_args] if ros_args else None,
+                signal_handler_options=SignalHandlerOptions.NO,
+            )
+        except Exception as error:  # rclpy's UnknownROSArgsError, RCLError: no common base
+            drop_held()  # rcl's own log line of it: the one line below says it
+            refused = error
+    if refused is not None:
+        reason = (str(refused).splitlines() or [type(refused).__name__])[0].split(", at /")[0]
+        startup_error(f"--ros-args {' '.join(ros_args)}: {reason}")
     node = rclpy.create_node(settings.node_name)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -311,11 +333,11 @@ def main(settings: Ros2Settings, ros_args: Sequence[str] = ()) -> None:
         spinner = threading.Thread(target=executor.spin, name="rclpy-spin")
         spinner.start()
         with open_session(settings, wait_for_router=True) as session:
-            relay = MapRelay(session, settings, sink)
+            relay = MapRelay(session, settings, sink, log)
             stop = stop_on_signals(relay.wake)
-            log.info(
+            log.info(  # as remapped: the names the robots' graph shows
                 "started",
-                extra={"node": settings.node_name, "map_topic": settings.map_topic},
+                extra={"node": node.get_fully_qualified_name(), "map_topic": sink.map_topic},
             )
             relay.run(stop)
         log.info("stopped", extra=relay.counts)
@@ -325,6 +347,31 @@ def main(settings: Ros2Settings, ros_args: Sequence[str] = ()) -> None:
             spinner.join()
         node.destroy_node()
         rclpy.try_shutdown()
+
+
+@contextmanager
+def _stderr_held() -> Iterator[Callable[[], None]]:
+    """What C code writes to stderr meanwhile, held and written after, unless the function it
+    yields is called: rcl logs a refused argument itself before rclpy raises (a second line)."""
+    dropped = False
+
+    def drop() -> None:
+        nonlocal dropped
+        dropped = True
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield drop
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            held.seek(0)
+            if not dropped:
+                sys.stderr.buffer.write(held.read())
+                sys.stderr.flush()
 
 
 def split_ros_args(args: Sequence[str]) -> tuple[list[str], list[str]]:

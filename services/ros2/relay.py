@@ -18,7 +18,7 @@ from typing import Protocol
 import zenoh
 
 from common import keys
-from common.client import MapFollower, MapUnavailable, latest, objects
+from common.client import MapFollower, MapUnavailable, health, latest, objects
 from common.codec import CodecError, decode
 from common.logs import RateLimitedLog
 from common.messages import OBJECTS_KIND, ObjectsHeader
@@ -37,8 +37,9 @@ from services.ros2.grid_message import (
 from services.ros2.object_markers import ObjectMarkers, object_markers
 from services.ros2.settings import Ros2Settings
 
-log = logging.getLogger("ros2")
 FOLLOW_RETRY_S = 1.0
+FUSION_CHECK_S = 5.0
+"""With no new map for this long, whether fusion still answers is asked (and said when not)."""
 
 
 class MapSink(Protocol):
@@ -54,14 +55,18 @@ class MapSink(Protocol):
 
 
 class MapRelay:
-    def __init__(self, session: zenoh.Session, settings: Ros2Settings, sink: MapSink) -> None:
+    def __init__(
+        self, session: zenoh.Session, settings: Ros2Settings, sink: MapSink, log: logging.Logger
+    ) -> None:
         self._session = session
         self._settings = settings
         self._sink = sink
+        self._log = log
         self.wake = threading.Event()
         """Set by each new map version, and by a stop."""
         self.counts = {"map": 0, "update": 0, "height": 0, "objects": 0, "tf_static": 0}
         self._warn = RateLimitedLog(log)
+        self._fusion_silent = False
         self._objects: ObjectsHeader | None = None
         """The newest map/objects put, handed over by the Zenoh callback."""
         self._objects_lock = threading.Lock()
@@ -78,28 +83,41 @@ class MapRelay:
         objects_subscriber = self._session.declare_subscriber(keys.MAP_OBJECTS, self._on_objects)
         try:
             sent = follower.map
-            self._publish_map(sent)
-            log.info("first map published", extra={"version": sent.version})
+            published = self._publish_map(sent)
+            if published:
+                self._log.info("first map published", extra={"version": sent.version})
             self._publish_height()
             objects_version = self._publish_first_objects()
             map_due = False
-            last_map_s = last_height_s = time.monotonic()
+            last_map_s = last_height_s = last_change_s = checked_s = time.monotonic()
             height_revision = sent.revision
             while not stop.is_set():
-                self.wake.wait(min(s.map_interval_s, s.height_interval_s))
+                now = time.monotonic()
+                # Wake when the next whole /map falls due, not a period after it.
+                due_in_s = last_map_s + s.map_interval_s - now if map_due else s.map_interval_s
+                self.wake.wait(max(0.0, min(due_in_s, s.height_interval_s, FUSION_CHECK_S)))
                 self.wake.clear()
                 current = follower.map
                 if current.revision > sent.revision:
+                    if current.epoch != sent.epoch:
+                        self._log.info("fusion started a new map", extra={"epoch": current.epoch})
                     changed = changed_window(sent, current)
-                    if changed is None:  # moved or grew: only a whole map says that
-                        self._publish_map(current)
-                        last_map_s, map_due = time.monotonic(), False
+                    if changed is None or not published:  # moved or grew: a whole map says it
+                        if self._publish_map(current):
+                            if not published:
+                                self._log.info(
+                                    "first map published", extra={"version": current.version}
+                                )
+                            published = True
+                            last_map_s, map_due = time.monotonic(), False
                     else:
                         if not changed.empty:
-                            self._sink.publish_update(grid_update(current, changed, s.frame_id))
+                            self._sink.publish_update(
+                                grid_update(current, changed, s.frame_id, s.map_mode)
+                            )
                             self.counts["update"] += 1
                         map_due = True
-                    sent = current
+                    sent, last_change_s = current, time.monotonic()
                 now = time.monotonic()
                 if map_due and now - last_map_s >= s.map_interval_s:
                     self._publish_map(sent)
@@ -112,9 +130,29 @@ class MapRelay:
                 if tracked is not None and tracked.version != objects_version:
                     self._publish_objects(tracked)
                     objects_version = tracked.version
+                if now - max(last_change_s, checked_s) >= FUSION_CHECK_S:
+                    self._check_fusion(now - last_change_s)
+                    checked_s = now
         finally:
             objects_subscriber.undeclare()  # type: ignore[no-untyped-call]
             follower.close()
+
+    def _check_fusion(self, quiet_s: float) -> None:
+        """Say when fusion stops answering (what was published stays latched, older by the
+        minute) and when it answers again."""
+        try:
+            health(self._session, timeout_s=1.0)
+        except MapUnavailable:
+            if not self._fusion_silent:
+                self._log.warning(
+                    "fusion does not answer: the topics keep the last map and objects",
+                    extra={"quiet_s": round(quiet_s, 1)},
+                )
+            self._fusion_silent = True
+            return
+        if self._fusion_silent:
+            self._log.info("fusion answers again")
+        self._fusion_silent = False
 
     def _follow(self, stop: threading.Event) -> MapFollower | None:
         """A follower of the fusion service, waiting for it as long as it takes (this process may
@@ -157,11 +195,16 @@ class MapRelay:
         self._sink.publish_objects(object_markers(tracked, s.frame_id, s.pose))
         self.counts["objects"] += 1
 
-    def _publish_map(self, occupancy_map: OccupancyMap) -> None:
+    def _publish_map(self, occupancy_map: OccupancyMap) -> bool:
+        """A whole /map, unless the map has no cell yet (a 0 × 0 grid latched for late joiners
+        would be all they get until the next whole map)."""
+        if occupancy_map.occupancy.size == 0:
+            return False
         s = self._settings
-        self._sink.publish_map(grid_message(occupancy_map, s.frame_id, s.pose))
+        self._sink.publish_map(grid_message(occupancy_map, s.frame_id, s.pose, s.map_mode))
         self.counts["map"] += 1
-        log.debug("map published", extra={"version": occupancy_map.version})
+        self._log.debug("map published", extra={"version": occupancy_map.version})
+        return True
 
     def _publish_height(self) -> None:
         """The follower's copy has no height layer (map/updates carries occupancy only), so the

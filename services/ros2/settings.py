@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import math
+import os
 import re
 from typing import Literal
 
 from pydantic import Field, ValidationInfo, field_validator
 
-from common.settings import CommaList, ZenohSettings
+from common.settings import CommaList, ZenohSettings, startup_error
 from services.ros2.cdr import Distro
-from services.ros2.grid_message import PlanarPose
+from services.ros2.grid_message import MapMode, PlanarPose
 from services.ros2.rmw_zenoh import Durability, History, Reliability, TopicQos
 
 NODE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -73,6 +74,13 @@ class Ros2Settings(ZenohSettings):
     )
     map_reliability: ReliabilityName = Field("reliable", description="/map reliability")
     map_depth: int = Field(1, ge=1, description="/map history depth")
+    map_mode: MapMode = Field(
+        "trinary",
+        description="/map and /map_updates values, as nav2's map_server gives them by the map "
+        "files' thresholds (free ≤ 25, occupied ≥ 65): trinary 0 / 100 / -1 (what AMCL and the "
+        "static layer take), scale (undecided cells 1..99), raw (the belief: -1 never seen, "
+        "free floor about 18)",
+    )
     height_durability: DurabilityName = Field(
         "transient_local", description="height layer durability (transient_local: late joiners)"
     )
@@ -155,11 +163,28 @@ def _keep_last(reliability: ReliabilityName, durability: DurabilityName, depth: 
     )
 
 
+DOMAIN_ID_MAX = 232
+"""ROS 2's highest domain id (DDS port arithmetic; rmw_zenoh takes the same range)."""
+
+
+def ros_domain_id() -> int:
+    """``ROS_DOMAIN_ID`` as every rmw reads it, 0 when unset; one a ROS 2 does not take stops the
+    start with one line (it was a traceback, or a silent start on a domain no robot uses)."""
+    text = os.environ.get("ROS_DOMAIN_ID") or "0"
+    try:
+        domain_id = int(text)
+    except ValueError:
+        domain_id = -1
+    if not 0 <= domain_id <= DOMAIN_ID_MAX:
+        startup_error(f"ROS_DOMAIN_ID {text!r}: a ROS domain id is a whole number 0 … 232")
+    return domain_id
+
+
 class RmwZenohSettings(Ros2Settings):
     """The native output also needs what a ROS 2 context would know: domain and distro."""
 
     domain_id: int | None = Field(
-        None, ge=0, le=232, description="ROS domain id (default: $ROS_DOMAIN_ID, else 0)"
+        None, ge=0, le=DOMAIN_ID_MAX, description="ROS domain id (default: $ROS_DOMAIN_ID, else 0)"
     )
     distro: Distro = Field(
         "jazzy", description="ROS 2 distro of the robots (type hashes differ; humble has none)"
