@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -26,12 +27,37 @@ ROUTER_WAIT_LOG_S = 10.0
 ROUTER_CHECK_S = 1.0
 
 
+JSON5_POINTER = re.compile(r"^\s*--> (\d+):(\d+)$")
+
+
 def zenoh_reason(error: Exception) -> str:
-    """Zenoh's message on one line, without the source location of the library's build (a JSON5
-    parse error comes as a multi-line pointer: keep its position and its "= expected …" line)."""
-    lines = [line.strip(" |") for line in str(error).split(" at /", 1)[0].splitlines()]
-    lines = [line for line in lines if line and set(line) - set("^-0123456789 ")]
-    return " ".join(line.removeprefix("= ") for line in lines)
+    """Zenoh's message on one line, without the source location of the library's build. A JSON5
+    parse error comes as a multi-line pointer (``--> 3:26``, the line, a caret, ``= expected
+    boolean or null``): said as line and column, the text there, and the parser's expectation,
+    which names what it wanted next, not what is missing (a comma, often, before that place)."""
+    text = str(error).split(" at /", 1)[0]
+    lines = text.splitlines()
+    pointer = JSON5_POINTER.match(lines[0]) if lines else None
+    if pointer:
+        row, column = pointer.groups()
+        source = next(
+            (
+                line.split("|", 1)[1].strip()
+                for line in lines[1:]
+                if line.strip().startswith(f"{row} |")
+            ),
+            "",
+        )
+        expected = next(
+            (line.strip(" |=") for line in lines if line.strip(" |").startswith("=")), ""
+        )
+        return (
+            f"not valid JSON5 at line {row}, column {column} ({source!r}): the parser {expected} "
+            "(a comma, colon or bracket missing at or before it reads so too)"
+        )
+    kept = [line.strip(" |") for line in lines]
+    kept = [line for line in kept if line and set(line) - set("^-0123456789 ")]
+    return " ".join(line.removeprefix("= ") for line in kept)
 
 
 CONFIG_FILES = (

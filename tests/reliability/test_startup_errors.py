@@ -20,7 +20,13 @@ pytestmark = pytest.mark.process
 
 @pytest.mark.parametrize(
     ("text", "says"),
-    [('{ mode: "bogus" }', "bogus"), ("{ mode: ", "expected"), ("{ connect: 7 }", "")],
+    [
+        ('{ mode: "bogus" }', "bogus"),
+        ("{ mode: ", "expected"),
+        ("{ connect: 7 }", ""),
+        # A comma missing: the parser's pointer came as "--> 2:9 2 | mode: \"client\" expected …".
+        ('{\n  mode: "client"\n  scouting: {}\n}', "not valid JSON5 at line 2, column 9"),
+    ],
 )
 def test_a_bad_zenoh_config_file_is_named(tmp_path: Path, text: str, says: str) -> None:
     config = tmp_path / "zenoh.json5"
