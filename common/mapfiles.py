@@ -21,12 +21,24 @@ FREE_THRESH = 0.25
 OCCUPIED_MIN = round(OCCUPIED_THRESH * 100)
 FREE_MAX = round(FREE_THRESH * 100)
 """The thresholds on nav_msgs occupancy (0..100): occupied from OCCUPIED_MIN, free up to FREE_MAX."""
+FILE_FREE_THRESH = 0.196
+"""``free_thresh`` in map.yaml: the cells are sorted by FREE_THRESH before they are written, and
+the file's thresholds need only tell its three pixel values apart. map_server reads a pixel's
+occupancy as 1 − value/255 and calls it free below ``free_thresh``: the unknown pixel is
+1 − 205/255 = 0.19608, so at 0.25 every unknown cell loaded as free (ROS 1's map_saver wrote
+0.196 for this reason)."""
 
 
 def free_cells(occupancy: npt.NDArray[np.int8]) -> npt.NDArray[np.bool_]:
     """The cells a nav_msgs occupancy calls free (known, and at most FREE_MAX)."""
     free: npt.NDArray[np.bool_] = (occupancy >= 0) & (occupancy <= FREE_MAX)
     return free
+
+
+def occupied_cells(occupancy: npt.NDArray[np.int8]) -> npt.NDArray[np.bool_]:
+    """The cells a nav_msgs occupancy calls occupied (at least OCCUPIED_MIN)."""
+    occupied: npt.NDArray[np.bool_] = occupancy >= OCCUPIED_MIN
+    return occupied
 
 
 MAP_FILE_SUFFIXES = (".yaml", ".yml", ".pgm", ".png", ".npz")
@@ -45,7 +57,7 @@ def trinary(occupancy: npt.NDArray[np.int8]) -> npt.NDArray[np.uint8]:
     """map_server trinary values, rows as stored (origin row first)."""
     image = np.full(occupancy.shape, PGM_UNKNOWN, np.uint8)
     image[free_cells(occupancy)] = PGM_FREE
-    image[occupancy >= OCCUPIED_MIN] = PGM_OCCUPIED
+    image[occupied_cells(occupancy)] = PGM_OCCUPIED
     return image
 
 
@@ -66,7 +78,7 @@ def map_yaml(occupancy_map: OccupancyMap, image_name: str) -> str:
             "origin": [x0, y0, 0.0],
             "negate": 0,
             "occupied_thresh": OCCUPIED_THRESH,
-            "free_thresh": FREE_THRESH,
+            "free_thresh": FILE_FREE_THRESH,
         },
         sort_keys=False,
     )

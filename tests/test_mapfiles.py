@@ -4,7 +4,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.mapfiles import PGM_FREE, PGM_OCCUPIED, PGM_UNKNOWN, picture, read_map_server, write_map
+from common.mapfiles import (
+    PGM_FREE,
+    PGM_OCCUPIED,
+    PGM_UNKNOWN,
+    free_cells,
+    occupied_cells,
+    picture,
+    read_map_server,
+    write_map,
+)
 from common.occupancy_map import UNKNOWN, OccupancyMap, occupancy_from_logodds
 from common.png import decode_png
 
@@ -31,7 +40,7 @@ def test_nav2_pgm_yaml_round_trip(tmp_path: Path) -> None:
         "origin": [-1.0, 2.0, 0.0],
         "negate": 0,
         "occupied_thresh": 0.65,
-        "free_thresh": 0.25,
+        "free_thresh": 0.196,
     }
     assert image.shape == (4, 6)
     # Rows flipped: the PGM's bottom row is the map's origin row.
@@ -94,3 +103,22 @@ def test_msgpack_round_trip() -> None:
         m.version,
         m.resolution_m,
     )
+
+
+def test_map_server_loads_each_pixel_as_the_map_says(tmp_path: Path) -> None:
+    """map_server's reading of a trinary PGM (nav2 map_io: occupancy 1 − value/255, occupied
+    above occupied_thresh, free below free_thresh): at free_thresh 0.25 every unknown pixel
+    (0.196) loaded as free."""
+    write_map(_map(), tmp_path / "map.yaml")
+    meta, image = read_map_server(tmp_path / "map.yaml")
+    occ = 1.0 - image / 255.0
+    occupied_thresh, free_thresh = (
+        float(str(meta["occupied_thresh"])),
+        float(str(meta["free_thresh"])),
+    )
+    loaded = np.where(occ > occupied_thresh, 100, np.where(occ < free_thresh, 0, UNKNOWN))
+    loaded = loaded[::-1]  # back to the map's row order
+    expected = np.full(_map().occupancy.shape, UNKNOWN)
+    expected[free_cells(_map().occupancy)] = 0
+    expected[occupied_cells(_map().occupancy)] = 100
+    np.testing.assert_array_equal(loaded, expected)

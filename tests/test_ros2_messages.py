@@ -56,7 +56,7 @@ def test_map_values_are_map_servers_by_the_map_files_thresholds() -> None:
     static layer (trinary) a 65..99 cell for free, where the map files call it occupied."""
     belief = np.array([[-1, 18, 25, 26, 45, 64, 65, 99, 100]], np.int8)
     assert map_values(belief, "trinary").tolist() == [[-1, 0, 0, -1, -1, -1, 100, 100, 100]]
-    assert map_values(belief, "scale").tolist() == [[-1, 0, 0, 2, 50, 97, 100, 100, 100]]
+    assert map_values(belief, "scale").tolist() == [[-1, 0, 0, 2, 50, 98, 100, 100, 100]]
     assert map_values(belief, "raw") is belief
     occupancy_map = a_map()
     occupancy_map.occupancy[1, 1] = 18

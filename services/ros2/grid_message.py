@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from common.lattice import Window
-from common.mapfiles import FREE_MAX, OCCUPIED_MIN
+from common.mapfiles import FREE_MAX, OCCUPIED_MIN, free_cells, occupied_cells
 from common.occupancy_map import OccupancyMap
 
 NS_PER_S = 1_000_000_000
@@ -145,20 +145,19 @@ MapMode = Literal["trinary", "scale", "raw"]
 
 def map_values(occupancy: npt.NDArray[np.int8], mode: MapMode) -> npt.NDArray[np.int8]:
     """The map's occupancy (-1 never seen, else its probability 0..100: free floor reads about
-    18, at the belief's clamp) as nav2's map_server would give it from the map files' yaml (the
-    same thresholds, common.mapfiles): ``trinary`` 0 free, 100 occupied, -1 unknown or
-    undecided (AMCL and the costmap's static layer take only 0 and 100 at their word);
-    ``scale`` the same with the undecided cells scaled 1..99 between the thresholds; ``raw``
-    the probability."""
+    18, at the belief's clamp) sorted as the map files sort it (common.mapfiles: free up to
+    FREE_MAX, occupied from OCCUPIED_MIN), in map_server's modes: ``trinary`` 0 free, 100
+    occupied, -1 unknown or undecided (AMCL and the costmap's static layer take only 0 and 100
+    at their word); ``scale`` the undecided cells as map_server scales them between the
+    thresholds (``rint(100 · share of the way)``); ``raw`` the probability."""
     if mode == "raw":
         return occupancy
-    known = occupancy >= 0
-    free, occupied = known & (occupancy <= FREE_MAX), occupancy >= OCCUPIED_MIN
+    free, occupied = free_cells(occupancy), occupied_cells(occupancy)
     values = np.full(occupancy.shape, -1, np.int8)
     if mode == "scale":
-        between = known & ~free & ~occupied
-        scaled = 99.0 * (occupancy[between] - FREE_MAX) / (OCCUPIED_MIN - FREE_MAX)
-        values[between] = np.rint(scaled).astype(np.int8)
+        between = (occupancy >= 0) & ~free & ~occupied
+        share = (occupancy[between] - FREE_MAX) / (OCCUPIED_MIN - FREE_MAX)
+        values[between] = np.rint(100.0 * share).astype(np.int8)
     values[free] = 0
     values[occupied] = 100
     return values

@@ -78,8 +78,8 @@ class Ros2Settings(ZenohSettings):
         "trinary",
         description="/map and /map_updates values, as nav2's map_server gives them by the map "
         "files' thresholds (free ≤ 25, occupied ≥ 65): trinary 0 / 100 / -1 (what AMCL and the "
-        "static layer take), scale (undecided cells 1..99), raw (the belief: -1 never seen, "
-        "free floor about 18)",
+        "static layer take), scale (undecided cells scaled between the thresholds), raw (the "
+        "belief: -1 never seen, free floor about 18)",
     )
     height_durability: DurabilityName = Field(
         "transient_local", description="height layer durability (transient_local: late joiners)"
