@@ -60,3 +60,34 @@ class RateLimitedLog:
         fields["suppressed"] = self._suppressed.pop(key, 0)
         self._last[key] = now
         self._logger.warning(msg, extra=fields)
+
+
+class Transitions:
+    """A condition watched over time, logged only when it changes: a warning when it goes
+    wrong, an info line when it is right again (``first_right`` the first time, if it started
+    wrong), so a service that loses something says so once, not every period."""
+
+    def __init__(
+        self,
+        logger: logging.Logger,
+        wrong: str,
+        right_again: str,
+        first_right: str | None = None,
+        *,
+        right: bool = True,
+    ) -> None:
+        self._logger = logger
+        self._wrong, self._right_again = wrong, right_again
+        self._first_right = first_right or right_again
+        self._ever_right = right
+        self.right = right
+
+    def update(self, right: bool, **fields: Any) -> None:
+        if right and not self.right:
+            self._logger.info(
+                self._right_again if self._ever_right else self._first_right, extra=fields
+            )
+        elif self.right and not right:
+            self._logger.warning(self._wrong, extra=fields)
+        self._ever_right |= right
+        self.right = right

@@ -52,7 +52,9 @@ def certificate_problem(tls: Mapping[str, str], now_s: float | None = None) -> s
     for certificate, key in KEY_PAIRS:
         if tls.get(certificate) and tls.get(key):
             try:
-                ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT).load_cert_chain(tls[certificate], tls[key])
+                ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT).load_cert_chain(
+                    tls[certificate], tls[key], password=_no_password
+                )
             except (ssl.SSLError, OSError) as error:
                 reason = getattr(error, "reason", None)
                 words = "no private key in it" if reason == "PEM lib" else _words(reason)
@@ -63,42 +65,59 @@ def certificate_problem(tls: Mapping[str, str], now_s: float | None = None) -> s
     return None
 
 
+def _no_password() -> bytes:
+    """An encrypted key's password: none (OpenSSL would ask for one on the terminal, and wait)."""
+    return b""
+
+
 @dataclass(frozen=True)
 class Probe:
-    """One endpoint probed: ``reachable`` when something accepted the connection (then the
-    router refused the session itself or the TLS link), ``reason`` in words."""
+    """One endpoint probed: ``reason`` in words; ``definite`` when it names a fault of the
+    configuration (a certificate refused, an endpoint with no port), not a guess or a state
+    that may pass (nothing listening yet, a session refused for a reason the probe cannot see)."""
 
     endpoint: str
-    reachable: bool
+    definite: bool
     reason: str
 
     def __str__(self) -> str:
         return f"{self.endpoint}: {self.reason}"
 
 
-def probe_endpoints(endpoints: Sequence[str], tls: Mapping[str, str]) -> list[Probe]:
-    return [probe(endpoint, tls) for endpoint in endpoints]
+def probe_endpoints(
+    endpoints: Sequence[str], tls: Mapping[str, str], verify_name: bool = True
+) -> list[Probe]:
+    return [probe(endpoint, tls, verify_name) for endpoint in endpoints]
 
 
-def probe(endpoint: str, tls: Mapping[str, str], timeout_s: float = PROBE_TIMEOUT_S) -> Probe:
-    """Why a session could not open on ``endpoint`` (``tcp/HOST:PORT`` or ``tls/HOST:PORT``)."""
+def probe(
+    endpoint: str,
+    tls: Mapping[str, str],
+    verify_name: bool = True,
+    timeout_s: float = PROBE_TIMEOUT_S,
+) -> Probe:
+    """Why a session could not open on ``endpoint`` (``tcp/HOST:PORT`` or ``tls/HOST:PORT``);
+    ``verify_name``: Zenoh's ``verify_name_on_connect``, whether the router's certificate must
+    name the host."""
     protocol, _, address = endpoint.partition("/")
     address = address.split("#", 1)[0].split("?", 1)[0]
     if protocol not in ("tcp", "tls"):
         return Probe(endpoint, False, f"protocol {protocol!r} not probed (tcp or tls?)")
     host, colon, port = address.rpartition(":")
     if not colon or not port.isdigit():
-        return Probe(endpoint, False, "no port: an endpoint is PROTOCOL/HOST:PORT")
+        return Probe(endpoint, True, "no port: an endpoint is PROTOCOL/HOST:PORT")
     host = host.strip("[]")
     try:
         connection = socket.create_connection((host, int(port)), timeout=timeout_s)
+    except socket.gaierror as error:
+        return Probe(endpoint, False, f"cannot resolve {host} ({error.strerror})")
     except OSError as error:
         why = error.strerror or type(error).__name__
         return Probe(endpoint, False, f"nothing answers ({why}): is the router up at that address?")
     with connection:
         if protocol == "tcp":
-            return Probe(endpoint, True, REFUSED_ON_TCP)
-        return _tls_probe(endpoint, connection, host, tls, timeout_s)
+            return Probe(endpoint, False, REFUSED_ON_TCP)
+        return _tls_probe(endpoint, connection, host, tls, verify_name, timeout_s)
 
 
 REFUSED_ON_TCP = (
@@ -112,14 +131,23 @@ REFUSED_ON_TLS = (
 
 
 def _tls_probe(
-    endpoint: str, connection: socket.socket, host: str, tls: Mapping[str, str], timeout_s: float
+    endpoint: str,
+    connection: socket.socket,
+    host: str,
+    tls: Mapping[str, str],
+    verify_name: bool,
+    timeout_s: float,
 ) -> Probe:
     ca = tls.get("root_ca_certificate")
     certificate, key = tls.get("connect_certificate"), tls.get("connect_private_key")
+    against = (
+        f"{TLS_KEY}root_ca_certificate {ca}" if ca else "the system's CAs (no root_ca_certificate)"
+    )
     try:
         context = ssl.create_default_context(cafile=ca)
+        context.check_hostname = verify_name
         if certificate and key:
-            context.load_cert_chain(certificate, key)
+            context.load_cert_chain(certificate, key, password=_no_password)
         with context.wrap_socket(connection, server_hostname=host) as link:
             # TLS 1.3: the router judges this box's certificate after the handshake and says so
             # in its first message; silence means it took the certificate.
@@ -130,8 +158,13 @@ def _tls_probe(
         return Probe(
             endpoint,
             True,
-            f"the router's certificate fails against {TLS_KEY}root_ca_certificate {ca}: "
-            f"{error.verify_message}",
+            f"the router's certificate fails against {against}: {error.verify_message}",
+        )
+    except (ssl.SSLEOFError, ConnectionError) as error:  # no TLS there, or a link limit
+        return Probe(
+            endpoint,
+            False,
+            f"closed during the TLS handshake ({type(error).__name__}): is it a tls/ listener?",
         )
     except ssl.SSLError as error:
         words = _words(error.reason) or str(error)
@@ -144,8 +177,8 @@ def _tls_probe(
             f"{certificate}: {words}",
         )
     except OSError as error:
-        return Probe(endpoint, True, f"TLS failed: {error}")
-    return Probe(endpoint, True, REFUSED_ON_TLS)
+        return Probe(endpoint, False, f"TLS failed: {error}")
+    return Probe(endpoint, False, REFUSED_ON_TLS)
 
 
 def _words(reason: str | None) -> str:

@@ -10,6 +10,7 @@ import logging
 import os
 import re
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any, Literal
@@ -17,6 +18,7 @@ from typing import Any, Literal
 import zenoh
 
 from common.lifecycle import wait_for_stop
+from common.logs import Transitions
 from common.settings import ZenohSettings, startup_error
 from common.zenoh_diagnosis import TLS_KEY, certificate_problem, probe_endpoints
 
@@ -77,7 +79,7 @@ def zenoh_config(settings: ZenohSettings, *, timestamping: bool = False) -> zeno
     """The session's configuration; ``timestamping`` stamps every sample with the session's
     clock, as an advanced publisher with a cache and no miss detection needs (rmw_zenoh turns
     it on for every session: a best-effort transient_local topic)."""
-    config_path = settings.config or os.environ.get("ZENOH_CONFIG")
+    config_path = _config_path(settings)
     where = _config_source(settings) or "Zenoh settings"
     try:
         config = _config(settings, config_path)
@@ -95,8 +97,13 @@ def zenoh_config(settings: ZenohSettings, *, timestamping: bool = False) -> zeno
     return config
 
 
+def _config_path(settings: ZenohSettings) -> str | os.PathLike[str] | None:
+    return settings.config or os.environ.get("ZENOH_CONFIG")
+
+
 def _config_source(settings: ZenohSettings) -> str | None:
-    config_path = settings.config or os.environ.get("ZENOH_CONFIG")
+    """The config file as an error line names it."""
+    config_path = _config_path(settings)
     return f"--config / ZENOH_CONFIG {config_path}" if config_path else None
 
 
@@ -153,35 +160,42 @@ def open_session(
     config = zenoh_config(settings, timestamping=timestamping)
     source = _config_source(settings)
     where = f" ({source})" if source else ""
-    waited_s = 0.0
+    connect = endpoints(config, "connect")
+    started_s = logged_s = time.monotonic()
+    waited = False
     while True:
         try:
             session = zenoh.open(config)
             break
         except zenoh.ZError as error:
             reason = zenoh_reason(error)
-            connect = endpoints(config, "connect")
             if not reason.startswith("Unable to connect") or not connect:
                 startup_error(f"cannot open the Zenoh session{where}: {reason}")
-            probes = probe_endpoints(connect, tls_files(config))
-            if not wait_for_router or any(probe.reachable for probe in probes):
-                why = "; ".join(str(probe) for probe in probes)
-                startup_error(f"cannot reach the Zenoh router{where}: {why}")
-            if waited_s % ROUTER_WAIT_LOG_S == 0:
-                log.warning(
-                    "waiting for the Zenoh router",
-                    extra={"waited_s": waited_s, "why": "; ".join(map(str, probes))},
-                )
-            if wait_for_stop(ROUTER_RETRY_S):
-                raise SystemExit(0) from None
-            waited_s += ROUTER_RETRY_S
-    if waited_s:
-        log.info("connected to the Zenoh router", extra={"waited_s": waited_s})
+        verify_name = _setting(config, TLS_KEY + "verify_name_on_connect") is not False
+        probes = probe_endpoints(connect, tls_files(config), verify_name)
+        why = "; ".join(str(probe) for probe in probes)
+        # Waiting is for what may pass (a router not up yet, a session refused for a reason
+        # the probe can only guess); a certificate refused will not.
+        if not wait_for_router or any(probe.definite for probe in probes):
+            startup_error(f"cannot reach the Zenoh router{where}: {why}")
+        now = time.monotonic()
+        if not waited or now - logged_s >= ROUTER_WAIT_LOG_S:
+            log.warning(
+                "waiting for the Zenoh router",
+                extra={"waited_s": round(now - started_s), "why": why},
+            )
+            logged_s, waited = now, True
+        if wait_for_stop(ROUTER_RETRY_S):
+            raise SystemExit(0) from None
+    if waited:
+        log.info(
+            "connected to the Zenoh router", extra={"waited_s": round(time.monotonic() - started_s)}
+        )
     watching = threading.Event()
     watch = threading.Thread(
         target=_watch_router, args=(session, watching), name="zenoh-router-watch", daemon=True
     )
-    if endpoints(config, "connect"):
+    if connect:
         watch.start()
     try:
         yield session
@@ -200,14 +214,15 @@ def open_session(
 def _watch_router(session: zenoh.Session, stop: threading.Event) -> None:
     """Log the router's loss and its return: Zenoh reconnects by itself, silently, and meanwhile a
     service would go on counting frames nobody receives."""
-    had_router = bool(session.info.routers_zid())
+    router = Transitions(
+        log,
+        "lost the Zenoh router: reconnecting",
+        "reconnected to the Zenoh router",
+        "connected to the Zenoh router",
+        right=bool(session.info.routers_zid()),
+    )
     while not stop.wait(ROUTER_CHECK_S):
         try:
-            has_router = bool(session.info.routers_zid())
+            router.update(bool(session.info.routers_zid()))
         except zenoh.ZError:  # closing
             return
-        if had_router and not has_router:
-            log.warning("lost the Zenoh router: reconnecting")
-        elif has_router and not had_router:
-            log.info("reconnected to the Zenoh router")
-        had_router = has_router

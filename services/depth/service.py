@@ -20,7 +20,7 @@ from common import client, keys
 from common.camera import StereoCalibration
 from common.codec import WIRE_ENCODING, encode, pack_arrays
 from common.lifecycle import stop_on_signals
-from common.logs import RateLimitedLog, setup_logging
+from common.logs import RateLimitedLog, Transitions, setup_logging
 from common.messages import DETECTIONS_KIND, TILE_KIND, StereoFrameHeader, TileHeader
 from common.settings import parse_settings, startup_error
 from common.zenoh_session import open_session
@@ -492,7 +492,7 @@ def main(settings: DepthSettings) -> None:
         def fusion_health() -> dict[str, Any] | None:
             try:
                 return client.health(session, timeout_s=1.0)
-            except client.MapUnavailable:
+            except Exception:  # no fusion, or an answer that is no health: nothing to compare
                 return None
 
         summary = threading.Thread(
@@ -542,64 +542,65 @@ def _summaries(
     no frame (a camera or a router gone: the process itself is well and would say nothing), and
     one when fusion answers but takes none of the tiles (a router's access rules drop a user's
     puts on keys it may not write without a word to the writer)."""
-    received_before, silent, tiles_before = 0, False, 0
-    takes = FusionTakes(pair)
+    frames = Transitions(log, "no frame from the camera in the last summary period", "frames again")
+    intake = FusionIntake(pair, max(2 * period_s, FUSION_SILENT_MIN_S))
+    received_before, tiles_before = 0, 0
     while not stop.wait(period_s):
-        try:
+        try:  # a summary line is not worth the thread
             counters = health()
-        except Exception:  # a summary line is not worth the thread
+            stage_ms = counters.pop("stage_ms_mean", {})
+            log.info("summary", extra={**counters, **{f"{k}_ms": v for k, v in stage_ms.items()}})
+            received, tiles = counters.get("received", 0), counters.get("tiles", 0)
+            frames.update(received > received_before, pair=pair, period_s=period_s)
+            if tiles > tiles_before:
+                intake.check(fusion_health(), time.monotonic())
+            received_before, tiles_before = received, tiles
+            if counters.get("floor_model", {}).get("state") == "no_floor":
+                log.warning(
+                    "the floor model finds no floor where the calibration puts it: is the "
+                    "calibration this pair's, and are left and right the right way round?",
+                    extra={"pair": pair},
+                )
+        except Exception:
             log.exception("summary failed")
-            continue
-        stage_ms = counters.pop("stage_ms_mean", {})
-        log.info("summary", extra={**counters, **{f"{k}_ms": v for k, v in stage_ms.items()}})
-        received = counters.get("received", 0)
-        if received == received_before and not silent:
-            log.warning(
-                "no frame from the camera in the last summary period",
-                extra={"pair": counters.get("pair"), "period_s": period_s},
-            )
-        elif received != received_before and silent:
-            log.info("frames again", extra={"pair": counters.get("pair")})
-        silent, received_before = received == received_before, received
-        tiles = counters.get("tiles", 0)
-        if tiles > tiles_before:
-            takes.period(tiles - tiles_before, fusion_health())
-        tiles_before = tiles
-        if counters.get("floor_model", {}).get("state") == "no_floor":
-            log.warning(
-                "the floor model finds no floor where the calibration puts it: is the "
-                "calibration this pair's, and are left and right the right way round?",
-                extra={"pair": counters.get("pair")},
-            )
 
 
-MISSED_PERIODS_WARNED = 2
+FUSION_SILENT_MIN_S = 10.0
+"""Fusion taking none of a publishing pair's tiles for this long (or two summary periods, if
+longer) is said: it compiles its update at its first tile, and may lag a few seconds."""
 
 
-@dataclass
-class FusionTakes:
-    """Whether fusion takes this pair's tiles: its count of them must grow over a summary period
-    in which this process published some. Two such periods in a row (fusion compiles its update
-    at its first tile, and may lag a period) are worth one warning."""
+class FusionIntake:
+    """Whether fusion takes this pair's tiles: its count of them (its health) must grow while
+    this process publishes some."""
 
-    pair: str
-    taken_before: int = 0
-    missed_periods: int = 0
+    def __init__(self, pair: str, silent_after_s: float) -> None:
+        self.pair = pair
+        self.silent_after_s = silent_after_s
+        self.taken_before = -1
+        self.grew_s = time.monotonic()
+        self.taking = Transitions(
+            log,
+            "fusion takes none of this pair's tiles: does the router let this user put on "
+            "depth/PAIR/**, or does fusion refuse them (its health)?",
+            "fusion takes this pair's tiles again",
+        )
 
-    def period(self, published: int, fused: dict[str, Any] | None) -> None:
-        if fused is None or published == 0:  # no fusion answers: a recording may run alone
+    def check(self, fusion_health: dict[str, Any] | None, now_s: float) -> None:
+        """After a period in which this process published tiles; ``fusion_health`` None when
+        no fusion answers (a recording may run alone)."""
+        if fusion_health is None:
             return
-        seen = fused.get("pairs", {}).get(self.pair, {})
+        seen = fusion_health.get("pairs", {}).get(self.pair, {})
         taken = int(seen.get("tiles", 0))
-        self.missed_periods = self.missed_periods + 1 if taken == self.taken_before else 0
-        self.taken_before = taken
-        if self.missed_periods == MISSED_PERIODS_WARNED:
-            log.warning(
-                "fusion took none of this pair's tiles of the last two summary periods: does the "
-                "router let this user put on depth/PAIR/**, or does fusion refuse them (its "
-                "health)?",
-                extra={"pair": self.pair, "fusion_rejected": seen.get("rejected", 0)},
-            )
+        if taken != self.taken_before:
+            self.taken_before, self.grew_s = taken, now_s
+        self.taking.update(
+            now_s - self.grew_s < self.silent_after_s,
+            pair=self.pair,
+            silent_s=round(now_s - self.grew_s, 1),
+            fusion_rejected=seen.get("rejected", 0),
+        )
 
 
 def cli(argv: Sequence[str] | None = None) -> None:

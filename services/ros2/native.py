@@ -156,6 +156,8 @@ class NativeSink:
 
 def main(settings: RmwZenohSettings) -> None:
     setup_logging("rmw-zenoh", settings.log_level)
+    if settings.domain_id is None:
+        ros_domain_id()  # checked before waiting for a router, not after
     with open_session(settings, timestamping=True, wait_for_router=True) as session:
         sink = NativeSink(session, settings)
         relay = MapRelay(session, settings, sink, log)

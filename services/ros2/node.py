@@ -283,14 +283,15 @@ def with_ros_parameters(node: Any, settings: Ros2Settings) -> Ros2Settings:
     from rcl_interfaces.msg import ParameterDescriptor
     from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 
-    # Read once, at start: a later set would be taken and not applied, so it is refused.
-    fixed = ParameterDescriptor(read_only=True)
+    # Read once, at start: a later set would be taken and not applied, so it is refused. One
+    # descriptor each: rclpy writes the parameter's name and type into the one it is given.
     values: dict[str, Any] = {}
     for name in ROS_PARAMETERS:
         default = getattr(settings, name)
         if isinstance(default, list):
             default = ",".join(default)
         try:
+            fixed = ParameterDescriptor(read_only=True)
             values[name] = node.declare_parameter(name, default, fixed).value
         except (InvalidParameterTypeException, InvalidParameterValueException) as error:
             startup_error(f"ROS parameter {name}: {error}")
@@ -306,7 +307,11 @@ def main(settings: Ros2Settings, ros_args: Sequence[str] = ()) -> None:
     setup_logging("ros2", settings.log_level)
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.impl.implementation_singleton import rclpy_implementation
     from rclpy.signals import SignalHandlerOptions
+
+    # What rcl raises for arguments it refuses (rclpy re-exports neither).
+    refusals = (rclpy_implementation.UnknownROSArgsError, rclpy_implementation.RCLError)
 
     ros_domain_id()  # checked here: rcl's own refusal is a traceback
     refused: Exception | None = None
@@ -316,7 +321,9 @@ def main(settings: Ros2Settings, ros_args: Sequence[str] = ()) -> None:
                 args=["overgrid-ros2", ROS_ARGS, *ros_args] if ros_args else None,
                 signal_handler_options=SignalHandlerOptions.NO,
             )
-        except Exception as error:  # rclpy's UnknownROSArgsError, RCLError: no common base
+        except refusals as error:
+            if not ros_args:
+                raise  # not the arguments' fault: rcl's own words, and its traceback
             drop_held()  # rcl's own log line of it: the one line below says it
             refused = error
     if refused is not None:

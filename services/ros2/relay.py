@@ -20,7 +20,7 @@ import zenoh
 from common import keys
 from common.client import MapFollower, MapUnavailable, health, latest, objects
 from common.codec import CodecError, decode
-from common.logs import RateLimitedLog
+from common.logs import RateLimitedLog, Transitions
 from common.messages import OBJECTS_KIND, ObjectsHeader
 from common.occupancy_map import OccupancyMap
 from services.ros2.grid_message import (
@@ -66,7 +66,12 @@ class MapRelay:
         """Set by each new map version, and by a stop."""
         self.counts = {"map": 0, "update": 0, "height": 0, "objects": 0, "tf_static": 0}
         self._warn = RateLimitedLog(log)
-        self._fusion_silent = False
+        self._said_empty = False
+        self._fusion = Transitions(
+            log,
+            "fusion does not answer: the topics keep the last map and objects",
+            "fusion answers again",
+        )
         self._objects: ObjectsHeader | None = None
         """The newest map/objects put, handed over by the Zenoh callback."""
         self._objects_lock = threading.Lock()
@@ -84,8 +89,6 @@ class MapRelay:
         try:
             sent = follower.map
             published = self._publish_map(sent)
-            if published:
-                self._log.info("first map published", extra={"version": sent.version})
             self._publish_height()
             objects_version = self._publish_first_objects()
             map_due = False
@@ -104,10 +107,6 @@ class MapRelay:
                     changed = changed_window(sent, current)
                     if changed is None or not published:  # moved or grew: a whole map says it
                         if self._publish_map(current):
-                            if not published:
-                                self._log.info(
-                                    "first map published", extra={"version": current.version}
-                                )
                             published = True
                             last_map_s, map_due = time.monotonic(), False
                     else:
@@ -143,16 +142,9 @@ class MapRelay:
         try:
             health(self._session, timeout_s=1.0)
         except MapUnavailable:
-            if not self._fusion_silent:
-                self._log.warning(
-                    "fusion does not answer: the topics keep the last map and objects",
-                    extra={"quiet_s": round(quiet_s, 1)},
-                )
-            self._fusion_silent = True
-            return
-        if self._fusion_silent:
-            self._log.info("fusion answers again")
-        self._fusion_silent = False
+            self._fusion.update(False, quiet_s=round(quiet_s, 1))
+        else:
+            self._fusion.update(True)
 
     def _follow(self, stop: threading.Event) -> MapFollower | None:
         """A follower of the fusion service, waiting for it as long as it takes (this process may
@@ -199,11 +191,19 @@ class MapRelay:
         """A whole /map, unless the map has no cell yet (a 0 × 0 grid latched for late joiners
         would be all they get until the next whole map)."""
         if occupancy_map.occupancy.size == 0:
+            if not self._said_empty:
+                self._log.info("the map has no cell yet: no /map until it has")
+                self._said_empty = True
             return False
         s = self._settings
         self._sink.publish_map(grid_message(occupancy_map, s.frame_id, s.pose, s.map_mode))
         self.counts["map"] += 1
-        self._log.debug("map published", extra={"version": occupancy_map.version})
+        first = self.counts["map"] == 1
+        self._log.log(
+            logging.INFO if first else logging.DEBUG,
+            "first map published" if first else "map published",
+            extra={"version": occupancy_map.version},
+        )
         return True
 
     def _publish_height(self) -> None:
