@@ -16,7 +16,7 @@ import pytest
 import zenoh
 import zenoh.ext
 
-from common.client import MapUnavailable, latest
+from common.client import latest
 from common.lattice import Window
 from common.settings import ZenohSettings, parse_settings
 from services.camera_sim.settings import CameraSimSettings
@@ -37,7 +37,7 @@ from tests.conftest import (
 )
 from tests.reliability.test_security import PASSWORDS, _client_config, certs  # noqa: F401
 from tests.test_ros2_native import late_joiner
-from tests.tiles import tile_payload
+from tests.tiles import put_until_fused, tile_payload
 
 SETTINGS: dict[str, type[ZenohSettings]] = {
     "router": RouterSettings,
@@ -129,15 +129,7 @@ def test_the_router_lets_the_ros2_user_publish_the_map_and_no_more(
     processes = [start("fusion", "fusion", "--state-dir", str(tmp_path / "state"))]
     robot, rogue_robot, depth = session("robot"), session("robot"), session("depth-p0")
     try:
-
-        def fused() -> bool:
-            depth.put("depth/p0/tile", tile_payload("p0", Window(0, 0, 20, 20), 1.0))
-            try:
-                return latest(robot, timeout_s=1).version >= 1
-            except MapUnavailable:
-                return False
-
-        wait_for(fused, 30, "a tile fused through the router")
+        put_until_fused(depth, robot)  # through the router
         processes.append(
             start("ros2", "rmw-zenoh", "--domain-id", str(DOMAIN), "--map-interval-s", "600")
         )

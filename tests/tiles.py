@@ -5,7 +5,10 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import zenoh
 
+from common import keys
+from common.client import MapUnavailable, latest
 from common.codec import encode
 from common.lattice import Window
 from common.messages import TILE_KIND, TileHeader
@@ -59,3 +62,20 @@ def measure(grid: FusedGrid, window: Window, logodds: float, stamp_ns: int = 0) 
     """One tile of ``logodds`` over ``window`` into ``grid`` (20 pixels a cell, 1 m tops)."""
     arrays = tile_arrays(window, logodds, height_m=1.0, count=20)
     grid.integrate(window, arrays["logodds"], arrays["height_m"], arrays["count"], stamp_ns)
+
+
+def put_until_fused(writer: zenoh.Session, reader: zenoh.Session, timeout_s: float = 30) -> None:
+    """A tile of p0 put by ``writer`` until ``reader`` sees a map built from one: fusion may not
+    be subscribed yet, and it compiles its update at its first tile."""
+
+    def fused() -> bool:
+        writer.put(keys.tile("p0"), tile_payload("p0", Window(0, 0, 20, 20), 1.0))
+        try:
+            return latest(reader, timeout_s=1).version >= 1
+        except MapUnavailable:
+            return False
+
+    deadline = time.monotonic() + timeout_s
+    while not fused():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"no tile fused within {timeout_s} s")

@@ -65,13 +65,10 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return directory
 
 
-@pytest.fixture(params=["tcp", "tls"])
-def site(request: pytest.FixtureRequest, certs: Path, tmp_path: Path) -> Iterator[dict[str, Any]]:
-    """The ACL router (in this process) and a fusion process connected as the fusion user."""
-    endpoint = (
-        f"tls/localhost:{free_port()}" if request.param == "tls" else f"tcp/127.0.0.1:{free_port()}"
-    )
-    credentials = tmp_path / "credentials.txt"
+def shipped_router(endpoint: str, certs: Path, directory: Path) -> zenoh.Session:
+    """deploy/zenoh/router.json5 in this process, on ``endpoint``: TLS with client certificates
+    from ``certs``, the credentials of PASSWORDS, its access control."""
+    credentials = directory / "credentials.txt"
     credentials.write_text("".join(f"{u}:{p}\n" for u, p in PASSWORDS.items()))
     config = zenoh.Config.from_file(str(DEPLOY / "zenoh" / "router.json5"))
     config.insert_json5("listen/endpoints", json.dumps([endpoint]))
@@ -80,7 +77,16 @@ def site(request: pytest.FixtureRequest, certs: Path, tmp_path: Path) -> Iterato
     tls["listen_private_key"] = "localhost-key.pem"
     for key, name in tls.items():
         config.insert_json5(f"transport/link/tls/{key}", json.dumps(str(certs / name)))
-    router = zenoh.open(config)
+    return zenoh.open(config)
+
+
+@pytest.fixture(params=["tcp", "tls"])
+def site(request: pytest.FixtureRequest, certs: Path, tmp_path: Path) -> Iterator[dict[str, Any]]:
+    """The ACL router (in this process) and a fusion process connected as the fusion user."""
+    endpoint = (
+        f"tls/localhost:{free_port()}" if request.param == "tls" else f"tcp/127.0.0.1:{free_port()}"
+    )
+    router = shipped_router(endpoint, certs, tmp_path)
     fusion_config = _client_config(
         tmp_path / "fusion.json5", endpoint, certs, "fusion", PASSWORDS["fusion"]
     )
