@@ -1,5 +1,6 @@
 """A real fusion process on loopback, fed hand-made tiles, queried by clients in other processes."""
 
+import os
 import signal
 import subprocess
 import sys
@@ -24,7 +25,7 @@ from tests.conftest import (
     run_overgrid,
     wait_for,
 )
-from tests.tiles import tile_arrays, tile_payload
+from tests.tiles import put_until_fused, tile_arrays, tile_payload
 
 pytestmark = pytest.mark.process
 
@@ -245,3 +246,24 @@ def test_updates_carry_the_changed_cells_not_their_bounding_box(bus: Bus, tmp_pa
     assert follower.refetches == refetches  # the chain replayed as it came: nothing to fetch
     updates.undeclare()  # type: ignore[no-untyped-call]
     follower.close()
+
+
+def test_a_stopped_fusion_does_not_forget_its_map_when_it_runs_again(
+    bus: Bus, tmp_path: Path
+) -> None:
+    """A 20 s SIGSTOP (a paused VM, swap) made the whole map unknown at the first pass after
+    it: its cells were old by the stop, with no camera at fault."""
+    fusion = bus.start(
+        "fusion", "--state-dir", str(tmp_path / "state"), "--publish-interval-s", "0.05"
+    )
+    wait_for(lambda: fusion_answers(bus), 30, "fusion to answer")
+    put_until_fused(bus.session, bus.session)
+    assert (latest(bus.session).occupancy >= 0).sum() > 0
+    (pid,) = subprocess.run(
+        ["pgrep", "-P", str(fusion.pid)], capture_output=True, text=True
+    ).stdout.split()  # the service itself, not the `timeout` wrapping it
+    os.kill(int(pid), signal.SIGSTOP)
+    time.sleep(12.0)  # past decay_after_s (5 s), by as much again: decay would clear it
+    os.kill(int(pid), signal.SIGCONT)
+    time.sleep(1.5)  # a few of the loop's passes and snapshots
+    assert (latest(bus.session, timeout_s=10).occupancy >= 0).sum() > 0

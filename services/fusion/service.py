@@ -52,6 +52,11 @@ STATE_LOCK = ".lock"
 IDLE_WAIT_S = 0.1
 """Longest the owner sleeps without a message: a stop, decay and saves are noticed this soon."""
 DECAY_PERIOD_S = 1.0
+STALL_S = 2.0
+"""A pass of the owner's loop this long after the one before: the process did not run (stopped,
+a paused VM, swapped out). Its cells are then old by that much with no camera at fault, so
+decay waits ``decay_after_s`` for the pairs' next tiles (a 20 s stop turned the whole map
+unknown at the first pass after it)."""
 INBOX_MESSAGES = 16384
 """Messages the inbox holds: a burst of small bad tiles is counted by reason, not as overload."""
 INBOX_LARGEST_MESSAGES = 4
@@ -317,7 +322,8 @@ def run(
 ) -> None:
     """The owner's loop: messages in, then (when due) updates out, decay, a save hand-over."""
     now = time.monotonic()
-    last = {"publish": 0.0, "decay": now, "save": now, "summary": now}
+    last = {"publish": 0.0, "decay": now, "save": now, "summary": now, "pass": now}
+    decay_resumes = now
     while not stop.is_set():
         pending = state.grid.version != state.view.frozen.version
         wait_s = IDLE_WAIT_S
@@ -330,7 +336,17 @@ def run(
         if objects is not None:
             put_objects(objects_payload(objects, "msgpack"))
         now = time.monotonic()
-        if now - last["decay"] >= DECAY_PERIOD_S:
+        if now - last["pass"] > STALL_S:
+            log.warning(
+                "fusion did not run for a while (stopped, a paused VM, swapped out?): decay "
+                "waits for the pairs' next tiles",
+                extra={"stalled_s": round(now - last["pass"], 1)},
+            )
+            decay_resumes = now + state.grid.params.decay_after_s
+        last["pass"] = now
+        if now < decay_resumes:
+            last["decay"] = now
+        elif now - last["decay"] >= DECAY_PERIOD_S:
             state.grid.decay(time.time(), now - last["decay"])
             last["decay"] = now
         if (
