@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 
 from common.lattice import Window
-from common.messages import TruthObject
+from common.messages import ObjectsHeader, TruthObject
 from common.occupancy_map import UNKNOWN, OccupancyMap
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.truth import footprint_mask, top_heights
 from services.evaluation import metrics
 from services.evaluation import objects as object_scores
+from services.evaluation.service import per_minute
 
 RES = 0.05
 WINDOW = Window(0, 0, 80, 60)  # 4 m × 3 m
@@ -228,3 +229,11 @@ def test_sizes_in_view_are_over_the_objects_whose_top_the_cameras_see_whole() ->
     assert errors["objects_in_view"] == 1
     assert errors["length_error_max_pct_in_view"] == pytest.approx(1.0)
     assert errors["length_error_max_pct"] == pytest.approx(100 * 0.25 / 0.6)
+
+
+def test_id_switches_are_per_minute_of_the_lists_they_were_counted_over() -> None:
+    """A 32-minute run's switches were counted over its last two minutes (the recorder's
+    history) and divided by all 32: sixteen times too few."""
+    lists = [ObjectsHeader(version=v, stamp_ns=v * 30 * 10**9, objects=[]) for v in range(5)]
+    assert per_minute({"mover_person": 1}, lists) == {"mover_person": 0.5}  # 1 in 2 minutes
+    assert per_minute({"mover_person": 1}, lists[:1]) == {"mover_person": 60.0}  # no span: 1 s

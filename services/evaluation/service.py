@@ -52,6 +52,16 @@ from services.evaluation.metrics import OBSTACLE_BAND_M
 
 MAX_RECORD_S = 120.0
 """The recorder keeps this much history: a long ``up`` run is scored on its last two minutes."""
+
+
+def per_minute(counts: dict[str, int], object_lists: Sequence[ObjectsHeader]) -> dict[str, float]:
+    """Counts over the recorded object lists, per minute of the time they span (a long run's
+    switches were counted over its last two minutes and divided by the whole run)."""
+    span_s = (object_lists[-1].stamp_ns - object_lists[0].stamp_ns) / 1e9 if object_lists else 0.0
+    minutes = max(span_s, 1.0) / 60.0
+    return {name: n / minutes for name, n in counts.items()}
+
+
 TIMELINE_PERIOD_S = 0.5
 MOVER_TRUTH_RESOLUTION_M = 1.0
 """Movers are scored on the truth's object list; its raster is not used, so it is asked coarse."""
@@ -333,7 +343,7 @@ class Evaluator:
             "tracks_moving": len(tracks) - len(static),
         }
 
-    def mover_scores(self, object_lists: list[ObjectsHeader], watched_s: float) -> dict[str, Any]:
+    def mover_scores(self, object_lists: list[ObjectsHeader]) -> dict[str, Any]:
         """Movers' velocities and identities over every ``map/objects`` put recorded."""
         history = [
             (
@@ -343,10 +353,9 @@ class Evaluator:
             for h in object_lists
         ]
         scores = object_scores.score_movers(history)
-        minutes = max(watched_s, 1.0) / 60.0
         return {
             "velocity_error_mps": metrics.percentiles(scores.velocity_error_mps),
-            "id_switches": {name: n / minutes for name, n in scores.id_switches.items()},
+            "id_switches": per_minute(scores.id_switches, object_lists),
             "movers_tracked_share": scores.tracked_share,
         }
 
@@ -473,7 +482,9 @@ def report(
             },
         }
         out["capture_to_map_p50_ms"] = out["capture_to_map_excl_camera_ms"]["p50"]
-        out |= evaluator.mover_scores(recorder.objects_snapshot(), out["watched_s"])
+        # The recorder keeps the last MAX_RECORD_S: what it scores, a long run's end.
+        out["scored_s"] = round(min(out["watched_s"], MAX_RECORD_S), 1)
+        out |= evaluator.mover_scores(recorder.objects_snapshot())
         timeline = evaluator.timeline_scores(recorder.timeline_snapshot())
         out["over_run"] = over_run(timeline)
         if truth.header.light_steps_ns:
