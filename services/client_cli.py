@@ -111,6 +111,8 @@ def health_cli(argv: Sequence[str] | None = None) -> None:
         )
         notes = [f"CONFLICT: {len(row['processes'])} processes"] if row["conflict"] else []
         notes += ["LAGGING"] if row["lagging"] else []
+        refused = row.get("detections_rejected", 0)
+        notes += [f"{refused} detections rejected"] if refused else []
         print(
             f"{pair:<10}{'yes' if row['alive'] else 'NO':<7}{row['tiles']:>8}"
             f"{row.get('rejected', 0):>10}{age:>12}{latency:>14}  {', '.join(notes)}".rstrip()

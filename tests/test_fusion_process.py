@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from common import keys
 from common.client import MapFollower, MapUnavailable, health, latest, latest_encoded
 from common.codec import WIRE_ENCODING
 from common.lattice import Window
@@ -81,6 +82,10 @@ def test_fusion_serves_map_and_health_and_survives_bad_tiles(bus: Bus, tmp_path:
     assert rejected == {"malformed": 1, "resolution": 1, "dimensions": 1, "nan": 1, "stale": 2}
     pairs = _health(bus)["pairs"]  # and by the pair they came from
     assert (pairs["p0"]["rejected"], pairs["p1"]["rejected"]) == (6, 0)
+    # A pair's refused detections are no refused tiles (a stall's stale ones read as such).
+    bus.session.put(keys.objects("p0"), b"\x00\x01garbage")
+    wait_for(lambda: _health(bus)["pairs"]["p0"]["detections_rejected"] == 1, 10, "the detections")
+    assert _health(bus)["pairs"]["p0"]["rejected"] == 6
     publisher.put(tile_payload("p0", A, 1.0, seq=10, height_m=0.7))
     wait_for(
         lambda: _health(bus)["tiles_accepted"] == 7, 10, "a good tile to land after the bad ones"

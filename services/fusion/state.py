@@ -64,7 +64,7 @@ class View:
     processes: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     lagging: frozenset[str] = frozenset()
     """Pairs a capture is no longer held for (:class:`CaptureGroups`)."""
-    rejected_by_pair: Mapping[str, int] = field(default_factory=dict)
+    rejected_by_pair: Mapping[tuple[str, str], int] = field(default_factory=dict)
     """Tiles and detections refused, by the pair whose key they came on."""
     objects: ObjectsHeader = field(
         default_factory=lambda: ObjectsHeader(version=0, stamp_ns=0, objects=[])
@@ -88,7 +88,9 @@ class FusionState:
         self.rejected: Counter[str] = Counter()
         self.detections_rejected: Counter[str] = Counter()
         self.liveliness_rejected: Counter[str] = Counter()
-        self.rejected_by_pair: Counter[str] = Counter()
+        self.rejected_by_pair: Counter[tuple[str, str]] = Counter()
+        """By pair and kind (``tile``, ``detections``): health tells a pair's tiles refused from
+        its object detections refused (a stall's stale detections read as refused tiles)."""
         self.last_tile_s: dict[str, float] = {}
         self.capture_to_fused_ms: dict[str, float] = {}
         self.processes: dict[str, set[str]] = {}
@@ -143,7 +145,7 @@ class FusionState:
         counters[reason] += 1
         if kind != "presence":
             with contextlib.suppress(ValueError):  # a key of no pair: counted by reason only
-                self.rejected_by_pair[keys.pair_of(key)] += 1
+                self.rejected_by_pair[keys.pair_of(key), kind] += 1
         self.warn.warning(
             f"{kind}_{reason}", f"{kind} rejected", reason=reason, on=key, error=detail[:200]
         )
@@ -329,7 +331,8 @@ def health_of(view: View, writer: StateWriter | None, dropped: Mapping[str, int]
     now = time.time()
     frozen = view.frozen
     window = frozen.window
-    pairs = sorted(set(view.accepted) | set(view.processes) | set(view.rejected_by_pair))
+    refused_pairs = {pair for pair, _ in view.rejected_by_pair}
+    pairs = sorted(set(view.accepted) | set(view.processes) | refused_pairs)
     state: dict[str, Any] = {}
     if writer is not None:
         state = {
@@ -349,7 +352,8 @@ def health_of(view: View, writer: StateWriter | None, dropped: Mapping[str, int]
                 else None,
                 "capture_to_fused_ms": view.capture_to_fused_ms.get(p),
                 "lagging": p in view.lagging,
-                "rejected": view.rejected_by_pair.get(p, 0),
+                "rejected": view.rejected_by_pair.get((p, "tile"), 0),
+                "detections_rejected": view.rejected_by_pair.get((p, "detections"), 0),
             }
             for p in pairs
         },
