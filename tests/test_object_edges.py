@@ -3,6 +3,7 @@ top on a textured (or plain) floor (side faces included, edges antialiased), a d
 centimetres off as the points give it, and the refined outline within a centimetre of the truth."""
 
 import math
+import warnings
 from dataclasses import replace
 
 import cv2
@@ -11,7 +12,7 @@ import numpy.typing as npt
 import pytest
 
 from common.arrays import F64
-from services.depth.object_edges import ImageView, refine_on_edges
+from services.depth.object_edges import EdgeConfig, ImageView, _Across, refine_on_edges
 from services.depth.objects import Detection
 
 WIDTH, HEIGHT, FOCAL_PX, SUPERSAMPLE = 320, 240, 277.0, 4
@@ -249,3 +250,14 @@ def test_a_print_further_in_than_the_search_is_not_a_far_side(print_m: float) ->
     refined = refine_on_edges([prior], image, VIEW)[0]
     points_side_m = prior.center_xy_m[0] + prior.width_m / 2
     assert refined.center_xy_m[0] + refined.width_m / 2 > points_side_m - 0.01
+
+
+def test_the_grey_of_no_sample_is_nan_and_says_nothing_on_stderr() -> None:
+    """numpy's mean of an empty slice warned on stderr, into a depth process's structured log
+    (a soak's log held 'Mean of empty slice' from object_edges)."""
+    across = _Across.at(0.5, VIEW, EdgeConfig())
+    profile = np.linspace(0.0, 1.0, across.offsets_m.size)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert math.isnan(across.grey_at(profile, 10.0, 11.0))  # beyond every sample
+        assert across.grey_at(profile, -1.0, 1.0) == pytest.approx(profile.mean())

@@ -318,8 +318,10 @@ class _Across:
         )
 
     def grey_at(self, profile: F64, low_m: float, high_m: float) -> float:
-        """The mean of a side's profile (grey per offset) over offsets ``low_m`` … ``high_m``."""
-        return float(profile[(self.offsets_m >= low_m) & (self.offsets_m <= high_m)].mean())
+        """The mean of a side's profile (grey per offset) over offsets ``low_m`` … ``high_m``; NaN
+        where none lies there (numpy's mean of nothing said so on stderr, into the service's log)."""
+        values = profile[(self.offsets_m >= low_m) & (self.offsets_m <= high_m)]
+        return float(values.mean()) if values.size else math.nan
 
     def grey_inside(self, profile: F64, edge_m: float) -> float:
         """The top's grey just inside a step at ``edge_m``: a pixel to three pixels in."""
