@@ -65,6 +65,8 @@ FLOOR_SIZE_M = (6.0, 5.0)
 ALIVE_RGB = (0x1F, 0x9D, 0x45)
 """The page's colours of a live pair's footprint and of tracked objects (app.js COLORS)."""
 OBJECT_RGB = (0x15, 0x65, 0xC0)
+LAST_KNOWN_RGB = (0x8A, 0x8F, 0x98)
+"""Objects drawn while the page cannot vouch for them (fusion silent, the viewer lost)."""
 
 
 def _map(occupancy: np.ndarray, i0: int = 0, j0: int = 0, version: int = 1) -> OccupancyMap:
@@ -673,25 +675,35 @@ def test_objects_and_a_rejected_token(bus: Bus, tmp_path: Path, browser_page: An
     assert "not answered yet" in page.inner_text("#banner")
     assert "not served" in page.inner_text("#objects")
     # Objects appear once map/objects answers (here the test answers it, as fusion does): in the
-    # panel, and on the canvas outlined, with an arrow for the one that moves.
+    # panel, and on the canvas outlined, with an arrow for the one that moves; greyed and said to
+    # be the last known, as fusion (its health) does not answer on this bus.
     moving, standing = _tracked(7, (0.5, 0.0)), _tracked(8, (0.0, 0.0), center_m=(3.0, 1.0))
     payload = encode(OBJECTS_KIND, ObjectsHeader(version=1, stamp_ns=2, objects=[moving, standing]))
     queryable = bus.session.declare_queryable(
         "map/objects", lambda query: query.reply("map/objects", payload)
     )
-    page.wait_for_selector('#objects:has-text("2 tracked, 1 moving: 7 (0.5 m/s)")')
+    page.wait_for_selector('#objects:has-text("as last known: 2 tracked, 1 moving: 7 (0.5 m/s)")')
     queryable.undeclare()  # type: ignore[no-untyped-call]
     for tracked in (moving, standing):
         (x, y), (length, _), yaw = tracked.center_m, tracked.size_m, tracked.yaw_rad
         back_x, back_y = x - length / 2 * np.cos(yaw), y - length / 2 * np.sin(yaw)
-        assert _drawn_near(page, back_x, back_y, OBJECT_RGB), tracked.id  # the outline's back edge
-    assert _drawn_near(page, 1.2, 2.0, OBJECT_RGB, radius_px=1)  # 7's arrow, inside its outline
-    assert not _drawn_near(page, 3.2, 1.0, OBJECT_RGB, radius_px=1)  # 8 stands: no arrow
+        assert _drawn_near(page, back_x, back_y, LAST_KNOWN_RGB), tracked.id  # the back edge
+    assert _drawn_near(page, 1.2, 2.0, LAST_KNOWN_RGB, radius_px=1)  # 7's arrow, in its outline
+    assert not _drawn_near(page, 3.2, 1.0, LAST_KNOWN_RGB, radius_px=1)  # 8 stands: no arrow
+    # A change put by fusion reaches the page at once, not at the next poll: 7 has moved.
+    moved = _tracked(7, (0.5, 0.0), center_m=(2.0, 3.0))
+    bus.session.put(
+        "map/objects",
+        encode(OBJECTS_KIND, ObjectsHeader(version=2, stamp_ns=3, objects=[moved, standing])),
+    )
+    back_x, back_y = 2.0 - 0.4 * np.cos(moved.yaw_rad), 3.0 - 0.4 * np.sin(moved.yaw_rad)
+    wait_for(lambda: _drawn_near(page, back_x, back_y, LAST_KNOWN_RGB), 2, "7 drawn where it moved")
     _screenshot(page, tmp_path, "viewer-objects.png")
     # The viewer comes back wanting another token: the page says so, not "reconnecting".
     bus.kill(viewer)
     page.wait_for_selector('#banner[data-kind="disconnected"]', timeout=10_000)
     assert "reconnecting" in page.inner_text("#banner")
+    assert page.inner_text("#objects").startswith("as last known: ")
     bus.start(
         "view", "--http-port", str(port), "--token", "another-token", log_path=tmp_path / "v2.log"
     )

@@ -28,8 +28,9 @@ from common.client import (
     objects,
     query_all,
 )
-from common.codec import CodecError
+from common.codec import CodecError, decode
 from common.logs import RateLimitedLog
+from common.messages import OBJECTS_KIND, ObjectsHeader
 from common.occupancy_map import OccupancyMap
 from services.viewer.footprints import Polygon, pair_footprint
 from services.viewer.status import TileRates, objects_for_page, pair_states
@@ -68,7 +69,8 @@ class FeedState:
     map_health: dict[str, Any] | None = None
     pairs: list[dict[str, Any]] = field(default_factory=list)
     objects: list[dict[str, Any]] | None = None
-    """None while map/objects does not answer."""
+    """None until map/objects first answers; then the newest list, kept while fusion is silent
+    (the page shows it as last known)."""
     cell_times: CellTimes | None = None
     """The last_seen layer, fetched with the height layer; None until then."""
     map_revision: int = 0
@@ -98,12 +100,20 @@ class MapFeed:
         self._height_revision = (-1, -1)
         self._threads: list[threading.Thread] = []
         self._warn = RateLimitedLog(log)
+        self._objects_revision = (-1, -1)
+        """(epoch, version) of the objects shown: a poll's answer older than a put is dropped."""
+        self._objects_subscriber: zenoh.Subscriber[None] | None = None
 
     def state(self) -> FeedState:
         with self._lock:
             return self._state
 
     def start(self, stop: threading.Event) -> None:
+        # Each change of the objects as fusion puts it: polled once a second, a mover's outline
+        # lagged the map (updated four times a second) by up to 3 m.
+        self._objects_subscriber = self._session.declare_subscriber(
+            keys.MAP_OBJECTS, self._on_objects
+        )
         p = self.periods
         polls: list[tuple[str, float, Callable[[], None]]] = [
             ("health", p.health_s, self._poll_health),
@@ -126,6 +136,8 @@ class MapFeed:
             thread.join(max(0.0, deadline - time.monotonic()))
         if self._follower is not None:
             self._follower.close()
+        if self._objects_subscriber is not None:
+            self._objects_subscriber.undeclare()  # type: ignore[no-untyped-call]
 
     def _loop(self, stop: threading.Event, period_s: float, poll: Callable[[], None]) -> None:
         while not stop.is_set():
@@ -273,11 +285,21 @@ class MapFeed:
             self._depth_health = rows
 
     def _poll_objects(self) -> None:
+        """The list when no put came (a viewer started after fusion's last change); a fusion
+        that does not answer leaves the last list (or none: the page says not served)."""
+        self._show_objects(objects(self._session, self.periods.query_timeout_s))
+
+    def _on_objects(self, sample: zenoh.Sample) -> None:
         try:
-            found: list[dict[str, Any]] | None = objects_for_page(
-                objects(self._session, self.periods.query_timeout_s)
-            )
-        except MapUnavailable:
-            found = None  # a fusion without objects: the page says they are not served
-        if found != self._state.objects:
-            self._update(objects=found)
+            header = decode(sample.payload.to_bytes(), OBJECTS_KIND, ObjectsHeader).header
+        except CodecError as error:
+            self._warn.warning("objects", "objects put refused", error=str(error)[:200])
+            return
+        self._show_objects(header)
+
+    def _show_objects(self, header: ObjectsHeader) -> None:
+        with self._lock:
+            if (header.epoch, header.version) <= self._objects_revision:
+                return
+            self._objects_revision = (header.epoch, header.version)
+        self._update(objects=objects_for_page(header))

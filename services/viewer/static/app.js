@@ -14,7 +14,7 @@
   const legend = document.getElementById("legend");
   const heightMode = document.getElementById("height-mode");
 
-  const COLORS = { alive: "#1f9d45", dead: "#d32f2f", unknown: "#e0a100", object: "#1565c0", axisX: "#d32f2f", axisY: "#1f9d45" };
+  const COLORS = { alive: "#1f9d45", dead: "#d32f2f", unknown: "#e0a100", object: "#1565c0", lastKnown: "#8a8f98", axisX: "#d32f2f", axisY: "#1f9d45" };
   const MIN_SPEED_MPS = 0.05; // slower is drawn as standing still: no arrow
   const SERVER_SILENT_S = 3.5; // the server sends status every second: silence means a lost link
   const CONNECT_TIMEOUT_S = 5; // a viewer that accepts the connection but never answers is as gone
@@ -203,13 +203,21 @@
   }
 
   function pairState(pair) {
-    if (!state.status || stale()) return "unknown";
+    if (!state.status || !live()) return "unknown";
     if (pair.alive) return "alive";
     return pair.known_to_fusion ? "dead" : "no-depth";
   }
 
   function stale() {
     return Boolean(state.status && state.status.stale);
+  }
+
+  // Whether what the page shows is current: the viewer connected and speaking, fusion answering.
+  // Otherwise pairs, ages and objects are the last known, and said to be (they read as live
+  // through a viewer's outage).
+  function live() {
+    const silentS = (performance.now() - state.lastMessageMs) / 1000;
+    return state.connected && silentS <= SERVER_SILENT_S && !stale();
   }
 
   function pairLine(pair) {
@@ -266,24 +274,25 @@
 
   function drawObjects() {
     const objects = (state.status && state.status.objects) || [];
+    const color = live() ? COLORS.object : COLORS.lastKnown; // as last known: greyed
     for (const o of objects) {
       const outline = objectOutline(o);
       if (!outline) continue;
       polygonPath(outline);
       ctx.lineWidth = 2;
-      ctx.strokeStyle = COLORS.object;
+      ctx.strokeStyle = color;
       ctx.stroke();
       const cx = outline.reduce((a, p) => a + p[0], 0) / outline.length;
       const cy = outline.reduce((a, p) => a + p[1], 0) / outline.length;
       if (o.velocity_mps && Math.hypot(o.velocity_mps[0], o.velocity_mps[1]) > MIN_SPEED_MPS) {
         const [ax, ay] = worldToScreen(cx, cy);
         const [bx, by] = worldToScreen(cx + o.velocity_mps[0], cy + o.velocity_mps[1]); // 1 s ahead
-        arrow(ax, ay, bx, by, COLORS.object);
+        arrow(ax, ay, bx, by, color);
       }
       const bound = o.partial ? "≥" : o.size_unsure ? "~" : "";
       const size = o.size_m ? ` ${bound}${o.size_m[0].toFixed(2)}×${o.size_m[1].toFixed(2)} m` : "";
       const [sx, sy] = worldToScreen(cx, cy);
-      label(`${o.id}${o.class ? " " + o.class : ""}${size}`, sx + 6, sy - 20, COLORS.object);
+      label(`${o.id}${o.class ? " " + o.class : ""}${size}`, sx + 6, sy - 20, color);
     }
   }
 
@@ -370,7 +379,7 @@
       const li = document.createElement("li");
       li.dataset.pair = pair.pair;
       li.dataset.state = s;
-      li.classList.toggle("stale", stale()); // the details are as fusion last told them
+      li.classList.toggle("stale", !live()); // the details are as last told
       const name = document.createElement("span");
       name.className = "name";
       name.textContent = pair.pair;
@@ -379,8 +388,11 @@
       word.textContent = { alive: "alive", dead: "DEAD", "no-depth": "no depth", unknown: "unknown" }[s];
       const detail = document.createElement("div");
       detail.className = "detail";
+      const working = s === "alive" || s === "unknown"; // a dead pair has no rate nor latency now
       detail.textContent =
-        `frame rate ${fmt(pair.frame_rate_hz, 1, "Hz")} · latency ${fmt(pair.capture_to_map_ms, 0, "ms")}\n` +
+        (live() ? "" : "as last known: ") +
+        `frame rate ${working ? fmt(pair.frame_rate_hz, 1, "Hz") : "—"} · ` +
+        `latency ${working ? fmt(pair.capture_to_map_ms, 0, "ms") : "—"}\n` +
         `last tile ${ago(pair.last_tile_age_s)}` +
         (pair.floor_model ? ` · floor model ${pair.floor_model}` : "") +
         (pair.footprint_m ? "" : " · no calibration");
@@ -392,12 +404,12 @@
       objectsBox.className = "muted";
       objectsBox.textContent = "map/objects not served";
     } else {
-      objectsBox.className = "";
+      objectsBox.className = live() ? "" : "muted";
       const moving = status.objects.filter((o) => o.velocity_mps && Math.hypot(...o.velocity_mps) > MIN_SPEED_MPS);
-      objectsBox.textContent = status.objects.length
+      objectsBox.textContent = (live() ? "" : "as last known: ") + (status.objects.length
         ? `${status.objects.length} tracked, ${moving.length} moving` +
           (moving.length ? `: ${moving.map((o) => `${o.id} (${Math.hypot(...o.velocity_mps).toFixed(1)} m/s)`).join(", ")}` : "")
-        : "none tracked";
+        : "none tracked");
     }
   }
 
@@ -434,7 +446,7 @@
     if (status && status.map && status.map.capture_age_s !== null) parts.push(`newest capture ${status.map.capture_age_s.toFixed(1)} s ago`);
     if (status && status.pairs.length === 0) {
       parts.push("no pairs yet");
-    } else if (status && stale()) {
+    } else if (status && !live()) {
       const n = status.pairs.length;
       parts.push(`${n} pair${n === 1 ? "" : "s"}, state unknown`); // as the panel says
     } else if (status) {
@@ -619,9 +631,16 @@
       });
   }
 
+  let wasLive = null;
   setInterval(() => {
     renderBanner();
     renderReadout(); // the age of "last observed" goes on
+    if (live() !== wasLive) { // the link or fusion went or came back: say which values are current
+      wasLive = live();
+      renderPanel();
+      renderSummary();
+      queueDraw();
+    }
     const socket = state.socket;
     if (!socket) return;
     const nowMs = performance.now();
@@ -653,6 +672,10 @@
     canvas.classList.remove("dragging");
   };
   canvas.addEventListener("pointerup", endDrag);
+  canvas.addEventListener("pointerleave", () => {
+    state.pointer = null; // the readout is of the cell under the pointer: none now
+    readout.textContent = "\u00a0"; // its line kept: the canvas must not change size under it
+  });
   canvas.addEventListener("pointercancel", endDrag);
   canvas.addEventListener(
     "wheel",
