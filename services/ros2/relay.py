@@ -88,7 +88,7 @@ class MapRelay:
         objects_subscriber = self._session.declare_subscriber(keys.MAP_OBJECTS, self._on_objects)
         try:
             sent = follower.map
-            published = self._publish_map(sent)
+            self._publish_map(sent)
             self._publish_height()
             objects_version = self._publish_first_objects()
             map_due = False
@@ -105,9 +105,9 @@ class MapRelay:
                     if current.epoch != sent.epoch:
                         self._log.info("fusion started a new map", extra={"epoch": current.epoch})
                     changed = changed_window(sent, current)
-                    if changed is None or not published:  # moved or grew: a whole map says it
+                    # Moved or grew, or none sent yet (no cell till now): a whole map says it.
+                    if changed is None or self.counts["map"] == 0:
                         if self._publish_map(current):
-                            published = True
                             last_map_s, map_due = time.monotonic(), False
                     else:
                         if not changed.empty:
