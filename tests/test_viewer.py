@@ -690,7 +690,9 @@ def test_objects_and_a_rejected_token(bus: Bus, tmp_path: Path, browser_page: An
         assert _drawn_near(page, back_x, back_y, LAST_KNOWN_RGB), tracked.id  # the back edge
     assert _drawn_near(page, 1.2, 2.0, LAST_KNOWN_RGB, radius_px=1)  # 7's arrow, in its outline
     assert not _drawn_near(page, 3.2, 1.0, LAST_KNOWN_RGB, radius_px=1)  # 8 stands: no arrow
-    # A change put by fusion reaches the page at once, not at the next poll: 7 has moved.
+    # A put that is no object list is refused (the viewer goes on); a change put by fusion
+    # reaches the page at once, not at the next poll: 7 has moved.
+    bus.session.put("map/objects", b"\x00\x01garbage")
     moved = _tracked(7, (0.5, 0.0), center_m=(2.0, 3.0))
     bus.session.put(
         "map/objects",
@@ -698,6 +700,7 @@ def test_objects_and_a_rejected_token(bus: Bus, tmp_path: Path, browser_page: An
     )
     back_x, back_y = 2.0 - 0.4 * np.cos(moved.yaw_rad), 3.0 - 0.4 * np.sin(moved.yaw_rad)
     wait_for(lambda: _drawn_near(page, back_x, back_y, LAST_KNOWN_RGB), 2, "7 drawn where it moved")
+    assert "objects put refused" in (tmp_path / "view.log").read_text()
     _screenshot(page, tmp_path, "viewer-objects.png")
     # The viewer comes back wanting another token: the page says so, not "reconnecting".
     bus.kill(viewer)
