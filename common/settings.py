@@ -23,6 +23,7 @@ from pydantic.dataclasses import is_pydantic_dataclass
 from pydantic_settings import (
     BaseSettings,
     CliSettingsSource,
+    CliToggleFlag,
     NoDecode,
     SettingsConfigDict,
     SettingsError,
@@ -95,7 +96,9 @@ class ZenohSettings(OvergridSettings):
     config: Path | None = Field(
         None, description="Zenoh JSON5 config file (default: $ZENOH_CONFIG if set)"
     )
-    no_multicast_scouting: bool = Field(False, description="disable multicast scouting")
+    no_multicast_scouting: CliToggleFlag[bool] = Field(
+        False, description="disable multicast scouting"
+    )
     namespace: str | None = Field(
         None, description="Zenoh namespace prefixed to every key: isolates a site or a test run"
     )

@@ -168,3 +168,5 @@ def test_help_names_types_as_a_user_types_them() -> None:
     assert shown.returncode == 0, shown.stderr
     assert "--config Path" in shown.stdout and "--mode {peer,client,router}" in shown.stdout
     assert "null" not in shown.stdout.replace("(default: null)", "")
+    # A flag that switches something off reads as one: never "--no-no-multicast-scouting".
+    assert "--no-multicast-scouting" in shown.stdout and "--no-no-" not in shown.stdout
