@@ -1411,6 +1411,14 @@ def test_a_plain_raised_top_of_the_floors_grey_is_filled_from_its_measured_outli
         heights = geometry.height_m(evidence)[inner]
     assert float(np.mean(np.abs(heights - top_m) < 0.15)) > 0.8  # without rule 8: 6 %
     assert float(np.mean(np.abs(heights) < 0.05)) < 0.02  # never floor
+    # The filled heights are named inferred (the tile drops them over floor it measures); the
+    # floor around is not.
+    assert float(np.mean(model.inferred[inner])) > 0.8
+    around = np.zeros((height, width), np.bool_)
+    around[patch[0].start - 10 : patch[0].stop + 10, patch[1].start - 10 : patch[1].stop + 10] = (
+        True
+    )
+    assert not model.inferred[~around].any()
 
 
 def test_a_plain_top_is_filled_from_its_outlines_measurements_in_the_band_only() -> None:

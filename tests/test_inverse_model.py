@@ -258,3 +258,24 @@ def test_points_a_taller_top_hides_from_the_camera_give_no_reading() -> None:
     assert seen[22] == (0.0, 0)
     assert seen[16][0] > 0.0
     assert seen[32] == everything[32]  # every point of the box's cell kept
+
+
+def test_an_inferred_height_over_floor_the_frame_measures_gives_no_hit() -> None:
+    """Band points whose height the floor model carried in (rules 7 and 8: a plain face below a
+    top's edge takes the top's height and lands out over the floor in front of it) are left out
+    of a cell where the frame measures two floor points or more: that cell reads free. Inferred
+    points over no measured floor (inside the top), or with one floor point, keep their cells
+    occupied, and measured band points are never left out."""
+    params = SensorModelParams()
+    # Cells 0–1: a plain top inferred whole; 2: its face's inferred points over measured floor;
+    # 3: the same over one floor point; 4: measured band points beside measured floor.
+    spots = [(0, 6, 1.1, True), (1, 6, 1.1, True), (2, 6, 1.1, True), (2, 3, 0.0, False)]
+    spots += [(3, 4, 1.1, True), (3, 1, 0.0, False), (4, 6, 1.1, False), (4, 3, 0.0, False)]
+    points = _points([(i, n, h) for i, n, h, _ in spots])
+    inferred = np.array([flag for _, n, _, flag in spots for _ in range(n)])
+    with_rule = build_tile(points, R, params, 3, inferred=inferred).logodds[0]
+    without = build_tile(points, R, params, 3).logodds[0]
+    assert without[2] > 0  # the face's inferred points make a false obstacle without the rule
+    assert with_rule[2] < 0  # … and with it the floor there reads free
+    assert with_rule[0] > 0 and with_rule[1] > 0 and with_rule[3] > 0
+    assert with_rule[4] == pytest.approx(without[4]) and with_rule[4] > 0

@@ -473,6 +473,9 @@ class FloorModel:
         self._modelled = np.zeros((height, width), np.bool_)
         self.hidden = np.zeros((height, width), np.bool_)
         """Rule 10, of the last frame: pixels whose floor is hidden by something standing there."""
+        self.inferred = np.zeros((height, width), np.bool_)
+        """Of the last frame: pixels whose height rules 7 and 8 carried in from around (no measurement
+        of their own): the tile drops them where the frame measures the floor in their cell."""
         self.plain_floor = False
         """The floor seen is plain (TEXTURED_FLOOR_SHARE): rule 4's pixels the model does not hold.
         Decided in each learning frame that sees enough floor, after that frame's evidence: False
@@ -793,6 +796,7 @@ class FloorModel:
         # Floor observations sit at height 0 (measurements are corrected to the calibration's floor).
         out = np.where(observed, self.geometry.floor_disparity_px, measured).astype(np.float32)
         self._close_gaps(out)  # rule 9
+        self.inferred = (bridged | filled) & ~fallen & ~observed
 
         # Rule 10 (not in a frame that re-learns: there the whole image departs).
         hidden = departs | put_down

@@ -267,6 +267,40 @@ def _tops(
     return top
 
 
+INFERRED_FLOOR_MIN_POINTS = 2
+"""A cell where the frame measures this many floor points or more takes none of its inferred band
+points (:func:`inferred_over_floor`)."""
+
+
+def inferred_over_floor(
+    points: WorldPoints,
+    inferred: npt.NDArray[np.bool_],
+    resolution_m: float,
+    params: SensorModelParams,
+) -> npt.NDArray[np.bool_]:
+    """The inferred band points (``inferred``, one per point: a height the floor model carried
+    over a hole from its edges, rules 7 and 8) that land in a cell where the same frame measures at
+    least INFERRED_FLOOR_MIN_POINTS floor points: the frame sees the floor there, so nothing
+    stands on it. A plain face below a top's edge takes the top's height and lands out over the
+    floor in front of it, toward the camera (the forklift's views ran 1.3–1.5 m long for 1.2:
+    offline, default scene, of the cells its inferred points reached 5–25 cm outside it, 70 %
+    held floor the frame measured; of those inside it, 1.6 %). The floor model's own test
+    (``FloorModel._keep_standing``) asks for floor all around the pixel straight below; a cell's
+    floor points are enough here."""
+    if points.x_m.size == 0:
+        return np.zeros(0, np.bool_)
+    i = cell_of(points.x_m, resolution_m).astype(np.int64)
+    j = cell_of(points.y_m, resolution_m).astype(np.int64)
+    cell = (j - j.min()) * (i.max() - i.min() + 1) + (i - i.min())
+    modelled = in_model_range(points.height_m, points.height_sigma_m, params)
+    band = points.height_m >= params.obstacle_min_m
+    floor_points = np.bincount(cell[modelled & ~band & ~inferred], minlength=int(cell.max()) + 1)
+    dropped: npt.NDArray[np.bool_] = (
+        inferred & band & (floor_points[cell] >= INFERRED_FLOOR_MIN_POINTS)
+    )
+    return dropped
+
+
 def build_tile(
     points: WorldPoints,
     resolution_m: float,
@@ -275,6 +309,7 @@ def build_tile(
     hidden_xy_m: npt.NDArray[np.float32] | None = None,
     camera_m: tuple[float, float, float] | None = None,
     top_out_of_view: npt.NDArray[np.bool_] | None = None,
+    inferred: npt.NDArray[np.bool_] | None = None,
 ) -> Tile:
     """The frame's tile. ``hidden_xy_m`` (2 × N): floor points of the pixels whose floor is
     hidden; a cell holding at least ``min_cell_pixels`` of them, and at least as many as its
@@ -285,8 +320,12 @@ def build_tile(
     and the cells that held them give no free reading (what reads floor there is the same depth
     edge's floor, not the cell seen empty); and a side face lying beyond a cell's centre is left
     out of that cell's share and pixel count (:func:`_faces_beyond_centre`), judged so without a
-    top seen above it for the points flagged in ``top_out_of_view`` (one per point)."""
+    top seen above it for the points flagged in ``top_out_of_view`` (one per point). The points
+    flagged in ``inferred`` (one per point: a height the floor model carried in, not measured) are
+    left out of a cell where the frame measures the floor (:func:`inferred_over_floor`)."""
     keep = in_model_range(points.height_m, points.height_sigma_m, params)
+    if inferred is not None:
+        keep &= ~inferred_over_floor(points, inferred, resolution_m, params)
     x, y = points.x_m[keep], points.y_m[keep]
     height, sigma = points.height_m[keep], points.height_sigma_m[keep]
     out_of_view = None if top_out_of_view is None else top_out_of_view[keep]

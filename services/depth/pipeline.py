@@ -206,6 +206,7 @@ class DepthPipeline:
                 float(self.rectifier.C_world[2]),
             ),
             self.top_out_of_view[valid_px],
+            None if self.floor_model is None else self.floor_model.inferred.ravel()[valid_px],
         )
         times.append(time.perf_counter())
         # "disparity" is the whole chain: matcher and its optional stages (stereo.DisparityChain).
