@@ -123,3 +123,30 @@ def test_sigterm_stops_up_and_every_child(bus: Bus, tmp_path: Path) -> None:
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
             process.wait()
+
+
+SIGNAL_WHILE_THE_EVENT_IS_LOCKED = """
+import os, signal
+from common.lifecycle import stop_on_signals
+stop = stop_on_signals()
+with stop._cond:  # the main thread holds the event's lock, as inside its own stop.wait
+    os.kill(os.getpid(), signal.SIGINT)  # the handler runs at one of the next bytecodes
+    os.kill(os.getpid(), signal.SIGTERM)  # and a second, as GNU timeout sends
+    sum(range(100_000))
+print("stopped" if stop.wait(5.0) else "not stopped", flush=True)
+"""
+
+
+def test_a_stop_signal_while_the_main_thread_holds_the_stop_events_lock_stops_it() -> None:
+    """A handler runs in the main thread between two of its bytecodes; one that set the stop
+    event itself blocked for good on the event's lock when the main thread held it (inside its
+    own ``stop.wait``, or inside a first signal's handler when a second came: a depth process
+    under GNU ``timeout`` hung in one stop of eight)."""
+    done = subprocess.run(
+        [sys.executable, "-c", SIGNAL_WHILE_THE_EVENT_IS_LOCKED],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=20,
+    )
+    assert done.returncode == 0 and done.stdout == "stopped\n", done.stdout + done.stderr
