@@ -18,7 +18,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal, NoReturn, TypeVar
 
-from pydantic import BaseModel, BeforeValidator, Field, ValidationError
+from pydantic import AfterValidator, BaseModel, BeforeValidator, Field, ValidationError
 from pydantic.dataclasses import is_pydantic_dataclass
 from pydantic_settings import (
     BaseSettings,
@@ -49,6 +49,47 @@ def _split_commas(value: Any) -> Any:
 
 CommaList = Annotated[list[str], NoDecode, BeforeValidator(_split_commas)]
 """A list setting given as ``--flag a,b``, ``--flag a --flag b`` or ``OVERGRID_FLAG=a,b``."""
+
+PORTED_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+"""Zenoh's link protocols whose locator is HOST:PORT (a unix socket's is a path)."""
+
+
+def _check_endpoints(endpoints: list[str]) -> list[str]:
+    """PROTOCOL/HOST:PORT with a port Zenoh can use: in peer mode Zenoh starts with an endpoint
+    of port 99999 or a bracket left open, logs a line at most and never connects."""
+    for endpoint in endpoints:
+        protocol, slash, locator = endpoint.partition("/")
+        address = locator.split("?")[0].split("#")[0]
+        if not slash or not protocol or not address:
+            raise ValueError(
+                f"{endpoint!r}: an endpoint is PROTOCOL/HOST:PORT, e.g. tcp/10.0.0.2:7447"
+            )
+        if protocol not in PORTED_PROTOCOLS:
+            continue
+        host, colon, port = address.rpartition(":")
+        if not colon or not port.isdigit() or not 0 <= int(port) <= 65535:
+            raise ValueError(f"{endpoint!r}: no port from 0 to 65535 after the host")
+        if host.startswith("[") != host.endswith("]") or not host.strip("[]"):
+            raise ValueError(f"{endpoint!r}: no host (an IPv6 address in brackets: [::1])")
+    return endpoints
+
+
+Endpoints = Annotated[CommaList, AfterValidator(_check_endpoints)]
+
+
+def _check_namespace(namespace: str | None) -> str | None:
+    """A key expression without wildcards or empty chunks: Zenoh's own error for one names
+    neither the setting nor the value."""
+    if namespace is None:
+        return None
+    chunks = namespace.split("/")
+    if not all(chunks) or any(mark in namespace for mark in "*$#?"):
+        raise ValueError(
+            "a key expression: no empty chunk (a leading, trailing or double slash) and no "
+            "wildcard (* $ # ?)"
+        )
+    return namespace
+
 
 LogLevel = Literal["debug", "info", "warning", "error"]
 
@@ -91,15 +132,15 @@ class ZenohSettings(OvergridSettings):
     mode: Literal["peer", "client", "router"] | None = Field(
         None, description="Zenoh session mode (default: the config file's, else peer)"
     )
-    connect: CommaList = Field(default_factory=list, description="endpoints to connect to")
-    listen: CommaList = Field(default_factory=list, description="endpoints to listen on")
+    connect: Endpoints = Field(default_factory=list, description="endpoints to connect to")
+    listen: Endpoints = Field(default_factory=list, description="endpoints to listen on")
     config: Path | None = Field(
         None, description="Zenoh JSON5 config file (default: $ZENOH_CONFIG if set)"
     )
     no_multicast_scouting: CliToggleFlag[bool] = Field(
         False, description="disable multicast scouting"
     )
-    namespace: str | None = Field(
+    namespace: Annotated[str | None, AfterValidator(_check_namespace)] = Field(
         None, description="Zenoh namespace prefixed to every key: isolates a site or a test run"
     )
     log_level: LogLevel = Field("info", description="log verbosity")

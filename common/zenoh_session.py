@@ -13,12 +13,14 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any, Literal
 
 import zenoh
 
 from common.lifecycle import wait_for_stop
 from common.logs import Transitions
+from common.setting_files import setting_file_text
 from common.settings import ZenohSettings, startup_error
 from common.zenoh_diagnosis import TLS_KEY, certificate_problem, probe_endpoints
 
@@ -81,6 +83,11 @@ def zenoh_config(settings: ZenohSettings, *, timestamping: bool = False) -> zeno
     it on for every session: a best-effort transient_local topic)."""
     config_path = _config_path(settings)
     where = _config_source(settings) or "Zenoh settings"
+    if config_path:
+        try:  # Zenoh's parser hangs on a pipe and crashes on brackets 60,000 deep
+            setting_file_text(Path(config_path))
+        except (OSError, ValueError) as error:
+            startup_error(f"{where}: {error}")
     try:
         config = _config(settings, config_path)
         if timestamping:

@@ -7,17 +7,16 @@ rendering different pairs, and ``sim/truth``, agree without talking to each othe
 from __future__ import annotations
 
 import itertools
-import json
 import math
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
 
 from common.lattice import Window
 from common.messages import TruthObject
+from common.setting_files import load_data_file
 
 ShapeKind = Literal["box", "cylinder", "shelf", "pallet"]
 
@@ -169,9 +168,7 @@ class SceneSpec(BaseModel):
 
 def load_scene(path: Path) -> SceneSpec:
     """A scene written by hand, JSON or YAML, with the fields of :class:`SceneSpec`."""
-    text = Path(path).read_text()
-    data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
-    return SceneSpec.model_validate(data)
+    return SceneSpec.model_validate(load_data_file(Path(path)))
 
 
 def _footprint_radius(size_m: tuple[float, float, float]) -> float:

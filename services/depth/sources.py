@@ -9,7 +9,6 @@ in the numbers' order (``2.png`` before ``10.png``).
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from collections.abc import Generator
@@ -21,6 +20,7 @@ import yaml
 from pydantic import ValidationError
 
 from common.camera import StereoCalibration
+from common.setting_files import data_of, setting_file_text
 from services.depth.intake import Rejection, check_images
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"}
@@ -33,15 +33,14 @@ class InputError(ValueError):
 def load_calibration(path: Path) -> StereoCalibration:
     """A YAML or JSON file with the fields of :class:`StereoCalibration` (see README)."""
     try:
-        text = Path(path).read_text()
+        text = setting_file_text(Path(path))
         if text.lstrip().startswith("%YAML:1.0") or "!!opencv-matrix" in text:
             raise InputError(
                 f"--calib {path}: an OpenCV FileStorage file, which overgrid does not read: write "
                 "each camera's width, height, K, dist and T_world_cam (the camera's pose in the "
                 "world) as plain YAML or JSON (README, Real cameras)"
             )
-        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
-        return StereoCalibration.model_validate(data)
+        return StereoCalibration.model_validate(data_of(text, path))
     except ValidationError as error:
         problems = "; ".join(
             f"{'.'.join(str(p) for p in e['loc']) or 'file'}: {e['msg']}" for e in error.errors()
@@ -71,6 +70,8 @@ def check_recording(source: Path, image_size: tuple[int, int] | None = None) -> 
             raise InputError(f"--images {source}: {error}") from None
     elif not source.exists():
         raise InputError(f"--images {source}: no such folder or video file")
+    elif not source.is_file():  # a pipe or a device: reading it would block the start for good
+        raise InputError(f"--images {source}: not a folder of image pairs or a video file")
     else:
         capture = _video(source)
         opened = capture.isOpened()

@@ -1,6 +1,7 @@
 """Bad settings and files stop start-up with one line that names them (exit 2), never a traceback;
 bad queries to the simulator get an error reply, never silence."""
 
+import os
 import socket
 import time
 from collections.abc import Callable
@@ -71,7 +72,7 @@ def test_a_depth_resolution_no_camera_resolves_is_refused(resolution: str) -> No
 def test_a_missing_zenoh_config_file_is_named(tmp_path: Path) -> None:
     missing = tmp_path / "missing.json5"
     assert_one_line_exit_2(
-        run_overgrid("health", "--config", str(missing)), str(missing), "No such file"
+        run_overgrid("health", "--config", str(missing)), str(missing), "no such file"
     )
 
 
@@ -161,9 +162,51 @@ def test_a_bad_calibration_file_is_named(tmp_path: Path, text: str, says: str) -
 
 
 def test_a_recording_that_is_not_there_is_named(tmp_path: Path) -> None:
-    for source in (tmp_path / "nonexistent", tmp_path):  # missing; a folder without image pairs
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)  # reading it blocked the start past SIGTERM
+    # Missing; a folder without image pairs; a pipe.
+    for source in (tmp_path / "nonexistent", tmp_path, pipe):
         result = run_overgrid("depth", "--pair", "p0", "--images", str(source))
         assert_one_line_exit_2(result, f"--images {source}")
+
+
+def test_a_file_setting_that_is_a_pipe_or_nested_too_deep_is_refused(tmp_path: Path) -> None:
+    """A pipe named as a file blocked the start past SIGTERM; YAML 600 levels deep ended in a
+    RecursionError's 3000 lines, a Zenoh config's brackets 60,000 deep in a crash (SIGSEGV)."""
+    pipe, deep_yaml, deep_json5 = tmp_path / "pipe", tmp_path / "deep.yaml", tmp_path / "z.json5"
+    os.mkfifo(pipe)
+    deep_yaml.write_text("".join("  " * level + "a:\n" for level in range(600)))
+    deep_json5.write_text("[" * 60_000)
+    for args, says in [
+        (("health", "--config", str(pipe)), "not a regular file"),
+        (("health", "--config", str(deep_json5)), "nested 60000 deep"),
+        (("health", "--config", str(tmp_path)), "not a regular file"),
+        (("depth", "--pair", "p0", "--calib", str(pipe)), "not a regular file"),
+        (("depth", "--pair", "p0", "--calib", str(deep_yaml)), "nested too deep"),
+        (("camera-sim", "--scene", str(deep_yaml)), "nested too deep"),
+        (("camera-sim", "--scene", str(pipe)), "not a regular file"),
+    ]:
+        assert_one_line_exit_2(run_overgrid(*args), args[-1], says)
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "says"),
+    [
+        ("--namespace", "site/*", "wildcard"),
+        ("--namespace", "", "empty chunk"),
+        ("--namespace", "site//a", "empty chunk"),
+        ("--connect", "tcp/127.0.0.1:99999", "port"),
+        ("--connect", "tcp/[::1", "host"),
+        ("--listen", "tcp/", "PROTOCOL/HOST:PORT"),
+    ],
+)
+def test_a_namespace_or_endpoint_zenoh_cannot_use_is_refused(
+    flag: str, value: str, says: str
+) -> None:
+    """Zenoh's own error for a wildcard namespace named neither the flag nor the value; an empty
+    one was taken as none; in peer mode an endpoint of port 99999 or an open bracket started a
+    service that never connected."""
+    assert_one_line_exit_2(run_overgrid("fusion", f"{flag}={value}"), flag, says)
 
 
 @pytest.mark.parametrize(
