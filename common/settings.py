@@ -115,6 +115,7 @@ class OvergridSettings(BaseSettings):
         cli_exit_on_error=False,  # parse errors become one line (startup_error), not a usage dump
         cli_show_env_vars=True,
         cli_hide_none_type=True,  # "--config Path", not "--config {Path,null}"
+        allow_inf_nan=False,  # no setting means "forever" by inf: 1e300 overflowed as well
     )
 
 
@@ -123,7 +124,7 @@ class OvergridParams(BaseModel):
     hands to its children unchanged. (A settings-style config, so that a service's settings can be
     both this and :class:`ZenohSettings`.)"""
 
-    model_config = SettingsConfigDict(extra="forbid")
+    model_config = SettingsConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class ZenohSettings(OvergridSettings):

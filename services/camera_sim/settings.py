@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import yaml
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import SettingsConfigDict
 
 from common.settings import CommaList, OvergridParams, ZenohSettings, startup_error
@@ -16,6 +16,8 @@ from services.camera_sim.rig import RigSpec, pair_name
 from services.camera_sim.scene import FloorKind, SceneSpec, generate_scene, load_scene
 from services.camera_sim.sensor import SensorParams
 
+MIN_LIGHT_STEP_PERIOD_S = 1.0
+"""Light steps a second apart at the most (a period of 1e-300 s overflowed the step's count)."""
 _SENSOR = SensorParams()
 _CALIB_ERROR = CalibrationError()
 
@@ -39,10 +41,13 @@ class CameraSimParams(OvergridParams):
     pairs: CommaList = Field(
         default_factory=list, description="render only these pairs (e.g. p0,p2)"
     )
-    rate_hz: float = Field(2.0, gt=0.0, le=60.0, description="frames per second per pair")
+    rate_hz: float = Field(2.0, ge=0.01, le=60.0, description="frames per second per pair")
     vary_lighting: bool = Field(False, description="slowly vary the lighting over time")
     light_step_period_s: float = Field(
-        0.0, ge=0.0, description="half the lights off in the second half of every period (0: never)"
+        0.0,
+        ge=0.0,
+        le=1e6,
+        description="half the lights off in the second half of every period (0: never, else ≥ 1)",
     )
     ideal_cameras: bool = Field(
         False, description="noise-free renders and the exact calibration (the ideal world)"
@@ -83,6 +88,13 @@ class CameraSimParams(OvergridParams):
                 f"--pairs names {unknown}, but --pair-count {count} has only p0…p{count - 1}"
             )
         return self
+
+    @field_validator("light_step_period_s")
+    @classmethod
+    def _a_period_or_never(cls, period_s: float) -> float:
+        if 0.0 < period_s < MIN_LIGHT_STEP_PERIOD_S:
+            raise ValueError(f"0 (never) or at least {MIN_LIGHT_STEP_PERIOD_S:g} s")
+        return period_s
 
     def pair_names(self) -> list[str]:
         """Every pair of the rig."""

@@ -215,9 +215,11 @@ class MatcherConfig:
         default=10, ge=0, le=100, description="matcher uniqueness ratio, %"
     )
     speckle_window: int = Field(
-        default=100, ge=0, description="largest speckle removed, px (0: off)"
+        default=100, ge=0, le=100_000, description="largest speckle removed, px (0: off)"
     )
-    speckle_range: int = Field(default=2, ge=0, description="disparity range within a speckle, px")
+    speckle_range: int = Field(
+        default=2, ge=0, le=1000, description="disparity range within a speckle, px"
+    )
     full_width: bool = Field(default=True, description="match the image's left margin too (padded)")
     """Match the left margin too (:func:`match_full_width`) instead of leaving it invalid."""
     edge_filter_px: float = Field(

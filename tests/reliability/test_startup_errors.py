@@ -242,3 +242,22 @@ def test_a_calibration_of_absurd_geometry_is_refused_at_start(
         str(path),
         says,
     )
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("camera-sim", "--rate-hz", "1e-300"),
+        ("camera-sim", "--light-step-period-s", "1e-300"),
+        ("depth", "--pair", "p0", "--matcher.speckle-window", "2147483648"),
+        ("depth", "--pair", "p0", "--max-message-mb", "inf"),
+        ("fusion", "--max-tile-age-s", "inf"),
+        ("up", "--fusion.max-tile-age-s", "nan"),
+    ],
+    ids=lambda args: " ".join(args[-2:]),
+)
+def test_a_number_setting_no_service_can_run_with_is_refused(args: tuple[str, ...]) -> None:
+    """Infinite, NaN and absurd numbers: each ended in an OverflowError or OpenCV's "integer
+    won't fit into a C int" traceback (blamed on the calibration file), or, under ``up``, in a
+    child's death after the others had started."""
+    assert_one_line_exit_2(run_overgrid(*args), args[-2].removeprefix("--fusion."))
