@@ -111,6 +111,8 @@ def _encoded_image(
     if size is None:
         raise _Refused("undecodable", f"{side} blob is not a {encoding} image")
     _check_size(side, size, image_size)
+    if encoding == "jpeg" and not jpeg_complete(blob):
+        raise _Refused("undecodable", f"{side} jpeg image is cut short (no end-of-image marker)")
     image = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise _Refused("undecodable", f"{side} {encoding} image does not decode")
@@ -123,6 +125,12 @@ def _check_size(side: str, size: tuple[int, int], image_size: tuple[int, int]) -
             "wrong_size",
             f"{side} image is {size[0]}×{size[1]}, calibration says {image_size[0]}×{image_size[1]}",
         )
+
+
+def jpeg_complete(blob: bytes) -> bool:
+    """Whether a JPEG ends with its end-of-image marker (padding after it aside): libjpeg decodes
+    a file cut short as grey below the cut, with a warning on stderr and no error."""
+    return blob.rstrip(b"\0").endswith(b"\xff\xd9")
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

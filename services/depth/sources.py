@@ -21,7 +21,7 @@ from pydantic import ValidationError
 
 from common.camera import StereoCalibration
 from common.setting_files import data_of, setting_file_text
-from services.depth.intake import Rejection, check_images
+from services.depth.intake import Rejection, check_images, jpeg_complete
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"}
 
@@ -145,6 +145,20 @@ def _image_pairs(folder: Path) -> list[tuple[Path, Path]]:
     return pairs
 
 
+def _read_image(path: Path) -> np.ndarray | None:
+    """The image file's pixels, unchanged (16-bit files are reduced as 16-bit frames are; colour
+    files read as BGR swap the gray weights of red and blue, alike in both images); None if it
+    does not decode, or is a JPEG cut short (libjpeg decodes those as grey below the cut)."""
+    try:
+        blob = path.read_bytes()
+    except OSError:
+        return None
+    if path.suffix.lower() in (".jpg", ".jpeg") and not jpeg_complete(blob):
+        return None
+    image = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
+    return None if image is None else np.asarray(image)
+
+
 def recorded_frames(
     source: Path,
 ) -> Generator[tuple[np.ndarray, np.ndarray] | Rejection, None, None]:
@@ -152,12 +166,10 @@ def recorded_frames(
     not read is a rejection, and the recording goes on."""
     if source.is_dir():
         for left_path, right_path in _image_pairs(source):
-            # Unchanged: 16-bit files are reduced as 16-bit frames are (colour files read as BGR
-            # swap the gray weights of red and blue, alike in both images).
-            left = cv2.imread(str(left_path), cv2.IMREAD_UNCHANGED)
-            right = cv2.imread(str(right_path), cv2.IMREAD_UNCHANGED)
+            left, right = _read_image(left_path), _read_image(right_path)
             if left is None or right is None:
-                yield Rejection("undecodable", f"cannot read {left_path} or {right_path}")
+                unread = [str(p) for p, i in ((left_path, left), (right_path, right)) if i is None]
+                yield Rejection("undecodable", f"cannot read {' nor '.join(unread)}")
             else:
                 yield left, right
         return
