@@ -8,10 +8,20 @@ from __future__ import annotations
 
 import math
 from functools import cached_property
+from typing import Annotated
 
 import numpy as np
 import numpy.typing as npt
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_validator,
+)
+
+from common.keys import check_pair_id
 
 Matrix = list[list[float]]
 
@@ -207,7 +217,7 @@ class StereoCalibration(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    pair: str
+    pair: Annotated[str, AfterValidator(check_pair_id)]
     left: PinholeCamera
     right: PinholeCamera
 

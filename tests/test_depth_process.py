@@ -347,7 +347,10 @@ def test_an_unusable_calibration_over_zenoh_is_counted_and_a_good_one_later_used
     answer = {"payload": payloads[0]}
 
     def on_calib(query: zenoh.Query) -> None:
-        query.reply(keys.calib("p0"), answer["payload"], encoding=WIRE_ENCODING)
+        if answer["payload"] == b"error":
+            query.reply_err("camera not ready")
+        else:
+            query.reply(keys.calib("p0"), answer["payload"], encoding=WIRE_ENCODING)
 
     queryable = bus.session.declare_queryable(keys.calib("p0"), on_calib)
     depth = bus.start("depth", "--pair", "p0")
@@ -368,6 +371,21 @@ def test_an_unusable_calibration_over_zenoh_is_counted_and_a_good_one_later_used
         20,
         "the malformed calibration counted",
     )
+    # An error reply was skipped uncounted; another pair's calibration (a pair id no key may
+    # hold, even) was used with a warning.
+    answer["payload"] = b"error"
+    wait_for(
+        lambda: state().get("calibration_rejected", {}).get("error_reply", 0) >= 1,
+        20,
+        "the error reply counted",
+    )
+    answer["payload"] = encode(CALIB_KIND, good.model_copy(update={"pair": "p1"}))
+    wait_for(
+        lambda: state().get("calibration_rejected", {}).get("wrong_pair", 0) >= 1,
+        20,
+        "another pair's calibration refused",
+    )
+    assert state()["state"] == "waiting_for_calibration"
     answer["payload"] = encode(CALIB_KIND, good)
     wait_for(lambda: state().get("state") == "running", 30, "the good calibration used")
     assert "p0" in _alive(bus.session) and state()["recalibrated"] == 0

@@ -112,10 +112,17 @@ def _ask_calibration(
     ``current``; bad answers are counted by reason."""
     for reply in session.get(keys.calib(settings.pair), timeout=2.0):
         if reply.ok is None:
+            error = reply.err.payload.to_string() if reply.err is not None else ""
+            counts.reject_calibration(Rejection("error_reply", " ".join(error.split())[:200]))
             continue
         calib = decode_calibration(reply.ok.payload.to_bytes())
         if isinstance(calib, Rejection):
             counts.reject_calibration(calib)
+            continue
+        if calib.pair != settings.pair:  # a camera answering for another pair: not this one's
+            counts.reject_calibration(
+                Rejection("wrong_pair", f"calibration of pair {calib.pair!r} on this pair's key")
+            )
             continue
         if current is not None and calib.model_dump() == current.model_dump():
             continue  # (not ==: pydantic compares cached numpy properties too, and raises)
