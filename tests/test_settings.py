@@ -20,7 +20,9 @@ def test_bad_value_names_the_flag_and_env_var(capsys: pytest.CaptureFixture[str]
         load_settings(CameraSimSettings, rate_hz="-1")
     assert stopped.value.code == 2
     err = capsys.readouterr().err
-    assert "--rate-hz" in err and "OVERGRID_RATE_HZ" in err and "greater than or equal to 0.01" in err
+    assert (
+        "--rate-hz" in err and "OVERGRID_RATE_HZ" in err and "greater than or equal to 0.01" in err
+    )
 
 
 def test_env_var_is_read_and_validated(

@@ -10,7 +10,10 @@ import yaml
 from common.camera import StereoCalibration
 from common.codec import encode
 from common.messages import STEREO_KIND, StereoFrameHeader
+from services.camera_sim.capture import CameraModel, StereoCapture
+from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
+from services.camera_sim.scene import generate_scene
 from services.depth.intake import Rejection, build_pipeline, check_images, decode_stereo_frame
 from services.depth.pipeline import PipelineConfig
 from services.depth.sources import InputError, check_recording, load_calibration, recorded_frames
@@ -78,7 +81,7 @@ def test_a_recording_of_the_wrong_size_is_refused_at_start_up_naming_its_first_f
     _write(tmp_path / "right" / "0000.png", 0, (500, 740))
     check_recording(tmp_path)  # a recording, whatever its size
     with pytest.raises(InputError, match=r"0000\.png: wrong_size"):
-        check_recording(tmp_path, _calibration().image_size)
+        check_recording(tmp_path, build_pipeline(_calibration(), PipelineConfig()))
 
 
 def test_a_mono_camera_pairs_with_a_colour_one_and_16_bit_colour_is_taken() -> None:
@@ -98,8 +101,9 @@ def test_an_opencv_filestorage_calibration_says_which_format_to_write(tmp_path: 
     storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     storage.write("K1", np.eye(3))
     storage.release()
-    with pytest.raises(InputError, match=r"OpenCV FileStorage file.*T_world_cam"):
+    with pytest.raises(InputError, match=r"OpenCV FileStorage file.*T_world_cam") as refused:
         load_calibration(path)
+    assert str(refused.value).count("--calib") == 1  # it was named twice
 
 
 def test_a_calibration_in_millimetres_is_refused_before_it_allocates_gigabytes(
@@ -145,3 +149,25 @@ def test_a_jpeg_frame_cut_short_over_zenoh_is_refused_by_name() -> None:
     refused = decode_stereo_frame(cut, "p0", (640, 480), 1 << 24)
     assert isinstance(refused, Rejection) and refused.reason == "undecodable"
     assert "left jpeg image is cut short" in refused.detail
+
+
+def test_a_recording_with_left_and_right_swapped_is_refused_at_start_up(tmp_path: Path) -> None:
+    """Played with its folders swapped, a recording gave a map of phantom obstacles everywhere
+    and exit 0; the floor model's warning came 30 s in, if at all. Its first pair is now judged
+    at start-up: the floor agrees at its disparity in the other order, not in this one. The same
+    frames the right way round start."""
+    scene = generate_scene(0)
+    calibrations = layout_pairs(RigSpec(), scene.floor_size_m)
+    renderer = SceneRenderer(scene, calibrations)
+    capture = StereoCapture(renderer, calibrations[1], CameraModel(), seed=0)
+    renderer.set_time(1000.0)
+    left, right = capture.capture(1_000_000_000_000)
+    renderer.close()
+    pipeline = build_pipeline(capture.calibration, PipelineConfig())
+    for name, first, second in (("right_way", left, right), ("swapped", right, left)):
+        for side, image in (("left", first), ("right", second)):
+            (tmp_path / name / side).mkdir(parents=True)
+            cv2.imwrite(str(tmp_path / name / side / f"{side}_0.png"), image)
+    check_recording(tmp_path / "right_way", pipeline)
+    with pytest.raises(InputError, match="left and right the other way round"):
+        check_recording(tmp_path / "swapped", pipeline)

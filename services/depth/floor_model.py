@@ -694,6 +694,19 @@ class FloorModel:
             return "no_floor"
         return "learning"
 
+    def floor_agreement(self, left_rect: U8, right_rect: U8) -> tuple[float, float]:
+        """(share of the view where both images have texture, share of those where they agree at
+        the floor's disparity) for one rectified pair, learning nothing: on a textured floor
+        most of a view agrees, with left and right swapped (the floor then matches at minus
+        its disparity) hardly any."""
+        sigma = self.config.blur_sigma_px
+        _, inside, test = self._tested(blur(left_rect, sigma), blur(right_rect, sigma))
+        textured = test.textured & inside
+        count = int(np.count_nonzero(textured))
+        if count == 0:
+            return 0.0, 0.0
+        return count / textured.size, float(np.count_nonzero(test.agree & textured)) / count
+
     # -- one frame --------------------------------------------------------------------------
 
     def update(self, left_rect: U8, right_rect: U8, disparity: F32) -> F32:

@@ -86,6 +86,13 @@ def to_gray(image: np.ndarray) -> npt.NDArray[np.uint8]:
     return image
 
 
+SWAP_MIN_TEXTURED = 0.05
+"""A swap is judged only where at least this share of the view has texture in both images …"""
+SWAP_MIN_AGREEMENT = 0.002
+SWAP_RATIO = 5.0
+"""… and the floor agrees in the other order over SWAP_RATIO times the share it does in this one
+(and SWAP_RATIO times SWAP_MIN_AGREEMENT at least)."""
+
 ROW_ALIGN_STEP_PX = 1.0 / 32.0
 """The rectifiers are aligned again once the fitted row offset has moved this far somewhere: the
 resolution of OpenCV's fixed-point maps. Each time costs 0.6 ms at the processing resolution and
@@ -223,6 +230,26 @@ class DepthPipeline:
             stage_ms=stage_ms,
             evidence_disparity_px=evidence,
             left_rect=left_rect,
+        )
+
+    def swapped(self, left: np.ndarray, right: np.ndarray) -> str | None:
+        """Why ``left`` and ``right`` look swapped (the images, or the calibration's cameras), or
+        None: the floor agrees at its disparity in the other order and not in this one. Needs a
+        textured floor and the floor model; None where either is missing. A recording played
+        with its folders swapped gave a map of phantom obstacles and exit 0."""
+        if self.floor_model is None:
+            return None
+        agreements = []
+        for first, second in ((left, right), (right, left)):
+            rectified = self.rectifier.rectify(to_gray(first), to_gray(second))
+            agreements.append(self.floor_model.floor_agreement(*rectified))
+        (textured, given), (_, other) = agreements
+        if textured < SWAP_MIN_TEXTURED or other < SWAP_RATIO * max(given, SWAP_MIN_AGREEMENT):
+            return None
+        return (
+            f"the floor matches with left and right the other way round ({other:.0%} of the "
+            f"textured view against {given:.0%}): are the left and right images, or the "
+            "calibration's left and right cameras, swapped?"
         )
 
     def _hidden_floor_xy(

@@ -313,7 +313,7 @@ def _pipeline_from_file(settings: DepthSettings) -> DepthPipeline | None:
     except InputError as error:
         startup_error(str(error))
     except ValueError as error:
-        startup_error(f"--calib {settings.calib}: pair {settings.pair} is unusable: {error}")
+        startup_error(f"--calib {settings.calib}: unusable: {error}")
 
 
 @dataclass
@@ -326,11 +326,26 @@ class Worker:
     publisher: TilePublisher
     intake: FrameIntake
     recalibrated: int = 0
+    swapped: str | None = None
+    """Why the camera's left and right look swapped (:meth:`DepthPipeline.swapped`), judged on
+    the first frame of each calibration; None: they do not, or no texture told."""
+    swap_checked: bool = False
 
     def use(self, pipeline: DepthPipeline) -> None:
         self.intake.image_size = pipeline.calib.image_size
         self.pipeline = pipeline
         self.recalibrated += 1
+        self.swap_checked = False
+
+    def check_swap(self, left: np.ndarray, right: np.ndarray) -> None:
+        """Once per calibration: a camera's left and right swapped (its cables, or the
+        calibration's cameras) map phantom obstacles everywhere; said loudly and in health."""
+        if self.swap_checked:
+            return
+        self.swap_checked = True
+        self.swapped = self.pipeline.swapped(left, right)
+        if self.swapped is not None:
+            log.error("left and right look swapped", extra={"why": self.swapped})
 
 
 def _watch_calibration(
@@ -391,6 +406,7 @@ def _serve_frames(
                 "camera": (frame.received_ns - frame.header.stamp_ns) / 1e6,
                 "queue": (time.time_ns() - frame.received_ns) / 1e6,
             }
+            worker.check_swap(frame.left, frame.right)
             _process(worker, counts, frame.left, frame.right, frame.header, upstream_ms)
     finally:
         subscriber.undeclare()  # type: ignore[no-untyped-call]
@@ -428,7 +444,7 @@ def main(settings: DepthSettings) -> None:
     pipeline = _pipeline_from_file(settings)
     if settings.images is not None:
         try:
-            check_recording(settings.images, pipeline.calib.image_size if pipeline else None)
+            check_recording(settings.images, pipeline)
         except InputError as error:
             startup_error(str(error))
     played = False
@@ -454,6 +470,7 @@ def main(settings: DepthSettings) -> None:
                     "skipped": worker.intake.slot.replaced,
                     "stage_ms_mean": {k: v / max(published, 1) for k, v in stage_ms_sum.items()},
                     "floor_model": worker.pipeline.floor_health(),
+                    "swapped": worker.swapped,
                 }
             return answer
 

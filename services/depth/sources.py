@@ -22,6 +22,7 @@ from pydantic import ValidationError
 from common.camera import StereoCalibration
 from common.setting_files import data_of, setting_file_text
 from services.depth.intake import Rejection, check_images, jpeg_complete
+from services.depth.pipeline import DepthPipeline
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"}
 
@@ -38,9 +39,11 @@ def load_calibration(path: Path) -> StereoCalibration:
             raise InputError(
                 f"--calib {path}: an OpenCV FileStorage file, which overgrid does not read: write "
                 "each camera's width, height, K, dist and T_world_cam (the camera's pose in the "
-                "world) as plain YAML or JSON (README, Real cameras)"
+                "world) as plain YAML or JSON (README, Real cameras: from OpenCV's stereoCalibrate)"
             )
         return StereoCalibration.model_validate(data_of(text, path))
+    except InputError:
+        raise
     except ValidationError as error:
         problems = "; ".join(
             f"{'.'.join(str(p) for p in e['loc']) or 'file'}: {e['msg']}" for e in error.errors()
@@ -58,10 +61,11 @@ def _video(source: Path) -> cv2.VideoCapture:
     return cv2.VideoCapture(str(source))
 
 
-def check_recording(source: Path, image_size: tuple[int, int] | None = None) -> None:
+def check_recording(source: Path, pipeline: DepthPipeline | None = None) -> None:
     """Fail at start-up, not at the first frame, on a recording that is not there or not one; with
-    the calibration's ``image_size``, also on one whose first pair the pipeline cannot take (the
-    wrong size, pixels of no gray scale): every frame of it would be refused."""
+    the calibration's ``pipeline``, also on one whose first pair it cannot take (the wrong size,
+    pixels of no gray scale: every frame of it would be refused) or whose left and right look
+    swapped (:meth:`DepthPipeline.swapped`: every tile would be phantom obstacles)."""
     first_name = "its first frame"
     if source.is_dir():
         try:
@@ -78,7 +82,7 @@ def check_recording(source: Path, image_size: tuple[int, int] | None = None) -> 
         capture.release()
         if not opened:
             raise InputError(f"--images {source}: not a folder of image pairs or a readable video")
-    if image_size is None:
+    if pipeline is None:
         return
     frames = recorded_frames(source)
     first = next(frames, None)
@@ -87,9 +91,12 @@ def check_recording(source: Path, image_size: tuple[int, int] | None = None) -> 
         raise InputError(f"--images {source}: the video holds no frame")
     if isinstance(first, Rejection):  # an unreadable file: the recording goes on after it
         return
-    checked = check_images(*first, image_size)
+    checked = check_images(*first, pipeline.calib.image_size)
     if isinstance(checked, Rejection):
         raise InputError(f"--images {source}: {first_name}: {checked.reason}: {checked.detail}")
+    swapped = pipeline.swapped(*checked)
+    if swapped is not None:
+        raise InputError(f"--images {source}: {first_name}: {swapped}")
 
 
 def _natural_key(path: Path) -> list[tuple[int, int | str]]:

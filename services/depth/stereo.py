@@ -88,7 +88,9 @@ class Rectifier:
             )
         if P2[0, 3] >= 0:
             raise ValueError(
-                f"pair {calib.pair}: the right camera is to the left of the left camera; swap them"
+                f"pair {calib.pair}: the right camera is to the left of the left camera: swap "
+                "them, or, from OpenCV's stereoCalibrate, take the right camera's pose as "
+                "T_world_left · inv([R|T]) (R, T map left-camera points into the right camera)"
             )
         maps_left = cv2.initUndistortRectifyMap(
             K1, calib.left.dist_array, R1, P1, size, cv2.CV_16SC2
