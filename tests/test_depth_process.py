@@ -24,7 +24,7 @@ from common.png import encode_png
 from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import generate_scene
-from services.depth.service import CALIB_RECHECK_S
+from services.depth.service import CALIB_RECHECK_S, FusionIntake
 from tests.conftest import Bus, assert_one_line_exit_2, run_overgrid, wait_for
 
 pytestmark = pytest.mark.process
@@ -397,3 +397,21 @@ def test_an_unusable_calibration_over_zenoh_is_counted_and_a_good_one_later_used
     time.sleep(2 * CALIB_RECHECK_S + 1.0)  # and used once: the same again is no change
     assert state()["recalibrated"] == 1 and depth.poll() is None
     queryable.undeclare()  # type: ignore[no-untyped-call]
+
+
+def test_tiles_no_fusion_takes_are_said_whether_fusion_answers_or_not(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A recording replayed with no fusion running gave its tiles to nobody, exit 0, and said
+    nothing; a fusion that answers but takes none was already said."""
+    intake = FusionIntake("p0", silent_after_s=10.0)
+    start = intake.answered_s
+    with caplog.at_level("INFO", logger="depth"):
+        intake.check(None, start + 5.0)
+        assert "no fusion answers" not in caplog.text  # not yet: fusion may be starting
+        intake.check(None, start + 11.0)
+        assert caplog.text.count("no fusion answers") == 1
+        intake.check(None, start + 20.0)
+        assert caplog.text.count("no fusion answers") == 1  # once, not every period
+        intake.check({"pairs": {"p0": {"tiles": 3}}}, start + 21.0)
+        assert "fusion answers again" in caplog.text

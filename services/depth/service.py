@@ -602,17 +602,27 @@ class FusionIntake:
         self.pair = pair
         self.silent_after_s = silent_after_s
         self.taken_before = -1
-        self.grew_s = time.monotonic()
+        self.grew_s = self.answered_s = time.monotonic()
         self.taking = Transitions(
             log,
             "fusion takes none of this pair's tiles: does the router let this user put on "
             "depth/PAIR/**, or does fusion refuse them (its health)?",
             "fusion takes this pair's tiles again",
         )
+        self.answering = Transitions(
+            log,
+            "no fusion answers: this pair's tiles reach no map (is fusion running, in this "
+            "namespace and Zenoh network?)",
+            "fusion answers again",
+        )
 
     def check(self, fusion_health: dict[str, Any] | None, now_s: float) -> None:
         """After a period in which this process published tiles; ``fusion_health`` None when
-        no fusion answers (a recording may run alone)."""
+        no fusion answers (a recording replayed with no fusion running gave tiles to nobody and
+        exit 0, and said nothing)."""
+        if fusion_health is not None:
+            self.answered_s = now_s
+        self.answering.update(now_s - self.answered_s < self.silent_after_s, pair=self.pair)
         if fusion_health is None:
             return
         seen = fusion_health.get("pairs", {}).get(self.pair, {})
