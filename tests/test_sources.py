@@ -118,6 +118,12 @@ def test_a_calibration_in_millimetres_is_refused_before_it_allocates_gigabytes(
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(ValueError, match="are the poses in metres"):
         build_pipeline(load_calibration(path), PipelineConfig())
+    # The baseline alone in millimetres (T of stereoCalibrate in mm): said as such.
+    data = _calibration().model_dump(mode="json")
+    data["right"]["T_world_cam"][0][3] = data["left"]["T_world_cam"][0][3] + 500.0
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ValueError, match=r"baseline \(500 m: in metres\?\)"):
+        build_pipeline(load_calibration(path), PipelineConfig())
 
 
 def test_a_jpeg_cut_short_is_refused_and_the_recording_goes_on(tmp_path: Path) -> None:

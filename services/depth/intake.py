@@ -244,8 +244,9 @@ def build_pipeline(calib: StereoCalibration, config: PipelineConfig) -> DepthPip
     low, count = pipeline.min_disparity, pipeline.num_disparities
     if low + count > width // 2:
         raise ValueError(
-            f"the floor-to-obstacle disparities {low}…{low + count} px do not fit an image "
-            f"{width} px wide: check the baseline, focal length, distortion and poses"
+            f"the floor-to-obstacle disparities {low}…{low + count} px (at the processing "
+            f"resolution) do not fit its image, {width} px wide: check the baseline "
+            f"({calib.baseline_m:.4g} m: in metres?), focal length, distortion and poses"
         )
     return pipeline
 
