@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import math
 from functools import cached_property
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 import numpy.typing as npt
 from pydantic import (
     AfterValidator,
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     field_validator,
@@ -36,6 +37,16 @@ MAX_FIELD_OF_VIEW_DEG = 170.0
 RAY_SAMPLES = 4096
 """Ray angles sampled between the axis and half the widest field of view when checking that the
 distortion is invertible: a step of 0.02°, finer than any fold a real lens model has."""
+
+
+def _flat_row(value: Any) -> Any:
+    """OpenCV's distortion as written by ``D.tolist()``: one row, ``[[k1, k2, …]]``, or a
+    column ``[[k1], [k2], …]``."""
+    if isinstance(value, list) and value and all(isinstance(v, list) for v in value):
+        rows = [len(v) for v in value]
+        if len(value) == 1 or set(rows) == {1}:
+            return [x for row in value for x in row]
+    return value
 
 
 def radial_distortion_fold(dist: npt.ArrayLike, corner_radius: float) -> str | None:
@@ -89,7 +100,9 @@ class PinholeCamera(BaseModel):
     width: int = Field(gt=0, le=16384)
     height: int = Field(gt=0, le=16384)
     K: Matrix
-    dist: list[float] = Field(default_factory=lambda: [0.0] * 5)
+    dist: Annotated[list[float], BeforeValidator(_flat_row)] = Field(
+        default_factory=lambda: [0.0] * 5
+    )
     T_world_cam: Matrix
 
     @field_validator("K")

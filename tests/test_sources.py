@@ -104,6 +104,24 @@ def test_an_opencv_filestorage_calibration_says_which_format_to_write(tmp_path: 
     with pytest.raises(InputError, match=r"OpenCV FileStorage file.*T_world_cam") as refused:
         load_calibration(path)
     assert str(refused.value).count("--calib") == 1  # it was named twice
+    as_json = tmp_path / "stereo.json"  # FileStorage's JSON: a list of fields it does not know
+    storage = cv2.FileStorage(str(as_json), cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_JSON)
+    storage.write("K1", np.eye(3))
+    storage.release()
+    with pytest.raises(InputError, match=r"OpenCV FileStorage file"):
+        load_calibration(as_json)
+
+
+def test_distortion_as_numpy_writes_it_is_taken(tmp_path: Path) -> None:
+    """``D.tolist()`` of OpenCV's 1 × 5 (or 5 × 1) distortion is nested: it was refused with
+    "left.dist.0: Input should be a valid number"."""
+    data = _calibration().model_dump(mode="json")
+    data["left"]["dist"] = [[0.01, 0.0, 0.0, 0.0, 0.0]]
+    data["right"]["dist"] = [[0.01], [0.0], [0.0], [0.0], [0.0]]
+    path = tmp_path / "calib.yaml"
+    path.write_text(yaml.safe_dump(data))
+    calib = load_calibration(path)
+    assert calib.left.dist == calib.right.dist == [0.01, 0.0, 0.0, 0.0, 0.0]
 
 
 def test_a_calibration_in_millimetres_is_refused_before_it_allocates_gigabytes(

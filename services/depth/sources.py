@@ -35,7 +35,7 @@ def load_calibration(path: Path) -> StereoCalibration:
     """A YAML or JSON file with the fields of :class:`StereoCalibration` (see README)."""
     try:
         text = setting_file_text(Path(path))
-        if text.lstrip().startswith("%YAML:1.0") or "!!opencv-matrix" in text:
+        if text.lstrip().startswith("%YAML:1.0") or "opencv-matrix" in text:  # YAML or JSON
             raise InputError(
                 f"--calib {path}: an OpenCV FileStorage file, which overgrid does not read: write "
                 "each camera's width, height, K, dist and T_world_cam (the camera's pose in the "
