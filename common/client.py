@@ -10,7 +10,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import zenoh
@@ -18,6 +18,7 @@ import zenoh
 from common import keys
 from common.camera import StereoCalibration
 from common.codec import CodecError, Message, decode
+from common.logs import RateLimitedLog
 from common.messages import (
     CALIB_KIND,
     MAP_UPDATE_KIND,
@@ -28,14 +29,19 @@ from common.messages import (
 from common.occupancy_map import OccupancyMap
 
 Region = tuple[float, float, float, float]
+T = TypeVar("T")
 log = logging.getLogger("overgrid.client")
 
 
 class MapUnavailable(RuntimeError):
-    """No fusion service answered, or it answered with an error."""
+    """No fusion service answered, or it answered with an error or with what does not decode."""
 
 
 RETRY_PERIOD_S = 0.2
+MAX_TIMEOUT_S = 86_400.0
+"""The longest wait a client call takes in one query (a day); settings bound their timeouts by
+it. Zenoh refuses a query timeout past about 1.8e19 s ("negative timeout": ``inf`` was a
+ValueError traceback); a longer ``timeout_s`` given to a call asks again until it has passed."""
 
 
 def query_all(session: zenoh.Session, selector: str, timeout_s: float) -> list[bytes]:
@@ -46,7 +52,7 @@ def query_all(session: zenoh.Session, selector: str, timeout_s: float) -> list[b
         remaining = deadline - time.monotonic()
         answers, errors = [], []
         try:
-            for reply in session.get(selector, timeout=max(remaining, 0.1)):
+            for reply in session.get(selector, timeout=min(max(remaining, 0.1), MAX_TIMEOUT_S)):
                 if reply.ok is not None:
                     answers.append(bytes(reply.ok.payload.to_bytes()))
                 else:
@@ -66,6 +72,16 @@ def query_first(session: zenoh.Session, selector: str, timeout_s: float) -> byte
     return query_all(session, selector, timeout_s)[0]
 
 
+def _parsed(key: str, parse: Callable[[bytes], T], payload: bytes) -> T:
+    """``parse(payload)``; an answer that does not decode (another wire version, a forged or
+    broken service; JSON nested past the interpreter's recursion limit) is MapUnavailable naming
+    the key and why, as a silent service is: the one error a robot's code catches."""
+    try:
+        return parse(payload)
+    except (ValueError, RecursionError) as error:  # CodecError and JSONDecodeError among them
+        raise MapUnavailable(f"{key}: {error}") from None
+
+
 def latest(
     session: zenoh.Session,
     region: Region | None = None,
@@ -77,7 +93,9 @@ def latest(
     if layers:
         parameters.append("layers=" + ",".join(layers))
     selector = keys.MAP_LATEST + ("?" + ";".join(parameters) if parameters else "")
-    return OccupancyMap.from_msgpack(query_first(session, selector, timeout_s))
+    return _parsed(
+        keys.MAP_LATEST, OccupancyMap.from_msgpack, query_first(session, selector, timeout_s)
+    )
 
 
 def latest_encoded(
@@ -95,19 +113,22 @@ def _region_parameter(region: Region) -> str:
 
 
 def health(session: zenoh.Session, timeout_s: float = 5.0) -> dict[str, Any]:
-    answer: dict[str, Any] = json.loads(query_first(session, keys.MAP_HEALTH, timeout_s))
+    """Fusion's ``map/health``: a JSON object (its fields: services/fusion)."""
+    answer = _parsed(keys.MAP_HEALTH, json.loads, query_first(session, keys.MAP_HEALTH, timeout_s))
+    if not isinstance(answer, dict):
+        kind = type(answer).__name__
+        raise MapUnavailable(f"{keys.MAP_HEALTH}: a JSON {kind}, not the object fusion answers")
     return answer
 
 
 def objects(session: zenoh.Session, timeout_s: float = 5.0) -> ObjectsHeader:
     """The tracked obstacles of ``map/objects``: each with id, class, oriented footprint, top
     height, velocity and its covariance."""
-    try:
-        return decode(
-            query_first(session, keys.MAP_OBJECTS, timeout_s), OBJECTS_KIND, ObjectsHeader
-        ).header
-    except CodecError as error:
-        raise MapUnavailable(f"map/objects: {error}") from None
+    return _parsed(
+        keys.MAP_OBJECTS,
+        lambda payload: decode(payload, OBJECTS_KIND, ObjectsHeader).header,
+        query_first(session, keys.MAP_OBJECTS, timeout_s),
+    )
 
 
 def calibrations(session: zenoh.Session, timeout_s: float = 5.0) -> list[StereoCalibration]:
@@ -128,6 +149,22 @@ CATCH_UP_LIMIT_S = 5.0
 UPDATES_BACKLOG = 64
 """Updates a follower keeps: waiting to be applied, and the recent ones it may replay onto a map it
 fetched (map/latest may be a little older than the newest update)."""
+
+
+def update_problem(message: Message[MapUpdateHeader]) -> str | None:
+    """Why a decoded ``map/updates`` message fits no copy, or None: its ``occupancy`` must be int8
+    cells of its own window, inside the map window it names."""
+    h = message.header
+    occupancy = message.arrays.get("occupancy")
+    if occupancy is None:
+        return "no_occupancy"
+    if occupancy.dtype != np.int8:
+        return "occupancy_dtype"
+    if occupancy.shape != (h.rows, h.cols):
+        return "occupancy_shape"
+    if not h.map_window.contains(h.window):
+        return "outside_map"
+    return None
 
 
 class MapFollower:
@@ -157,6 +194,10 @@ class MapFollower:
         self._recent: deque[Message[MapUpdateHeader]] = deque(maxlen=UPDATES_BACKLOG)
         self.callback_errors = 0
         """``on_change`` calls that raised (logged; the follower goes on)."""
+        self.rejected: dict[str, int] = {}
+        """Updates refused where they enter, by reason (``update_problem``, ``undecodable``;
+        logged, rate-limited): the copy stays as it was, and is fetched if the update was newer."""
+        self._warn = RateLimitedLog(log)
         self._closed = False
         try:
             self._subscriber = session.declare_subscriber(
@@ -185,25 +226,45 @@ class MapFollower:
 
     def _run(self) -> None:
         for sample in self._subscriber:  # ends when the subscriber is undeclared
+            arrival_s = time.time()
             try:
-                self._on_update(sample.payload.to_bytes(), time.time())
-            except (MapUnavailable, CodecError, ValueError, zenoh.ZError):
+                changed = self._on_update(sample.payload.to_bytes())
+            except (MapUnavailable, zenoh.ZError):
                 continue  # fusion gone mid-fetch: the next update or epoch tries again
-            except Exception:  # the robot's on_change: one failure must not stop the copy
+            if changed is None or self._on_change is None:
+                continue
+            try:
+                self._on_change(changed, arrival_s)
+            except Exception:  # the robot's own: one failure must not stop the copy
                 self.callback_errors += 1
                 log.exception("map follower: on_change raised; following goes on")
 
-    def _on_update(self, payload: bytes, arrival_s: float) -> None:
-        message = decode(payload, MAP_UPDATE_KIND, MapUpdateHeader)
+    def _on_update(self, payload: bytes) -> OccupancyMap | None:
+        """The new copy this update makes, if any. A refused update is never kept for replay
+        (kept, it failed every replay and froze the copy until 64 updates had pushed it out); a
+        newer one still says the copy may be behind, so it is fetched."""
+        try:
+            message = decode(payload, MAP_UPDATE_KIND, MapUpdateHeader)
+        except CodecError as error:
+            self._refuse("undecodable", error=str(error)[:200])
+            return None
         h = message.header
+        reason = update_problem(message)
+        if reason is not None:
+            arrays = {name: f"{a.dtype} {a.shape}" for name, a in message.arrays.items()}
+            self._refuse(reason, version=h.version, window=str(h.window), arrays=str(arrays))
         with self._lock:
-            self._recent.append(message)
+            if reason is None:
+                self._recent.append(message)
             changed = self._replay()
             behind = h.revision > self._map.revision
-        if behind:  # a gap, a grown map or a new epoch: fetch, then replay what came since
+        if behind:  # a gap, a grown map, a new epoch or a refused update: fetch, then replay
             changed = self._catch_up() or changed
-        if changed is not None and self._on_change is not None:
-            self._on_change(changed, arrival_s)
+        return changed
+
+    def _refuse(self, reason: str, **fields: Any) -> None:
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        self._warn.warning(reason, "map follower: update refused", reason=reason, **fields)
 
     def _catch_up(self) -> OccupancyMap | None:
         """Fetch ``map/latest`` until the copy reaches the newest update seen. A snapshot may be
@@ -219,7 +280,7 @@ class MapFollower:
                 if fresh.revision > self._map.revision:
                     self._map = changed = fresh
                 changed = self._replay() or changed
-                newest = max(m.header.revision for m in self._recent)
+                newest = max((m.header.revision for m in self._recent), default=(-1, -1))
                 caught_up = self._map.revision >= newest
             if caught_up or time.monotonic() + RETRY_PERIOD_S > deadline:
                 return changed

@@ -6,24 +6,30 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from pydantic import Field, field_validator
 
-from common.client import MapUnavailable, health, latest, objects
+from common.client import MAX_TIMEOUT_S, MapUnavailable, health, latest, objects
 from common.mapfiles import map_file_suffix, write_map
 from common.occupancy_map import Region, region_of
 from common.settings import CommaList, ZenohSettings, parse_settings
 from common.zenoh_session import open_session
 
 
-class MapGetSettings(ZenohSettings):
+class FusionQuerySettings(ZenohSettings):
+    timeout_s: float = Field(
+        5.0, gt=0.0, le=MAX_TIMEOUT_S, description="how long to wait for the fusion service"
+    )
+
+
+class MapGetSettings(FusionQuerySettings):
     out: Path = Field(
         Path("map.yaml"), description="output: .yaml (+.pgm, nav2 map_server), .png or .npz"
     )
     region: CommaList = Field(
         default_factory=list, description="x0,y0,x1,y1 in metres (default: whole map)"
     )
-    timeout_s: float = Field(5.0, gt=0.0, description="how long to wait for the fusion service")
 
     @field_validator("out")
     @classmethod
@@ -41,10 +47,6 @@ class MapGetSettings(ZenohSettings):
     @property
     def region_m(self) -> Region | None:
         return region_of(self.region) if self.region else None
-
-
-class HealthSettings(ZenohSettings):
-    timeout_s: float = Field(5.0, gt=0.0, description="how long to wait for the fusion service")
 
 
 MAP_USAGE = (
@@ -80,27 +82,40 @@ def map_cli(argv: Sequence[str] | None = None) -> None:
 
 def health_cli(argv: Sequence[str] | None = None) -> None:
     settings = parse_settings(
-        HealthSettings, argv, "overgrid health", "Show the fusion service's health."
+        FusionQuerySettings, argv, "overgrid health", "Show the fusion service's health."
     )
     with open_session(settings) as session:
         try:
             answer = health(session, settings.timeout_s)
         except MapUnavailable as error:
             raise SystemExit(f"fusion unavailable: {error}") from None
+    try:
+        lines = health_lines(answer)
+    except (LookupError, TypeError, ValueError, AttributeError) as error:
+        raise SystemExit(
+            f"fusion's health answer lacks what this client reads ({type(error).__name__}: "
+            f"{str(error)[:200]}): a fusion of another version?"
+        ) from None
+    print("\n".join(lines))
+
+
+def health_lines(answer: dict[str, Any]) -> list[str]:
+    """The table ``overgrid health`` prints; built whole before any is printed, so an answer
+    without a field it reads (no schema: a JSON object) ends in one line, not half a table."""
     m = answer["map"]
-    print(
-        f"map v{m['version']}  {m['cols']}×{m['rows']} cells @ {m['resolution_m']} m  origin {m['origin_m']}  "
-        f"known {m['known_cells']}"
-    )
-    print(f"tiles accepted {answer['tiles_accepted']}  rejected {answer['tiles_rejected'] or 0}")
+    lines = [
+        f"map v{m['version']}  {m['cols']}×{m['rows']} cells @ {m['resolution_m']} m  "
+        f"origin {m['origin_m']}  known {m['known_cells']}",
+        f"tiles accepted {answer['tiles_accepted']}  rejected {answer['tiles_rejected'] or 0}",
+    ]
     saved = answer.get("state") or {}
     if saved:
         errors = saved["save_errors"]
-        print(
+        lines.append(
             f"state saved v{saved['saved_version']}"
             + (f"  SAVE ERRORS {errors}" if errors else "  no save errors")
         )
-    print(
+    lines.append(
         f"{'pair':<10}{'alive':<7}{'tiles':>8}{'rejected':>10}{'last tile':>12}"
         f"{'capture→map':>14}  note"
     )
@@ -113,19 +128,16 @@ def health_cli(argv: Sequence[str] | None = None) -> None:
         notes += ["LAGGING"] if row["lagging"] else []
         refused = row.get("detections_rejected", 0)
         notes += [f"{refused} detections rejected"] if refused else []
-        print(
+        lines.append(
             f"{pair:<10}{'yes' if row['alive'] else 'NO':<7}{row['tiles']:>8}"
             f"{row.get('rejected', 0):>10}{age:>12}{latency:>14}  {', '.join(notes)}".rstrip()
         )
-
-
-class ObjectsSettings(ZenohSettings):
-    timeout_s: float = Field(5.0, gt=0.0, description="how long to wait for the fusion service")
+    return lines
 
 
 def objects_cli(argv: Sequence[str] | None = None) -> None:
     settings = parse_settings(
-        ObjectsSettings, argv, "overgrid objects", "Show the tracked obstacles (map/objects)."
+        FusionQuerySettings, argv, "overgrid objects", "Show the tracked obstacles (map/objects)."
     )
     with open_session(settings) as session:
         try:

@@ -1,6 +1,7 @@
-"""The robot client's MapFollower against a map service whose ``map/latest`` lags its
-``map/updates`` (fusion builds snapshots at a pace; updates go out at once): the follower must
-reach the newest version even when the stream goes quiet right after an update it cannot replay."""
+"""The robot client against map services that lag or misbehave: a MapFollower whose
+``map/latest`` lags its ``map/updates`` (fusion builds snapshots at a pace; updates go out at once)
+must reach the newest version even when the stream goes quiet right after an update it cannot
+replay; a forged update must not freeze it; answers that do not decode are MapUnavailable."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from common import client
 from common.client import MapFollower, MapUnavailable, latest
 from common.codec import WIRE_ENCODING, encode
 from common.lattice import Window
@@ -26,8 +28,14 @@ def _map(window: Window, value: int, version: int) -> OccupancyMap:
     return OccupancyMap(cells, RESOLUTION_M, window.i0, window.j0, version, 0, epoch=EPOCH)
 
 
-def _update(grown: OccupancyMap, previous_version: int) -> bytes:
-    w = grown.window
+def _update(
+    grown: OccupancyMap,
+    previous_version: int,
+    arrays: dict[str, np.ndarray] | None = None,
+    window: Window | None = None,
+) -> bytes:
+    """``grown`` whole as an update of ``previous_version``; or ``arrays`` over ``window``."""
+    w, m = window or grown.window, grown.window
     header = MapUpdateHeader(
         version=grown.version,
         previous_version=previous_version,
@@ -38,12 +46,14 @@ def _update(grown: OccupancyMap, previous_version: int) -> bytes:
         j0=w.j0,
         cols=w.cols,
         rows=w.rows,
-        map_i0=w.i0,
-        map_j0=w.j0,
-        map_cols=w.cols,
-        map_rows=w.rows,
+        map_i0=m.i0,
+        map_j0=m.j0,
+        map_cols=m.cols,
+        map_rows=m.rows,
     )
-    return encode(MAP_UPDATE_KIND, header, {"occupancy": grown.occupancy})
+    return encode(
+        MAP_UPDATE_KIND, header, {"occupancy": grown.occupancy} if arrays is None else arrays
+    )
 
 
 def _peer(bus: Bus) -> zenoh.Session:
@@ -97,3 +107,83 @@ def test_a_closed_session_is_the_clients_own_error() -> None:
         latest(session, timeout_s=0.5)
     with pytest.raises(MapUnavailable, match="map/updates"):
         MapFollower(session, timeout_s=0.5)
+
+
+FORGED: dict[str, tuple[dict[str, np.ndarray], Window | None]] = {
+    "occupancy_shape": ({"occupancy": np.zeros((3, 3), np.int8)}, None),
+    "no_occupancy": ({"other": np.zeros((2, 2), np.int8)}, None),
+    "occupancy_dtype": ({"occupancy": np.zeros((2, 2), np.float32)}, None),
+    "outside_map": ({"occupancy": np.zeros((2, 2), np.int8)}, Window(1, 1, 2, 2)),
+}
+
+
+@pytest.mark.process
+@pytest.mark.parametrize("reason", FORGED)
+def test_a_forged_update_is_refused_and_the_copy_goes_on(bus: Bus, reason: str) -> None:
+    """One update that continues the copy (same epoch, map window, previous version) but whose
+    cells do not fit its header froze every follower for 64 updates (13 s): kept for replay, it
+    failed every replay before the genuine update of the same version could apply (without an
+    occupancy array, each also logged an "on_change raised" traceback)."""
+    first = _map(Window(0, 0, 2, 2), 0, version=0)
+    queryable = bus.session.declare_queryable(
+        "map/latest", lambda query: query.reply("map/latest", first.to_msgpack())
+    )
+    updates = bus.session.declare_publisher("map/updates", encoding=WIRE_ENCODING)
+    changes: list[int] = []
+    with _peer(bus) as session:
+        follower = MapFollower(
+            session, timeout_s=5, on_change=lambda m, _s: changes.append(m.version)
+        )
+        arrays, window = FORGED[reason]
+        genuine = _map(first.window, 100, version=1)
+        updates.put(_update(genuine, 0, arrays, window))
+        wait_for(lambda: follower.rejected == {reason: 1}, 5, f"the update refused: {reason}")
+        updates.put(_update(genuine, 0))
+        wait_for(lambda: follower.map.revision == (EPOCH, 1), 5, "the genuine update applied")
+        np.testing.assert_array_equal(follower.map.occupancy, genuine.occupancy)
+        assert follower.callback_errors == 0 and changes == [1] and follower.alive
+        follower.close()
+    queryable.undeclare()  # type: ignore[no-untyped-call]
+
+
+@pytest.mark.process
+def test_answers_that_do_not_decode_are_map_unavailable(bus: Bus) -> None:
+    """The README's contract: every client call raises MapUnavailable. A map/health that is no
+    JSON object raised JSONDecodeError (or RecursionError, nested deep), a map/latest of
+    another wire version CodecError, from latest() and MapFollower() alike."""
+    health_answers = ["not json", "[1, 2]", "NaN", "[" * 100_000 + "]" * 100_000]
+    health_answer = [health_answers[0]]
+    queryables = [
+        bus.session.declare_queryable(
+            "map/health", lambda query: query.reply("map/health", health_answer[0])
+        ),
+        bus.session.declare_queryable(
+            "map/latest", lambda query: query.reply("map/latest", b"\x81\xa1v\x02")
+        ),
+        bus.session.declare_queryable(
+            "map/objects", lambda query: query.reply("map/objects", b"[1, 2, 3]")
+        ),
+    ]
+    with _peer(bus) as session:
+        for answer in health_answers:
+            health_answer[0] = answer
+            with pytest.raises(MapUnavailable, match="map/health"):
+                client.health(session, timeout_s=2)
+        with pytest.raises(MapUnavailable, match="map/latest: wire version 2"):
+            client.latest(session, timeout_s=2)
+        with pytest.raises(MapUnavailable, match="map/latest: wire version 2"):
+            MapFollower(session, timeout_s=2)
+        with pytest.raises(MapUnavailable, match="map/objects"):
+            client.objects(session, timeout_s=2)
+    for queryable in queryables:
+        queryable.undeclare()  # type: ignore[no-untyped-call]
+
+
+def test_a_timeout_past_what_zenoh_takes_waits_instead() -> None:
+    """``timeout_s=inf`` was Zenoh's "negative timeout" ValueError; each query now waits at most
+    MAX_TIMEOUT_S (and asks again until ``timeout_s`` has passed)."""
+    config = zenoh.Config()
+    config.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(config) as session:
+        session.declare_queryable("map/health", lambda query: query.reply("map/health", "{}"))
+        assert client.health(session, timeout_s=float("inf")) == {}

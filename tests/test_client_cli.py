@@ -1,5 +1,6 @@
-"""``overgrid map get`` as a person runs it: a bad flag is one line naming it (exit 2) before any
-network; a map the service cannot serve is one line saying why, never a traceback."""
+"""``overgrid map get``, ``health`` and ``objects`` as a person runs them: a bad flag is one line
+naming it (exit 2) before any network; a map the service cannot serve, or an answer that does not
+decode, is one line saying why, never a traceback."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from common.lattice import Window
 from tests.conftest import REPO, Bus, assert_one_line_exit_2, run_overgrid
@@ -36,6 +38,47 @@ def test_a_bad_flag_is_one_line_naming_it(
     assert_one_line_exit_2(done, flag, reason)
     assert done.stderr.count("got ") <= 1  # the value once ("got '0,0,1' (got '0,0,1')")
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    "command", [("health",), ("objects",), ("map", "get"), ("eval",)], ids=" ".join
+)
+@pytest.mark.parametrize("timeout", ["inf", "1e300"])
+def test_a_timeout_zenoh_refuses_is_one_line_naming_it(
+    command: tuple[str, ...], timeout: str
+) -> None:
+    """Zenoh's "negative timeout" ValueError traceback, once a query was made."""
+    done = run_overgrid(*command, "--timeout-s", timeout, "--no-multicast-scouting")
+    assert_one_line_exit_2(done, "--timeout-s")
+
+
+ODD_ANSWERS: dict[str, list[str | bytes]] = {
+    "map/health": ["[1, 2]", '"text"', "NaN", '{"pairs": 5}', '{"map": null}', "[" * 100_000],
+    "map/latest": [b"\x81\xa1v\x02"],
+}
+
+
+@pytest.mark.process
+def test_an_answer_that_does_not_decode_is_one_line(bus: Bus, tmp_path: Path) -> None:
+    """A forged or other-version fusion: ``health`` ended in JSONDecodeError, KeyError,
+    TypeError or RecursionError tracebacks, ``map get`` in a CodecError one."""
+    answer: list[str | bytes] = [""]
+
+    def reply(query: zenoh.Query) -> None:
+        query.reply(str(query.key_expr), answer[0])
+
+    queryables = [bus.session.declare_queryable(key, reply) for key in ODD_ANSWERS]
+    for key, answers in ODD_ANSWERS.items():
+        command = (
+            ("health",) if key == "map/health" else ("map", "get", "-o", str(tmp_path / "m.png"))
+        )
+        for answer[0] in answers:
+            done = run_overgrid(*command, "--timeout-s", "5", *bus.flags())
+            lines = done.stderr.strip().splitlines()
+            assert done.returncode == 1 and len(lines) == 1, (answer[0][:20], done.stderr[-2000:])
+            assert "Traceback" not in done.stderr and not done.stdout
+    for queryable in queryables:
+        queryable.undeclare()  # type: ignore[no-untyped-call]
 
 
 @pytest.mark.process

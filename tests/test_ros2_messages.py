@@ -18,6 +18,8 @@ from common.messages import ObjectsHeader, TrackedObject
 from common.occupancy_map import UNKNOWN, OccupancyMap
 from services.ros2 import cdr, node
 from services.ros2.grid_message import (
+    INT32_MAX,
+    NS_PER_S,
     PlanarPose,
     changed_window,
     grid_message,
@@ -104,6 +106,10 @@ def test_height_image_keeps_metres_and_unseen_nan() -> None:
 
 def test_stamp_parts() -> None:
     assert stamp_parts(STAMP_NS) == (1_700_000_000, 123_456_789)
+    last_ns = (INT32_MAX + 1) * NS_PER_S - 1
+    assert stamp_parts(last_ns) == (INT32_MAX, NS_PER_S - 1)
+    with pytest.raises(ValueError, match="outside ROS time"):
+        stamp_parts(last_ns + 1)
 
 
 @pytest.mark.parametrize("distro", ["humble", "jazzy", "kilted"])
@@ -200,6 +206,31 @@ def test_marker_array_clears_then_adds_one_cube_per_object(distro: cdr.Distro) -
     _, _, drum = array.markers
     assert (drum.id, drum.type) == (6, cdr.MARKER_CYLINDER)
     assert (drum.scale.x, drum.scale.y, drum.scale.z) == pytest.approx((0.5, 0.5, 0.9))
+
+
+def test_values_ros_messages_cannot_carry_are_folded_or_refused() -> None:
+    """A track id past int32 (only a broken or forged list has one) and a stamp past 2038 ended
+    `overgrid rmw-zenoh` with a struct.error; rclpy took both and wrapped them to other values
+    without a word. The id is folded into the Marker's int32, the same for each message of the
+    track, and carried whole by the Detection3D; the stamp is refused (a ValueError the relay
+    counts), by both outputs alike."""
+    header = tracked_objects()
+    far = header.objects[0].model_copy(update={"id": 2**40})
+    markers = object_markers(header.model_copy(update={"objects": [far]}), "map", PlanarPose())
+    visualization = node.ros_messages("visualization_msgs")
+    folded = 2**40 % 2**31
+    _, cube = cdr.decode("jazzy", cdr.marker_array_cdr("jazzy", markers), cdr.MARKER_ARRAY).markers
+    (detection,) = cdr.decode(
+        "jazzy", cdr.detection_array_cdr("jazzy", markers), cdr.DETECTION_3D_ARRAY
+    ).detections
+    assert (cube.id, detection.id) == (folded, str(2**40))
+    rclpy_array = node.marker_array_msg(visualization.Marker, visualization.MarkerArray, markers)
+    assert rclpy_array.markers[1].id == folded
+    late = object_markers(header.model_copy(update={"stamp_ns": 2**64 - 1}), "map", PlanarPose())
+    with pytest.raises(ValueError, match="outside ROS time"):
+        cdr.marker_array_cdr("jazzy", late)
+    with pytest.raises(ValueError, match="outside ROS time"):
+        node.marker_array_msg(visualization.Marker, visualization.MarkerArray, late)
 
 
 TF_MESSAGE_HASH = "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"

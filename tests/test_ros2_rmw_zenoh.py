@@ -275,11 +275,16 @@ def test_ros_arguments_run_from_ros_args_to_a_lone_double_dash() -> None:
         ("--frame-id", "/map"),
         ("--world-in-map", "1,2,nan"),
         ("--world-in-map", "1,2,inf"),
+        ("--map-depth", "100000000000"),
+        ("--updates-depth", "2147483648"),
+        ("--timeout-s", "inf"),
+        ("--timeout-s", "1e300"),
     ],
 )
 def test_a_name_ros_refuses_is_one_line_at_start_up(command: str, flag: str, value: str) -> None:
     """rclpy raised on such names only once the node started (a traceback), rmw_zenoh's keys took
-    a space, and a NaN pose went out on /tf_static."""
+    a space, and a NaN pose went out on /tf_static; rclpy refused a depth past int32 with a
+    TypeError traceback, Zenoh a timeout past 1.8e19 s with a ValueError one."""
     assert_one_line_exit_2(run_overgrid(command, flag, value, "--no-multicast-scouting"), flag)
 
 

@@ -10,6 +10,7 @@ import os
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -352,6 +353,42 @@ def test_token_loopback_and_read_only(bus: Bus, tmp_path: Path) -> None:
         == 101
     )
     assert _request(port, "/download/map.png", headers=cookie).status == 503  # no fusion: no map
+
+
+@pytest.mark.parametrize("flag", ["--health-period-s", "--height-period-s", "--push-interval-s"])
+def test_a_period_past_what_a_wait_takes_is_one_line(flag: str) -> None:
+    """1e300 s: an OverflowError traceback in the poll's thread, which then polled no more."""
+    done = run_overgrid("view", flag, "1e300", "--no-multicast-scouting")
+    assert_one_line_exit_2(done, flag)
+
+
+def _raw_status(port: int, request: bytes) -> bytes:
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as connection:
+        connection.sendall(request)
+        return connection.recv(200).split(b"\r\n")[0]
+
+
+@pytest.mark.process
+def test_requests_the_parser_refuses_are_a_quiet_line(bus: Bus, tmp_path: Path) -> None:
+    """A URL or a cookie past 8 KB, a NUL in the path: each got its 400, and also an error line
+    with aiohttp's traceback in the log. Now one warning line, counted; the viewer serves on."""
+    port = free_port()
+    log = tmp_path / "v.log"
+    bus.start("view", "--http-port", str(port), "--token", "secret-token", log_path=log)
+    _wait_http(port)
+    bad = [
+        b"GET /?token=" + b"x" * 100_000 + b" HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n",
+        b"GET /\x00 HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n",
+        b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nCookie: " + b"a" * 100_000 + b"\r\n\r\n",
+    ]
+    for request in bad:
+        assert b" 400 " in _raw_status(port, request)
+    wait_for(lambda: b"bad HTTP request refused" in log.read_bytes(), 10, "the refusal, said")
+    assert _request(port, "/?token=secret-token").status == 200
+    text = log.read_text()
+    assert "Traceback" not in text and "Error handling request" not in text, text
+    (line,) = [line for line in text.splitlines() if "refused" in line]
+    assert "level=warning" in line and "LineTooLong" in line and "xxxx" not in line
 
 
 @pytest.mark.process

@@ -24,7 +24,14 @@ from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
 from common import keys
-from common.client import MapFollower, MapUnavailable, calibrations, latest, query_first
+from common.client import (
+    MAX_TIMEOUT_S,
+    MapFollower,
+    MapUnavailable,
+    calibrations,
+    latest,
+    query_first,
+)
 from common.client import objects as query_objects
 from common.codec import CodecError, decode
 from common.lattice import Window
@@ -89,7 +96,9 @@ class EvalSettings(ZenohSettings):
         10.0, ge=0.0, le=MAX_RECORD_S, description="watch the stream this long for latencies"
     )
     json_output: bool = Field(False, description="print JSON instead of a table")
-    timeout_s: float = Field(10.0, gt=0.0, description="wait this long for each service")
+    timeout_s: float = Field(
+        10.0, gt=0.0, le=MAX_TIMEOUT_S, description="wait this long for each service"
+    )
 
 
 @dataclass(frozen=True)

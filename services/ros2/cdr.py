@@ -239,7 +239,7 @@ def marker_array_cdr(distro: Distro, markers: ObjectMarkers) -> bytes:
                 MARKER,
                 header=header,
                 ns=NAMESPACE,
-                id=box.id,
+                id=box.marker_id,
                 type=MARKER_CYLINDER if box.round else MARKER_CUBE,
                 action=MARKER_ADD,
                 pose=_pose(store, box.center_xyz_m, box.orientation_xyzw),

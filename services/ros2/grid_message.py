@@ -20,6 +20,9 @@ from common.mapfiles import FREE_MAX, OCCUPIED_MIN, free_cells, occupied_cells
 from common.occupancy_map import OccupancyMap
 
 NS_PER_S = 1_000_000_000
+INT32_MAX = 2**31 - 1
+"""ROS's int32 fields: builtin_interfaces/Time's ``sec`` (ROS 2 time ends 2038-01-19), a
+visualization_msgs/Marker's ``id``."""
 
 
 @dataclass(frozen=True)
@@ -122,8 +125,14 @@ def world_transform(
 
 
 def stamp_parts(stamp_ns: int) -> tuple[int, int]:
-    """builtin_interfaces/Time (sec, nanosec) of a stamp in ns since the Unix epoch."""
-    return stamp_ns // NS_PER_S, stamp_ns % NS_PER_S
+    """builtin_interfaces/Time (sec, nanosec) of a stamp in ns since the Unix epoch; a ValueError
+    for one past ROS time: rosbags' CDR raised struct.error mid-message (the native output died),
+    rclpy wrapped it to another time without a word. Not clamped: a robot reads a stamp as the
+    capture time (tf lookups, how fresh the data is), and 2038 is no capture time."""
+    sec, nanosec = divmod(stamp_ns, NS_PER_S)
+    if not -INT32_MAX - 1 <= sec <= INT32_MAX:
+        raise ValueError(f"stamp {stamp_ns} ns is outside ROS time (int32 seconds: up to 2038)")
+    return sec, nanosec
 
 
 def grid_info(occupancy_map: OccupancyMap, frame_id: str, world_in_map: PlanarPose) -> GridInfo:

@@ -170,7 +170,7 @@ def main(settings: RmwZenohSettings) -> None:
             relay.run(stop)
         finally:
             sink.close()
-    log.info("stopped", extra=relay.counts)
+    log.info("stopped", extra={**relay.counts, **relay.rejected})
 
 
 def cli(argv: Sequence[str] | None = None) -> None:

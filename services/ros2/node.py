@@ -127,7 +127,7 @@ def marker_array_msg(marker_type: Any, array_type: Any, markers: ObjectMarkers) 
     message = array_type(markers=[clear])
     for box in markers.boxes:
         shape = marker_type.CYLINDER if box.round else marker_type.CUBE
-        marker = marker_type(ns=NAMESPACE, id=box.id, type=shape)
+        marker = marker_type(ns=NAMESPACE, id=box.marker_id, type=shape)
         marker.action = marker_type.ADD
         _set_header(marker.header, markers.stamp_ns, markers.frame_id)
         _set_pose(marker.pose, box.center_xyz_m, box.orientation_xyzw)
@@ -347,7 +347,7 @@ def main(settings: Ros2Settings, ros_args: Sequence[str] = ()) -> None:
                 extra={"node": node.get_fully_qualified_name(), "map_topic": sink.map_topic},
             )
             relay.run(stop)
-        log.info("stopped", extra=relay.counts)
+        log.info("stopped", extra={**relay.counts, **relay.rejected})
     finally:
         executor.shutdown(timeout_sec=1.0)
         if spinner is not None:  # a spinning thread left to die at exit aborts the process

@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from common.messages import ObjectsHeader
-from services.ros2.grid_message import PlanarPose
+from services.ros2.grid_message import INT32_MAX, PlanarPose
 
 NAMESPACE = "overgrid_objects"
 """Marker ``ns``: the ids are the tracks' ids within it."""
@@ -40,6 +40,14 @@ class BoxMarker:
     object_class: str
     round: bool = False
     """A round top: a CYLINDER whose diameters are the size's x and y."""
+
+    @property
+    def marker_id(self) -> int:
+        """The track's id as a Marker's int32 ``id``: the same for every message of the track,
+        so RViz moves its box in place. Fusion counts ids from 1 in each epoch, so only a broken
+        or forged list reaches 2³¹ (it ended the native output); folded, its boxes still show,
+        and the Detection3D's string id carries the id whole."""
+        return self.id % (INT32_MAX + 1)
 
 
 @dataclass(frozen=True)

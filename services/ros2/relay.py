@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from typing import Protocol
 
 import zenoh
@@ -20,6 +21,7 @@ import zenoh
 from common import keys
 from common.client import MapFollower, MapUnavailable, health, latest, objects
 from common.codec import CodecError, decode
+from common.lattice import Window
 from common.logs import RateLimitedLog, Transitions
 from common.messages import OBJECTS_KIND, ObjectsHeader
 from common.occupancy_map import OccupancyMap
@@ -65,6 +67,9 @@ class MapRelay:
         self.wake = threading.Event()
         """Set by each new map version, and by a stop."""
         self.counts = {"map": 0, "update": 0, "height": 0, "objects": 0, "tf_static": 0}
+        self.rejected: dict[str, int] = {}
+        """Messages not published, by reason (``objects_undecodable``, ``{kind}_unpublishable``:
+        a value a ROS message cannot carry); each reason logged, rate-limited."""
         self._warn = RateLimitedLog(log)
         self._said_empty = False
         self._fusion = Transitions(
@@ -111,10 +116,7 @@ class MapRelay:
                             last_map_s, map_due = time.monotonic(), False
                     else:
                         if not changed.empty:
-                            self._sink.publish_update(
-                                grid_update(current, changed, s.frame_id, s.map_mode)
-                            )
-                            self.counts["update"] += 1
+                            self._publish_update(current, changed)
                         map_due = True
                     sent, last_change_s = current, time.monotonic()
                 now = time.monotonic()
@@ -166,7 +168,8 @@ class MapRelay:
     def _on_objects(self, sample: zenoh.Sample) -> None:
         try:
             tracked = decode(sample.payload.to_bytes(), OBJECTS_KIND, ObjectsHeader).header
-        except CodecError:
+        except CodecError as error:
+            self._reject("objects_undecodable", error)
             return
         with self._objects_lock:
             self._objects = tracked
@@ -184,8 +187,33 @@ class MapRelay:
 
     def _publish_objects(self, tracked: ObjectsHeader) -> None:
         s = self._settings
-        self._sink.publish_objects(object_markers(tracked, s.frame_id, s.pose))
-        self.counts["objects"] += 1
+        self._publish(
+            "objects",
+            lambda: self._sink.publish_objects(object_markers(tracked, s.frame_id, s.pose)),
+        )
+
+    def _publish(self, kind: str, publish: Callable[[], None]) -> bool:
+        """Build and publish one message of ``kind`` (a ``counts`` key); one that fails is skipped
+        and counted, and the robots keep the last good one. Any exception: what fails is rosbags'
+        or rclpy's code fed values from the network (a stamp past ROS time was a struct.error that
+        ended the process), and one message must not end the relay."""
+        try:
+            publish()
+        except Exception as error:
+            self._reject(f"{kind}_unpublishable", error)
+            return False
+        self.counts[kind] += 1
+        return True
+
+    def _reject(self, reason: str, error: Exception) -> None:
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        self._warn.warning(
+            reason,
+            "message not published",
+            reason=reason,
+            error=f"{type(error).__name__}: {error}"[:200],
+            count=self.rejected[reason],
+        )
 
     def _publish_map(self, occupancy_map: OccupancyMap) -> bool:
         """A whole /map, unless the map has no cell yet (a 0 × 0 grid latched for late joiners
@@ -196,8 +224,9 @@ class MapRelay:
                 self._said_empty = True
             return False
         s = self._settings
-        self._sink.publish_map(grid_message(occupancy_map, s.frame_id, s.pose, s.map_mode))
-        self.counts["map"] += 1
+        message = grid_message(occupancy_map, s.frame_id, s.pose, s.map_mode)
+        if not self._publish("map", lambda: self._sink.publish_map(message)):
+            return False
         first = self.counts["map"] == 1
         self._log.log(
             logging.INFO if first else logging.DEBUG,
@@ -205,6 +234,11 @@ class MapRelay:
             extra={"version": occupancy_map.version},
         )
         return True
+
+    def _publish_update(self, current: OccupancyMap, changed: Window) -> None:
+        s = self._settings
+        update = grid_update(current, changed, s.frame_id, s.map_mode)
+        self._publish("update", lambda: self._sink.publish_update(update))
 
     def _publish_height(self) -> None:
         """The follower's copy has no height layer (map/updates carries occupancy only), so the
@@ -214,5 +248,5 @@ class MapRelay:
         except MapUnavailable as error:
             self._warn.warning("height", "height layer unavailable", error=str(error)[:200])
             return
-        self._sink.publish_height(height_image(layered, self._settings.frame_id))
-        self.counts["height"] += 1
+        frame_id = self._settings.frame_id
+        self._publish("height", lambda: self._sink.publish_height(height_image(layered, frame_id)))

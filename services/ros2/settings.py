@@ -9,6 +9,7 @@ from typing import Literal
 
 from pydantic import Field, ValidationInfo, field_validator
 
+from common.client import MAX_TIMEOUT_S
 from common.settings import CommaList, ZenohSettings, startup_error
 from services.ros2.cdr import Distro
 from services.ros2.grid_message import MapMode, PlanarPose
@@ -41,6 +42,8 @@ NAME_RULES: dict[str, tuple[re.Pattern[str], str]] = {
 }
 """Each name setting's rule and what it is, for the one-line error."""
 
+HISTORY_DEPTH_MAX = 2**31 - 1
+"""A history depth DDS and rclpy take (an int32; rclpy refused more with a TypeError traceback)."""
 DurabilityName = Literal["transient_local", "volatile"]
 ReliabilityName = Literal["reliable", "best_effort"]
 
@@ -73,7 +76,7 @@ class Ros2Settings(ZenohSettings):
         "transient_local", description="/map durability (transient_local: late joiners get it)"
     )
     map_reliability: ReliabilityName = Field("reliable", description="/map reliability")
-    map_depth: int = Field(1, ge=1, description="/map history depth")
+    map_depth: int = Field(1, ge=1, le=HISTORY_DEPTH_MAX, description="/map history depth")
     map_mode: MapMode = Field(
         "trinary",
         description="/map and /map_updates values, as nav2's map_server gives them by the map "
@@ -85,7 +88,9 @@ class Ros2Settings(ZenohSettings):
         "transient_local", description="height layer durability (transient_local: late joiners)"
     )
     height_reliability: ReliabilityName = Field("reliable", description="height layer reliability")
-    height_depth: int = Field(1, ge=1, description="height layer history depth")
+    height_depth: int = Field(
+        1, ge=1, le=HISTORY_DEPTH_MAX, description="height layer history depth"
+    )
     objects_durability: DurabilityName = Field(
         "transient_local",
         description="durability of both objects topics (transient_local: late joiners get the "
@@ -94,8 +99,12 @@ class Ros2Settings(ZenohSettings):
     objects_reliability: ReliabilityName = Field(
         "reliable", description="reliability of both objects topics"
     )
-    objects_depth: int = Field(1, ge=1, description="history depth of both objects topics")
-    updates_depth: int = Field(10, ge=1, description="/map_updates history depth")
+    objects_depth: int = Field(
+        1, ge=1, le=HISTORY_DEPTH_MAX, description="history depth of both objects topics"
+    )
+    updates_depth: int = Field(
+        10, ge=1, le=HISTORY_DEPTH_MAX, description="/map_updates history depth"
+    )
     world_in_map: CommaList = Field(
         default_factory=lambda: ["0", "0", "0"],
         description="pose x,y,yaw (m, m, rad) of overgrid's world frame in the robots' map frame",
@@ -109,7 +118,10 @@ class Ros2Settings(ZenohSettings):
         1.0, gt=0.0, description="period of the height layer (fetched from map/latest)"
     )
     timeout_s: float = Field(
-        2.0, gt=0.0, description="how long one map/latest query waits for the fusion service"
+        2.0,
+        gt=0.0,
+        le=MAX_TIMEOUT_S,
+        description="how long one map/latest query waits for the fusion service",
     )
 
     @field_validator("world_in_map")

@@ -144,7 +144,7 @@ class MapFeed:
             started = time.monotonic()
             try:
                 poll()
-            except (MapUnavailable, CodecError, zenoh.ZError) as error:
+            except (MapUnavailable, zenoh.ZError) as error:
                 log.debug("poll failed", extra={"poll": poll.__name__, "error": str(error)[:200]})
             except Exception as error:  # a poller must outlive one odd answer, and say so
                 self._warn.warning(poll.__name__, "poll failed", error=repr(error)[:200])
@@ -198,7 +198,7 @@ class MapFeed:
     def _poll_health(self) -> None:
         try:
             answer = health(self._session, timeout_s=self.periods.query_timeout_s)
-        except (MapUnavailable, json.JSONDecodeError):
+        except MapUnavailable:
             if self._state.fusion_ok:
                 log.warning("fusion not answering")
             self._update(fusion_ok=False)  # the pairs as last known: fusion alone knows liveness

@@ -21,13 +21,15 @@ import time
 import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from aiohttp import WSMsgType, web
+from aiohttp.http_exceptions import HttpProcessingError
 from aiohttp.typedefs import Handler, Middleware
 from pydantic import Field
 
 from common.lifecycle import stop_on_signals
-from common.logs import setup_logging
+from common.logs import RateLimitedLog, setup_logging
 from common.mapfiles import (
     FREE_THRESH,
     OCCUPIED_THRESH,
@@ -51,6 +53,9 @@ MAX_QUEUED_MESSAGES = 64
 """A page further behind than this gets one full map instead of the backlog."""
 HEARTBEAT_S = 1.0
 """Status goes out at least this often, so a page notices a silent server."""
+MAX_PERIOD_S = 3600.0
+"""The longest period of the viewer's pushes and polls: an hour is no live view any more, and
+past about 3e8 s a wait overflows (``--health-period-s 1e300``: a traceback, then no health)."""
 
 
 class ViewSettings(ZenohSettings):
@@ -64,15 +69,17 @@ class ViewSettings(ZenohSettings):
         None, min_length=8, description="access token the page needs (?token=…), none by default"
     )
     push_interval_s: float = Field(
-        0.1, gt=0.0, description="shortest time between pushes to the pages"
+        0.1, gt=0.0, le=MAX_PERIOD_S, description="shortest time between pushes to the pages"
     )
     stale_after_s: float = Field(
         3.0, gt=0.0, description="the page warns when fusion has not answered for this long"
     )
     height_period_s: float = Field(
-        1.0, ge=0.0, description="how often the height layer is fetched (0: never)"
+        1.0, ge=0.0, le=MAX_PERIOD_S, description="how often the height layer is fetched (0: never)"
     )
-    health_period_s: float = Field(1.0, gt=0.0, description="how often map/health is asked")
+    health_period_s: float = Field(
+        1.0, gt=0.0, le=MAX_PERIOD_S, description="how often map/health is asked"
+    )
 
 
 def hello_message(settings: ViewSettings) -> str:
@@ -354,6 +361,32 @@ async def cell(request: web.Request) -> web.StreamResponse:
     )
 
 
+class RefusedRequestLog(logging.LoggerAdapter[logging.Logger]):
+    """aiohttp's server log, with a request its parser refuses (a URL or a header past 8 KB, a NUL
+    in the path: answered 400) as one warning line, rate-limited and counted: each was also an
+    error line with a traceback. Any other error (a handler's 500) keeps its traceback."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.getLogger("aiohttp.server"))
+        self.refused = 0
+        self._warn = RateLimitedLog(log)
+
+    def exception(self, msg: object, *args: object, exc_info: Any = True, **kwargs: Any) -> None:
+        if not isinstance(exc_info, HttpProcessingError):
+            super().exception(msg, *args, exc_info=exc_info, **kwargs)
+            return
+        self.refused += 1
+        # The message's first clause: what follows quotes the request, a token perhaps.
+        reason = f"{type(exc_info).__name__}: {exc_info.message.split(':')[0]}"[:120]
+        self._warn.warning(
+            "refused",
+            "bad HTTP request refused",
+            status=exc_info.code,
+            reason=reason,
+            refused=self.refused,
+        )
+
+
 def make_app(feed: MapFeed, settings: ViewSettings) -> web.Application:
     app = web.Application(middlewares=[guard(settings)])
     app[FEED] = feed
@@ -382,7 +415,7 @@ async def serve(settings: ViewSettings, feed: MapFeed, stop: threading.Event) ->
             loop.call_soon_threadsafe(broadcaster.wake.set)
 
     feed.notify = notify
-    runner = web.AppRunner(app, shutdown_timeout=1.0, access_log=None)
+    runner = web.AppRunner(app, shutdown_timeout=1.0, access_log=None, logger=RefusedRequestLog())
     await runner.setup()
     site = web.TCPSite(runner, settings.http_host, settings.http_port)
     try:
