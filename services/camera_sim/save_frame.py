@@ -15,6 +15,7 @@ import zenoh
 from pydantic import Field
 
 from common import keys
+from common.client import MAX_TIMEOUT_S
 from common.png import encode_png
 from common.settings import ZenohSettings, parse_settings, startup_error
 from common.zenoh_session import open_session
@@ -24,7 +25,9 @@ from services.depth.intake import Rejection, StereoFrame, decode_calibration, de
 class SaveFrameSettings(ZenohSettings):
     pair: str = Field("p0", description="pair whose frame to save")
     out: Path = Field(Path("stereo.png"), description="PNG file to write (left | right)")
-    timeout_s: float = Field(30.0, gt=0, description="give up after this long without a frame")
+    timeout_s: float = Field(
+        30.0, gt=0, le=MAX_TIMEOUT_S, description="give up after this long without a frame"
+    )
 
 
 def image_size(session: zenoh.Session, pair: str, timeout_s: float) -> tuple[int, int]:

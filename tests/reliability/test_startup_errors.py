@@ -253,6 +253,7 @@ def test_a_calibration_of_absurd_geometry_is_refused_at_start(
         ("depth", "--pair", "p0", "--max-message-mb", "inf"),
         ("fusion", "--max-tile-age-s", "inf"),
         ("up", "--fusion.max-tile-age-s", "nan"),
+        ("save-frame", "--timeout-s", "1e300"),
     ],
     ids=lambda args: " ".join(args[-2:]),
 )
