@@ -10,17 +10,21 @@ from __future__ import annotations
 import math
 import zlib
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
+from typing import Annotated, Any, Generic, TypeVar
 
 import msgpack
 import numpy as np
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, Field, ValidationError
 
 WIRE_VERSION = 1
 WIRE_ENCODING = f"application/msgpack;overgrid/{WIRE_VERSION}"
 """Zenoh encoding string of every overgrid msgpack payload; the suffix is the wire version."""
 
 DEFAULT_MAX_MESSAGE_BYTES = 32 * 1024 * 1024
+MessageLimitMb = Annotated[float, Field(ge=0.01, le=1024.0)]
+"""A service's largest message taken, in MiB (the setting ``--max-message-mb`` of each): from
+10 KiB (1e-300 took no message at all) to a GiB (a tile of the most cells a header may claim is
+180 MiB; 1e300 was taken as no limit)."""
 ZLIB_LEVEL = 1  # fastest: maps are re-encoded every version
 MAX_ARRAY_DIMS = 4
 ALLOWED_DTYPES = frozenset({"|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<f4", "<f8", "|b1"})

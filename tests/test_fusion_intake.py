@@ -9,7 +9,14 @@ from common.codec import encode
 from common.lattice import Window
 from common.messages import DETECTIONS_KIND, MAX_DETECTIONS, DetectionRecord, DetectionsHeader
 from services.fusion.grid import GridParams
-from services.fusion.intake import FUTURE_TOLERANCE_S, Rejected, TileGate, decode_detections
+from services.fusion.intake import (
+    FUTURE_TOLERANCE_S,
+    HEIGHT_RANGE_M,
+    Rejected,
+    TileGate,
+    decode_detections,
+)
+from services.fusion.objects import TrackerConfig
 from tests.tiles import tile_arrays, tile_payload
 
 W = Window(0, 0, 8, 6)
@@ -106,6 +113,18 @@ def test_heights_may_be_nan_only_where_unobserved() -> None:
     assert _reason(tile_payload("p0", W, 0.0, arrays=arrays)) == "nan"
 
 
+@pytest.mark.parametrize("height_m", [3e38, -3e38, HEIGHT_RANGE_M[1] + 1, HEIGHT_RANGE_M[0] - 1])
+def test_an_observed_height_beyond_the_sites_range_is_refused(height_m: float) -> None:
+    """±3e38 m tops were taken and served on the height layer; an unobserved cell's height is
+    not looked at."""
+    arrays = tile_arrays(W, 0.0)
+    arrays["count"][0, 0] = 0
+    arrays["height_m"][0, 0] = height_m
+    _gate().admit(tile_payload("p0", W, 0.0, arrays=arrays), time.time_ns(), "depth/p0/tile")
+    arrays["height_m"][1, 1] = height_m
+    assert _reason(tile_payload("p0", W, 0.0, arrays=arrays)) == "height"
+
+
 def test_the_pair_comes_from_the_key() -> None:
     """A p1 credential cannot speak for p0: the header must name the key's pair."""
     assert _reason(tile_payload("p0", W, 0.5), key="depth/p1/tile") == "pair"
@@ -162,6 +181,7 @@ def _detections() -> DetectionsHeader:
 
 
 SITE = GridParams().site_window()  # ±1 km around the origin
+MAX_SIZE_M = TrackerConfig.max_size_m
 
 
 @pytest.mark.parametrize(
@@ -179,18 +199,30 @@ SITE = GridParams().site_window()  # ±1 km around the origin
         ("center_m", [1e300, -1e300], "outside_extent"),
         ("center_m", [1500.0, 2.0], "outside_extent"),
         ("size_m", [1e5, 1e5], "dimensions"),
+        ("size_m", [MAX_SIZE_M + 1, 1.0], "dimensions"),  # within the site, past the tracker's
+        ("outline_m", [(1e6, 1e6), (1e6 + 0.5, 1e6), (1e6, 1e6 + 0.5)], "outside_extent"),
+        ("outline_m", [(1.0, 2.0), (5e4, 2.0), (1.0, 5e4)], "outside_extent"),
+        ("outline_m", [(100.0, 100.0), (100.5, 100.0), (100.0, 100.5)], "dimensions"),
+        ("outline_m", [(1.0, 2.0)] * 3, "footprint"),  # one point: joined into a 0 × 0 object
+        ("outline_m", [(0.8, 1.8), (1.0, 2.0), (1.2, 2.2)], "footprint"),  # on one line
+        ("outline_m", [(0.8, 1.8), (1.2, 2.2)], "footprint"),
+        ("yaw_rad", 1e308, "footprint"),  # averaged on the doubled circle: inf, then NaN
+        ("yaw_rad", -0.1, "footprint"),
+        ("yaw_rad", math.pi, "footprint"),
+        ("top_m", 3e38, "height"),
+        ("top_m", -3e38, "height"),
     ],
 )
 def test_detections_with_a_bad_value_are_rejected(field: str, value: object, reason: str) -> None:
     gate = TileGate(resolution_m=0.05, max_age_s=2.0, max_bytes=1_000_000, site=SITE)
     now_ns = time.time_ns()
     good = encode(DETECTIONS_KIND, _detections())
-    assert decode_detections(good, "depth/p0/objects", now_ns, gate)
+    assert decode_detections(good, "depth/p0/objects", now_ns, gate, MAX_SIZE_M)
     envelope = msgpack.unpackb(good)
     envelope["header"]["detections"][0][field] = value  # all else as sent
     payload = msgpack.packb(envelope)
     with pytest.raises(Rejected) as rejected:
-        decode_detections(payload, "depth/p0/objects", now_ns, gate)
+        decode_detections(payload, "depth/p0/objects", now_ns, gate, MAX_SIZE_M)
     assert rejected.value.reason == reason
 
 
@@ -200,8 +232,9 @@ def test_more_detections_than_a_frame_holds_are_rejected() -> None:
     envelope = msgpack.unpackb(encode(DETECTIONS_KIND, _detections()))
     detections = envelope["header"]["detections"]
     envelope["header"]["detections"] = detections * MAX_DETECTIONS
-    assert decode_detections(msgpack.packb(envelope), "depth/p0/objects", now_ns, _gate())
+    payload = msgpack.packb(envelope)
+    assert decode_detections(payload, "depth/p0/objects", now_ns, _gate(), MAX_SIZE_M)
     envelope["header"]["detections"] = detections * (MAX_DETECTIONS + 1)
     with pytest.raises(Rejected) as rejected:
-        decode_detections(msgpack.packb(envelope), "depth/p0/objects", now_ns, _gate())
+        decode_detections(msgpack.packb(envelope), "depth/p0/objects", now_ns, _gate(), MAX_SIZE_M)
     assert rejected.value.reason == "malformed"

@@ -586,6 +586,20 @@ def test_the_predicted_layer_covers_a_mover_ahead_and_clears_behind() -> None:
     assert not grid.set_predicted([])
 
 
+def test_a_broken_movers_footprint_is_not_swept() -> None:
+    """A moving track 50 km across (detections merged across a forged capture) is a broken
+    detection: it sweeps nothing, as it leaves no wake (its cells asked numpy for terabytes)."""
+    tracker = ObjectTracker()
+    for k in range(8):
+        broken = _record((2.0 + 0.5 * k, 2.0), (5e4, 5e4))
+        tracker.add("p0", T0_NS + k * FRAME_NS, [broken], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+    (track,) = tracker.objects()
+    assert track.object_class == "moving"
+    seen_ns = track.last_seen_ns
+    assert tracker.sweep(0.05, seen_ns, seen_ns + FRAME_NS) == []
+
+
 def test_a_movers_wake_forgets_the_hits_no_frame_has_shown_since() -> None:
     """The cells a moving track stood on and left, occupied and not shown by the newest capture,
     become unknown (floor too sparse in pixels to be measured free again keeps a hit for seconds);

@@ -10,7 +10,7 @@ import pytest
 from common.footprints import corners, polygon_cells
 from common.lattice import Window
 from services.fusion.grid import FusedGrid, GridParams
-from services.fusion.seams import SeamConfig, SeamView, gap_cells, seam_groups
+from services.fusion.seams import SeamConfig, SeamView, gap_cells, measured, seam_groups
 from tests.tiles import measure
 
 
@@ -34,6 +34,17 @@ def test_a_group_is_its_views_pairs_the_hull_of_their_footprints_and_the_highest
     assert int(np.count_nonzero(own)) == 20 * 12
     x, y = group.polygon_m[:, 0], group.polygon_m[:, 1]
     assert 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)) > 0  # counter-clockwise
+
+
+def test_a_view_no_join_can_hold_is_not_measured_nor_rasterised() -> None:
+    """A view up to √2 racks long may be a piece of one (the rack's diagonal); a longer one is
+    not measured, its cells never looked at: a forged 50 km one asked numpy for terabytes."""
+    grid = _map([(1.0, 9.0)], [])  # the row y 2.2–2.8 m occupied from x 1 to 9 m
+    config = SeamConfig()
+    longest_m = math.sqrt(2) * config.max_length_m
+    assert measured(corners((5.0, 2.5), (longest_m - 0.05, 0.6), 0.0), grid, config)
+    assert not measured(corners((5.0, 2.5), (longest_m + 0.05, 0.6), 0.0), grid, config)
+    assert not measured(corners((5.0, 2.5), (5e4, 5e4), 0.0), grid, config)
 
 
 def _map(pieces_m: list[tuple[float, float]], free: list[tuple[float, float]]) -> FusedGrid:

@@ -8,6 +8,7 @@ from typing import Annotated
 from pydantic import AfterValidator, Field, model_validator
 
 from common import keys
+from common.codec import MessageLimitMb
 from common.sensor_model import SensorModelParams
 from common.settings import DEFAULT_RESOLUTION_M, OvergridParams, ResolutionM, ZenohSettings
 from services.depth.floor_config import FloorModelConfig
@@ -33,7 +34,7 @@ class DepthParams(OvergridParams):
     )
     matcher: MatcherConfig = Field(default_factory=MatcherConfig)
     model: SensorModelParams = Field(default_factory=SensorModelParams)
-    max_message_mb: float = Field(32.0, gt=0.0, description="reject larger frame messages")
+    max_message_mb: MessageLimitMb = Field(32.0, description="reject larger frame messages")
     threads: int = Field(1, ge=0, le=64, description="OpenCV threads (0: OpenCV's default)")
     calib_timeout_s: float = Field(
         0.0, ge=0.0, description="give up waiting for calibration (0: never)"

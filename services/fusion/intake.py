@@ -7,21 +7,31 @@ keys means something; a header naming another pair is rejected.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 from common import keys
+from common.arrays import F64
 from common.codec import CodecError, decode
 from common.lattice import Window
-from common.messages import DETECTIONS_KIND, TILE_KIND, DetectionsHeader, TileHeader
+from common.messages import (
+    DETECTIONS_KIND,
+    TILE_KIND,
+    DetectionRecord,
+    DetectionsHeader,
+    TileHeader,
+)
 
 REASONS = (
     "malformed",
     "resolution",
     "dimensions",
     "nan",
+    "height",
+    "footprint",
     "hidden",
     "stale",
     "future",
@@ -35,6 +45,13 @@ REASONS = (
 )
 """``internal``: fusing the message raised something unforeseen (a bug): counted and logged with
 the exception, and the owner's loop goes on with the next message."""
+HEIGHT_RANGE_M = (-10.0, 100.0)
+"""Heights above the floor a tile's observed cell or a detection's top may claim: no overhead
+camera sees a surface 100 m up or 10 m below its floor. Beyond is a forged or broken message
+(tops of ±3e38 m were served on the height layer)."""
+MIN_OUTLINE_M2 = 1e-6
+"""An outline enclosing less (a square millimetre) is no top seen: three times one point, or
+points on one line, joined into an object 0 m wide."""
 FUTURE_TOLERANCE_S = 0.25
 """A capture stamp this far ahead of fusion's clock is clock skew between boxes; further is a
 forged or broken clock: rejected, and its stamp not kept (it would lock the pair's later tiles
@@ -151,6 +168,10 @@ class TileGate:
             raise Rejected(
                 "nan", "tile holds NaN or infinite log-odds, or heights of observed cells"
             )
+        lowest_m, highest_m = HEIGHT_RANGE_M
+        plausible = (layers["height_m"] >= lowest_m) & (layers["height_m"] <= highest_m)
+        if not np.less_equal(observed, plausible).all():
+            raise Rejected("height", f"tile claims heights beyond {lowest_m:g} … {highest_m:g} m")
         check_stamp(h.stamp_ns, now_ns, self.max_age_ns)
         if h.stamp_ns <= self.newest_stamp_ns.get(h.pair, -1):
             raise Rejected(
@@ -171,8 +192,11 @@ class TileGate:
         self.newest_stamp_ns[tile.header.pair] = tile.header.stamp_ns
 
 
-def decode_detections(payload: bytes, key: str, now_ns: int, gate: TileGate) -> DetectionsHeader:
-    """One pair's objects of one frame (``depth/{pair}/objects``), or :class:`Rejected`."""
+def decode_detections(
+    payload: bytes, key: str, now_ns: int, gate: TileGate, max_size_m: float
+) -> DetectionsHeader:
+    """One pair's objects of one frame (``depth/{pair}/objects``), or :class:`Rejected`; a
+    footprint longer than ``max_size_m`` (the tracker's) is a broken detection."""
     key_pair = pair_of_key(key)
     try:
         header = decode(payload, DETECTIONS_KIND, DetectionsHeader, gate.max_bytes).header
@@ -180,31 +204,72 @@ def decode_detections(payload: bytes, key: str, now_ns: int, gate: TileGate) -> 
         raise Rejected("malformed", str(error)) from None
     if header.pair != key_pair:
         raise Rejected("pair", f"header names pair {header.pair}, the key {key_pair}")
-    if gate.site is not None:
-        check_on_site(header, gate.site, gate.resolution_m, gate.bounded)
+    site, longest_m = gate.site, max_size_m
+    if site is not None:  # nor longer than the site
+        longest_m = min(longest_m, max(site.cols, site.rows) * gate.resolution_m)
+    for detection in header.detections:
+        if site is not None:
+            check_on_site(detection, site, gate.resolution_m, gate.bounded)
+        check_footprint(detection, longest_m)
     check_stamp(header.stamp_ns, now_ns, gate.max_age_ns)
     return header
 
 
 def check_on_site(
-    header: DetectionsHeader, site: Window, resolution_m: float, bounded: bool
+    detection: DetectionRecord, site: Window, resolution_m: float, bounded: bool
 ) -> None:
-    """Every detection's centre on the site the tiles may land on, and no footprint longer than
-    the site: elsewhere a detection is a forged or broken one that would only start tracks the
-    map never shows (as a tile there is rejected)."""
-    (x0, y0, x1, y1), span_m = site.bounds_m(resolution_m), max(site.cols, site.rows) * resolution_m
-    for detection in header.detections:
-        x, y = detection.center_m
+    """A detection's centre and outline on the site the tiles may land on: elsewhere it is a
+    forged or broken one that would only start tracks the map never shows (as a tile there is
+    rejected), or join an object reaching there."""
+    x0, y0, x1, y1 = site.bounds_m(resolution_m)
+    for x, y in (detection.center_m, *detection.outline_m):
         if not (x0 <= x < x1 and y0 <= y < y1):
             raise Rejected(
                 "outside_map" if bounded else "outside_extent",
-                f"a detection at ({x:.6g}, {y:.6g}) m lies beyond the site {site}",
+                f"a detection reaching ({x:.6g}, {y:.6g}) m lies beyond the site {site}",
             )
-        if max(detection.size_m) > span_m:
-            raise Rejected(
-                "dimensions",
-                f"a detection {max(detection.size_m):.6g} m long exceeds the site's {span_m:g} m",
-            )
+
+
+def check_footprint(detection: DetectionRecord, longest_m: float) -> None:
+    """A footprint the tracker can take: no longer than ``longest_m``, nor its outline reaching
+    farther from its centre; its yaw in [0, π); its outline, if any, enclosing an area; its top
+    within :data:`HEIGHT_RANGE_M`. A yaw of 1e308 averaged to NaN in the tracker, an outline of
+    one point joined into an object 0 m wide, a footprint of 2 km was rasterised into GiBs."""
+    length_m = max(detection.size_m)
+    outline = np.asarray(detection.outline_m, np.float64).reshape(-1, 2)
+    reach_m = float(np.hypot(*(outline - detection.center_m).T).max(initial=0.0))
+    if length_m > longest_m:
+        raise Rejected(
+            "dimensions",
+            f"a detection {length_m:.6g} m long exceeds the {longest_m:g} m a footprint may span",
+        )
+    if reach_m > longest_m:
+        raise Rejected(
+            "dimensions",
+            f"a detection's outline reaches {reach_m:.6g} m from its centre, past the "
+            f"{longest_m:g} m a footprint may span",
+        )
+    if not 0.0 <= detection.yaw_rad < math.pi:
+        raise Rejected(
+            "footprint", f"a detection's yaw {detection.yaw_rad:.6g} rad is not in [0, π)"
+        )
+    if len(outline) and enclosed_m2(outline) < MIN_OUTLINE_M2:
+        raise Rejected("footprint", "a detection's outline encloses no area")
+    lowest_m, highest_m = HEIGHT_RANGE_M
+    if not lowest_m <= detection.top_m <= highest_m:
+        raise Rejected(
+            "height",
+            f"a detection's top at {detection.top_m:.6g} m is beyond {lowest_m:g} … "
+            f"{highest_m:g} m",
+        )
+
+
+def enclosed_m2(polygon_m: F64) -> float:
+    """A lower bound of the area a polygon's vertices enclose: the largest triangle on the chord
+    from its first vertex to the vertex farthest from it (no hull to build: one array operation)."""
+    offsets = polygon_m - polygon_m[0]
+    far = offsets[np.argmax(np.hypot(*offsets.T))]
+    return float(np.abs(offsets[:, 0] * far[1] - offsets[:, 1] * far[0]).max()) / 2
 
 
 def decode_presence(key: str, alive: bool) -> Presence:

@@ -201,7 +201,8 @@ class TrackerConfig:
     its rim cells read free as often as not (offline, nine scenes, static false-free on ``--seed
     5 --pairs 6`` 0.42 → 0.63 % without the margin)."""
     max_size_m: float = 10.0
-    """A footprint longer than this is a broken detection: it makes no wake and no outline."""
+    """A footprint longer than this is a broken detection: it makes no wake, sweep nor outline
+    (fusion refuses a detection longer at once: ``services.fusion.intake``)."""
     unsettled_max_size_m: float = 2.0
     """A track neither moving nor standing whose newest view is longer than this is no mover
     but several objects and a mover merged in one detection (offline, ``--seed 5 --pairs 6``:
@@ -768,6 +769,8 @@ class ObjectTracker:
             if self.stamp_ns - t.stamp_ns > self.config.sweep_missed_frames * self.ahead_s() * 1e9:
                 continue  # missed by the last frames: where it went is a guess, not a prediction
             (length, width), yaw = self._footprint(t)
+            if max(length, width) > self.config.max_size_m:
+                continue  # a broken detection's: no sweep, as no wake
             start_s = (max(t.stamp_ns, from_ns) - t.stamp_ns) / 1e9
             end_s = min(max((until_ns - t.stamp_ns) / 1e9, start_s), self.config.sweep_max_s)
             start_s = min(start_s, end_s)

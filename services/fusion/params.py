@@ -13,7 +13,7 @@ from common.lattice import Window
 from common.settings import DEFAULT_RESOLUTION_M, ResolutionM
 
 
-@dataclass(frozen=True, config=ConfigDict(extra="forbid"))
+@dataclass(frozen=True, config=ConfigDict(extra="forbid", allow_inf_nan=False))
 class GridParams:
     resolution_m: ResolutionM = Field(
         default=DEFAULT_RESOLUTION_M, description="map cell size; tiles must match"

@@ -14,6 +14,7 @@ Pure numpy: the map's evidence comes in as a :class:`MapEvidence` (``FusedGrid``
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -99,8 +100,11 @@ def gap_cells(a_m: F64, b_m: F64, resolution_m: float) -> tuple[Window, Mask]:
 
 def measured(polygon_m: F64, cells: MapEvidence, config: SeamConfig) -> bool:
     """Whether the map's evidence calls ``covered_share`` or more of a view's cells (a convex
-    polygon's) occupied: a gap is judged on measured ground."""
-    if len(polygon_m) < 3:
+    polygon's) occupied: a gap is judged on measured ground. A view longer than √2 ×
+    ``max_length_m`` is not, and its cells are not looked at (a forged 2 km view asked for tens
+    of GiB): no rectangle ``max_length_m`` long holds it (the diagonal would), so it joins
+    nothing (:func:`one_object_across`)."""
+    if len(polygon_m) < 3 or fit_rectangle(polygon_m)[2] > math.sqrt(2) * config.max_length_m:
         return False
     window, own = polygon_cells(polygon_m, cells.resolution_m)
     count = int(np.count_nonzero(own))

@@ -186,6 +186,8 @@ def main(settings: FusionSettings) -> None:
     writer = StateWriter(settings.state_dir, start=state.view.frozen)
     snapshots = SnapshotBuilder(lambda: state.view, settings.publish_interval_s)
 
+    # Every answer on the queryable's own key, never the query's: a get of map/* took one reply of
+    # the three, keyed map/*.
     def answer_map(query: zenoh.Query) -> None:
         try:
             request = parse_map_query(query_parameters(query))
@@ -194,7 +196,7 @@ def main(settings: FusionSettings) -> None:
             return
         snapshot = snapshots.get(bool(request.layers))
         query.reply(
-            query.key_expr, snapshot.encoded(request), encoding=CONTENT_TYPES[request.format]
+            keys.MAP_LATEST, snapshot.encoded(request), encoding=CONTENT_TYPES[request.format]
         )
 
     def on_map_query(query: zenoh.Query) -> None:
@@ -203,7 +205,7 @@ def main(settings: FusionSettings) -> None:
         not wait behind them (it waited 1–2.5 s behind 50 clients' PNGs)."""
         payload = snapshots.plain() if query.parameters.is_empty() else None
         if payload is not None:
-            query.reply(query.key_expr, payload, encoding=CONTENT_TYPES[DEFAULT_QUERY.format])
+            query.reply(keys.MAP_LATEST, payload, encoding=CONTENT_TYPES[DEFAULT_QUERY.format])
             finish(query)
         elif query_parameters(query).get("format", DEFAULT_QUERY.format) != DEFAULT_QUERY.format:
             image_worker.offer(query)
@@ -216,11 +218,11 @@ def main(settings: FusionSettings) -> None:
             query.reply_err(f"map/objects: format {fmt!r} not one of {', '.join(OBJECT_FORMATS)}")
             return
         header = state.view.objects
-        query.reply(query.key_expr, objects_payload(header, fmt), encoding=OBJECT_FORMATS[fmt])
+        query.reply(keys.MAP_OBJECTS, objects_payload(header, fmt), encoding=OBJECT_FORMATS[fmt])
 
     def answer_health(query: zenoh.Query) -> None:
         answer = health_of(state.view, writer, inbox.dropped_counts())
-        query.reply(query.key_expr, json.dumps(answer), encoding="application/json")
+        query.reply(keys.MAP_HEALTH, json.dumps(answer), encoding="application/json")
 
     def hand_over(kind: str, droppable: bool = True) -> Callable[[zenoh.Sample], None]:
         def callback(sample: zenoh.Sample) -> None:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from pydantic import Field, field_validator, model_validator
 
+from common.codec import MessageLimitMb
 from common.lattice import Window
 from common.settings import CommaList, OvergridParams, ZenohSettings
 from services.fusion.captures import CaptureGroups
@@ -29,9 +30,10 @@ class FusionParams(OvergridParams):
         default_factory=list, description="fixed map bounds x0,y0,x1,y1 in metres (default: grow)"
     )
     max_tile_age_s: float = Field(
-        2.0, gt=0.0, description="drop tiles captured longer ago than this"
+        2.0, gt=0.0, le=3600.0, description="drop tiles captured longer ago than this"
     )
-    max_message_mb: float = Field(64.0, gt=0.0, description="reject larger tile messages")
+    """An hour at most: no measurement of now (1e300 s overflowed the clock's nanoseconds)."""
+    max_message_mb: MessageLimitMb = Field(64.0, description="reject larger tile messages")
     capture_wait_s: float = Field(
         CaptureGroups.wait_s,
         ge=0.0,
@@ -42,11 +44,14 @@ class FusionParams(OvergridParams):
     publish_interval_s: float = Field(
         0.02,
         gt=0.0,
+        le=10.0,
         description="shortest time between map snapshots (and map/updates) while tiles arrive",
     )
+    """Ten seconds at most: a map served less often is no live map (1e300 s served none)."""
     save_interval_s: float = Field(
         0.5,
         gt=0.0,
+        le=3600.0,
         description="period of state saves: a crash loses at most this much (and the tiles waiting "
         "for the rest of their capture)",
     )

@@ -176,7 +176,13 @@ class FusionState:
 
     def _detections(self, delivery: Delivery) -> None:
         """One pair's objects of one frame: held until the rest of the capture arrives."""
-        h = decode_detections(delivery.payload, delivery.key, delivery.arrival_ns, self.gate)
+        h = decode_detections(
+            delivery.payload,
+            delivery.key,
+            delivery.arrival_ns,
+            self.gate,
+            self.tracker.config.max_size_m,
+        )
         self.tracker.add(h.pair, h.stamp_ns, list(h.detections), time.monotonic())
 
     def _presence(self, delivery: Delivery) -> None:
@@ -200,6 +206,21 @@ class FusionState:
         )
 
     def refresh_objects(self) -> ObjectsHeader | None:
+        """:meth:`_refresh_objects`, outliving whatever it raises (a bug, memory): counted as
+        detections rejected ``internal`` and logged, and the tracks begin anew (a track that broke
+        one capture would break each one after). The owner's loop, and with it the map, goes on
+        (it died: a detection's yaw of 1e308 made a NaN size the object list refused)."""
+        try:
+            return self._refresh_objects()
+        except Exception as error:
+            self.detections_rejected["internal"] += 1
+            self.tracker.forget()
+            self.warn.warning(
+                "objects_internal", "tracking failed: the tracks begin anew", error=_internal(error)
+            )
+            return None
+
+    def _refresh_objects(self) -> ObjectsHeader | None:
         """Merge and track the captures that are complete; the predicted layer holds the static
         objects' footprints the frames agree with, less their edge cells the frames call free (the
         contested layer those, the other footprints, the cells within a centimetre outside every

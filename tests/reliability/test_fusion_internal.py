@@ -1,6 +1,7 @@
 """Fusion's own threads outlive what one message or one save raises: the owner's loop counts a tile
-whose fusing raised anything (memory, numpy, a bug) as rejected ``internal`` and takes the next;
-the state writer counts a save that failed any way and saves again with the next hand-over."""
+whose fusing raised anything (memory, numpy, a bug) as rejected ``internal`` and takes the next,
+and so a capture whose tracking raised (detections rejected ``internal``); the state writer counts
+a save that failed any way and saves again with the next hand-over."""
 
 import threading
 import time
@@ -10,7 +11,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from common.codec import encode
 from common.lattice import Window
+from common.messages import DETECTIONS_KIND, DetectionRecord, DetectionsHeader
 from services.fusion import persistence
 from services.fusion.grid import FusedGrid, GridParams
 from services.fusion.inbox import Delivery, Inbox
@@ -61,6 +64,56 @@ def test_the_owner_loop_counts_any_exception_of_one_tile_as_internal_and_goes_on
     assert loop.is_alive()
     assert state.view.rejected == {"internal": 3}
     wait_for(lambda: bool(updates), 5, "an update of the fused tiles")
+    stop.set()
+    loop.join(5)
+    writer.close()
+    assert not loop.is_alive()
+
+
+def test_the_owner_loop_counts_a_capture_whose_tracking_raised_and_goes_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A track the object list refused (a NaN size of a yaw of 1e308) raised in the owner's loop,
+    outside any message's handling: fusion died. Now it is counted, the map goes on, and the
+    tracks begin anew."""
+    settings = FusionSettings(state_dir=tmp_path, no_multicast_scouting=True)
+    state = FusionState(settings, FusedGrid(settings.grid_params()))
+    failures = [ValueError("size_m: a footprint's length and width must be positive")]
+    objects = state.tracker.objects
+
+    def failing_once(*args: Any, **kwargs: Any) -> Any:
+        if failures:
+            raise failures.pop()
+        return objects(*args, **kwargs)
+
+    monkeypatch.setattr(state.tracker, "objects", failing_once)
+    inbox = Inbox(64, 1 << 24)
+    writer = StateWriter(tmp_path)
+    stop = threading.Event()
+    served: list[bytes] = []
+    loop = threading.Thread(
+        target=run,
+        args=(settings, state, inbox, writer, stop, lambda _: None, served.append, lambda: None),
+    )
+    loop.start()
+    box = DetectionRecord(
+        center_m=(1.0, 1.0), size_m=(0.8, 0.5), yaw_rad=0.0, top_m=1.0, points=100, partial=False
+    )
+    for seq in range(5):
+        header = DetectionsHeader(pair="p0", seq=seq, stamp_ns=time.time_ns(), detections=[box])
+        payload = encode(DETECTIONS_KIND, header)
+        inbox.offer(Delivery("detections", "depth/p0/objects", time.time_ns(), payload))
+        time.sleep(0.1)
+    inbox.offer(
+        Delivery(
+            "tile", "depth/p0/tile", time.time_ns(), tile_payload("p0", Window(0, 0, 4, 4), 3.0)
+        )
+    )
+    wait_for(lambda: len(state.view.objects.objects) == 1, 5, "the box tracked anew")
+    wait_for(lambda: sum(state.view.accepted.values()) == 1, 5, "the tile fused")
+    assert loop.is_alive()
+    assert state.view.detections_rejected == {"internal": 1}
+    assert served  # the object lists after the failure were published
     stop.set()
     loop.join(5)
     writer.close()
