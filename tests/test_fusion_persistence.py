@@ -286,3 +286,18 @@ def test_layers_are_deflated_only_where_it_pays() -> None:
     floor = np.full((64, 64), -1.5, np.float32)
     assert len(persistence._packed(noise)) > noise.nbytes  # stored
     assert len(persistence._packed(floor)) < floor.nbytes / 50  # deflated
+
+
+def test_a_saved_top_no_tile_may_bring_now_is_read_back_unknown(tmp_path: Path) -> None:
+    """A map saved before tiles' heights were checked served a top of 3e38 m after the upgrade,
+    and the max rule kept it as long as the cell was observed."""
+    grid = FusedGrid(GridParams())
+    window = Window(0, 0, 3, 1)
+    heights = np.array([[3e38, 1.2, -3e38]], np.float32)
+    grid.integrate(
+        window, np.ones(window.shape, np.float32), heights, np.ones((1, 3), np.uint16), 1
+    )
+    save_now(grid, tmp_path)
+    restored = load_grid(GridParams(), tmp_path, epoch_ns=1).window_of("height_m", window)
+    assert np.isnan(restored[0, 0]) and restored[0, 1] == pytest.approx(1.2)
+    assert np.isnan(restored[0, 2])

@@ -47,6 +47,7 @@ from services.fusion.grid import (
     FusedGrid,
     GridParams,
 )
+from services.fusion.intake import HEIGHT_RANGE_M
 
 log = logging.getLogger("fusion.state")
 CHUNK_LOG = "map_chunks.log"
@@ -193,6 +194,11 @@ def _apply(state: SavedState, record: Any, resolution_m: float, path: Path) -> N
             }
             if not np.isfinite(chunk["logodds"]).all():
                 raise StateUnusable(f"{path}: chunk ({ci}, {cj}) holds non-finite log-odds")
+            # Tops no tile may bring now (a map saved before tiles' heights were checked, 3e38 m):
+            # unknown, not kept by the max rule for as long as the cell is observed.
+            lowest_m, highest_m = HEIGHT_RANGE_M
+            height = chunk["height_m"]
+            height[(height < lowest_m) | (height > highest_m)] = np.nan
             state.chunks[(int(ci), int(cj))] = chunk
         state.version = _counter(record["version"], "version", path)
         state.stamp_ns = _counter(record["stamp_ns"], "stamp_ns", path)
