@@ -82,6 +82,12 @@ def test_a_recording_of_the_wrong_size_is_refused_at_start_up_naming_its_first_f
     check_recording(tmp_path)  # a recording, whatever its size
     with pytest.raises(InputError, match=r"0000\.png: wrong_size"):
         check_recording(tmp_path, build_pipeline(_calibration(), PipelineConfig()))
+    # Its first file unreadable: the check was skipped, and the recording read to its end.
+    (tmp_path / "left" / "0000.png").write_bytes(b"not a png")
+    _write(tmp_path / "left" / "0001.png", 0, (500, 740))
+    _write(tmp_path / "right" / "0001.png", 0, (500, 740))
+    with pytest.raises(InputError, match=r"0001\.png: wrong_size"):
+        check_recording(tmp_path, build_pipeline(_calibration(), PipelineConfig()))
 
 
 def test_a_mono_camera_pairs_with_a_colour_one_and_16_bit_colour_is_taken() -> None:

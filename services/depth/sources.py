@@ -9,6 +9,7 @@ in the numbers' order (``2.png`` before ``10.png``).
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 from collections.abc import Generator
@@ -61,15 +62,20 @@ def _video(source: Path) -> cv2.VideoCapture:
     return cv2.VideoCapture(str(source))
 
 
+CHECKED_FRAMES = 10
+"""A recording's pairs read at start-up for the first that decodes (:func:`check_recording`)."""
+
+
 def check_recording(source: Path, pipeline: DepthPipeline | None = None) -> None:
     """Fail at start-up, not at the first frame, on a recording that is not there or not one; with
-    the calibration's ``pipeline``, also on one whose first pair it cannot take (the wrong size,
-    pixels of no gray scale: every frame of it would be refused) or whose left and right look
-    swapped (:meth:`DepthPipeline.swapped`: every tile would be phantom obstacles)."""
-    first_name = "its first frame"
+    the calibration's ``pipeline``, also on one whose first readable pair (of the first
+    CHECKED_FRAMES) it cannot take (the wrong size, pixels of no gray scale: every frame of it
+    would be refused) or whose left and right look swapped (:meth:`DepthPipeline.swapped`: every
+    tile would be phantom obstacles)."""
+    names: list[str] = []
     if source.is_dir():
         try:
-            first_name = _image_pairs(source)[0][0].name
+            names = [left.name for left, _ in _image_pairs(source)]
         except ValueError as error:
             raise InputError(f"--images {source}: {error}") from None
     elif not source.exists():
@@ -85,18 +91,27 @@ def check_recording(source: Path, pipeline: DepthPipeline | None = None) -> None
     if pipeline is None:
         return
     frames = recorded_frames(source)
-    first = next(frames, None)
-    frames.close()
-    if first is None:
+    read, readable = 0, None
+    try:
+        for index, frame in enumerate(itertools.islice(frames, CHECKED_FRAMES)):
+            read += 1
+            if not isinstance(frame, Rejection):
+                readable = index, frame
+                break
+    finally:
+        frames.close()
+    if read == 0:
         raise InputError(f"--images {source}: the video holds no frame")
-    if isinstance(first, Rejection):  # an unreadable file: the recording goes on after it
+    if readable is None:  # unreadable files are refused as the recording plays, and it goes on
         return
-    checked = check_images(*first, pipeline.calib.image_size)
+    index, frame = readable
+    name = names[index] if names else f"frame {index}"
+    checked = check_images(*frame, pipeline.calib.image_size)
     if isinstance(checked, Rejection):
-        raise InputError(f"--images {source}: {first_name}: {checked.reason}: {checked.detail}")
+        raise InputError(f"--images {source}: {name}: {checked.reason}: {checked.detail}")
     swapped = pipeline.swapped(*checked)
     if swapped is not None:
-        raise InputError(f"--images {source}: {first_name}: {swapped}")
+        raise InputError(f"--images {source}: {name}: {swapped}")
 
 
 def _natural_key(path: Path) -> list[tuple[int, int | str]]:
