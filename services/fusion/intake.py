@@ -192,11 +192,11 @@ class TileGate:
         self.newest_stamp_ns[tile.header.pair] = tile.header.stamp_ns
 
 
-def decode_detections(
-    payload: bytes, key: str, now_ns: int, gate: TileGate, max_size_m: float
-) -> DetectionsHeader:
-    """One pair's objects of one frame (``depth/{pair}/objects``), or :class:`Rejected`; a
-    footprint longer than ``max_size_m`` (the tracker's) is a broken detection."""
+def decode_detections(payload: bytes, key: str, now_ns: int, gate: TileGate) -> DetectionsHeader:
+    """One pair's objects of one frame (``depth/{pair}/objects``), or :class:`Rejected`. A
+    footprint longer than the tracker's largest object is taken (a trailer, a rack row under a
+    high camera) and only never rasterised (its wake, outline and seams); one longer than the
+    site is a broken detection."""
     key_pair = pair_of_key(key)
     try:
         header = decode(payload, DETECTIONS_KIND, DetectionsHeader, gate.max_bytes).header
@@ -204,9 +204,9 @@ def decode_detections(
         raise Rejected("malformed", str(error)) from None
     if header.pair != key_pair:
         raise Rejected("pair", f"header names pair {header.pair}, the key {key_pair}")
-    site, longest_m = gate.site, max_size_m
-    if site is not None:  # nor longer than the site
-        longest_m = min(longest_m, max(site.cols, site.rows) * gate.resolution_m)
+    site, longest_m = gate.site, math.inf
+    if site is not None:
+        longest_m = max(site.cols, site.rows) * gate.resolution_m
     for detection in header.detections:
         if site is not None:
             check_on_site(detection, site, gate.resolution_m, gate.bounded)
@@ -218,16 +218,17 @@ def decode_detections(
 def check_on_site(
     detection: DetectionRecord, site: Window, resolution_m: float, bounded: bool
 ) -> None:
-    """A detection's centre and outline on the site the tiles may land on: elsewhere it is a
-    forged or broken one that would only start tracks the map never shows (as a tile there is
-    rejected), or join an object reaching there."""
+    """A detection's centre on the site the tiles may land on: elsewhere it is a forged or broken
+    one that would only start tracks the map never shows (as a tile there is rejected). Its
+    outline may reach past the site's edge (a box against the bounds), no farther from the
+    centre than the site is long (:func:`check_footprint`)."""
     x0, y0, x1, y1 = site.bounds_m(resolution_m)
-    for x, y in (detection.center_m, *detection.outline_m):
-        if not (x0 <= x < x1 and y0 <= y < y1):
-            raise Rejected(
-                "outside_map" if bounded else "outside_extent",
-                f"a detection reaching ({x:.6g}, {y:.6g}) m lies beyond the site {site}",
-            )
+    x, y = detection.center_m
+    if not (x0 <= x < x1 and y0 <= y < y1):
+        raise Rejected(
+            "outside_map" if bounded else "outside_extent",
+            f"a detection at ({x:.6g}, {y:.6g}) m lies beyond the site {site}",
+        )
 
 
 def check_footprint(detection: DetectionRecord, longest_m: float) -> None:

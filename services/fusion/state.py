@@ -176,13 +176,7 @@ class FusionState:
 
     def _detections(self, delivery: Delivery) -> None:
         """One pair's objects of one frame: held until the rest of the capture arrives."""
-        h = decode_detections(
-            delivery.payload,
-            delivery.key,
-            delivery.arrival_ns,
-            self.gate,
-            self.tracker.config.max_size_m,
-        )
+        h = decode_detections(delivery.payload, delivery.key, delivery.arrival_ns, self.gate)
         self.tracker.add(h.pair, h.stamp_ns, list(h.detections), time.monotonic())
 
     def _presence(self, delivery: Delivery) -> None:

@@ -83,11 +83,11 @@ def test_detections_that_broke_the_tracker_are_refused_by_reason_and_fusion_goes
             _detection(yaw_rad=1e308),
             _detection(partial=True, outline_m=((5.0, 5.0),) * 3),
         ],
-        "outside_extent": [
+        "dimensions": [
             _detection(partial=True, outline_m=((5.0, 5.0), (5e4, 5.0), (5.0, 5e4))),
             _detection(partial=True, outline_m=((1e6, 1e6), (1e6 + 0.5, 1e6), (1e6, 1e6 + 0.5))),
+            _detection(partial=True, size_m=(2500.0, 2500.0)),  # longer than the site
         ],
-        "dimensions": [_detection(partial=True, size_m=(1999.0, 1999.0))],
     }
     seq = 0
 
