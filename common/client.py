@@ -152,9 +152,13 @@ fetched (map/latest may be a little older than the newest update)."""
 
 
 def update_problem(message: Message[MapUpdateHeader]) -> str | None:
-    """Why a decoded ``map/updates`` message fits no copy, or None: its ``occupancy`` must be int8
-    cells of its own window, inside the map window it names."""
+    """Why a decoded ``map/updates`` message fits no copy, or None: it must step the version
+    forward, and its ``occupancy`` be int8 cells of its own window, inside the map window it
+    names. (An update from a version to itself, or two forming a cycle, replayed for ever under
+    the copy's lock: every reader of ``follower.map`` hung.)"""
     h = message.header
+    if h.version <= h.previous_version:
+        return "version_order"
     occupancy = message.arrays.get("occupancy")
     if occupancy is None:
         return "no_occupancy"

@@ -16,7 +16,7 @@ from pydantic.dataclasses import dataclass
 FloatArray = npt.NDArray[np.float64] | npt.NDArray[np.float32]
 
 
-@dataclass(frozen=True, config=ConfigDict(extra="forbid"))
+@dataclass(frozen=True, config=ConfigDict(extra="forbid", allow_inf_nan=False))
 class SensorModelParams:
     """Parameters of the inverse sensor model, declared once (the depth settings nest them as
     ``--model.*``); defaults follow DESIGN.md and OctoMap."""

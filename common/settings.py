@@ -141,7 +141,11 @@ class ZenohSettings(OvergridSettings):
     no_multicast_scouting: CliToggleFlag[bool] = Field(
         False, description="disable multicast scouting"
     )
-    namespace: Annotated[str | None, AfterValidator(_check_namespace)] = Field(
+    namespace: Annotated[
+        str | None,
+        BeforeValidator(lambda value: value or None),  # NS=${NS:-} in a template: none
+        AfterValidator(_check_namespace),
+    ] = Field(
         None, description="Zenoh namespace prefixed to every key: isolates a site or a test run"
     )
     log_level: LogLevel = Field("info", description="log verbosity")

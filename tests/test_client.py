@@ -147,6 +147,26 @@ def test_a_forged_update_is_refused_and_the_copy_goes_on(bus: Bus, reason: str) 
 
 
 @pytest.mark.process
+def test_an_update_that_does_not_step_the_version_forward_is_refused(bus: Bus) -> None:
+    """An update from the copy's version to itself, well formed, matched itself on every pass of
+    the replay, under the copy's lock: every reader of ``follower.map`` hung for good."""
+    first = _map(Window(0, 0, 2, 2), 0, version=0)
+    queryable = bus.session.declare_queryable(
+        "map/latest", lambda query: query.reply("map/latest", first.to_msgpack())
+    )
+    updates = bus.session.declare_publisher("map/updates", encoding=WIRE_ENCODING)
+    with _peer(bus) as session:
+        follower = MapFollower(session, timeout_s=5)
+        updates.put(_update(first, 0))  # version 0 after version 0
+        wait_for(lambda: follower.rejected == {"version_order": 1}, 5, "the update refused")
+        genuine = _map(first.window, 100, version=1)
+        updates.put(_update(genuine, 0))
+        wait_for(lambda: follower.map.revision == (EPOCH, 1), 5, "the genuine update applied")
+        follower.close()
+    queryable.undeclare()  # type: ignore[no-untyped-call]
+
+
+@pytest.mark.process
 def test_answers_that_do_not_decode_are_map_unavailable(bus: Bus) -> None:
     """The README's contract: every client call raises MapUnavailable. A map/health that is no
     JSON object raised JSONDecodeError (or RecursionError, nested deep), a map/latest of

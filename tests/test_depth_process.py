@@ -24,7 +24,7 @@ from common.png import encode_png
 from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import generate_scene
-from services.depth.service import CALIB_RECHECK_S, FusionIntake
+from services.depth.service import CALIB_RECHECK_S, SWAP_TRIES, FusionIntake, Worker
 from tests.conftest import Bus, assert_one_line_exit_2, run_overgrid, wait_for
 
 pytestmark = pytest.mark.process
@@ -415,3 +415,30 @@ def test_tiles_no_fusion_takes_are_said_whether_fusion_answers_or_not(
         assert caplog.text.count("no fusion answers") == 1  # once, not every period
         intake.check({"pairs": {"p0": {"tiles": 3}}}, start + 21.0)
         assert "fusion answers again" in caplog.text
+
+
+class _Verdicts:
+    """A pipeline's ``swapped`` answers, in turn (None: the frame cannot tell)."""
+
+    def __init__(self, *verdicts: str | bool | None) -> None:
+        self.verdicts, self.asked = list(verdicts), 0
+
+    def swapped(self, left: np.ndarray, right: np.ndarray) -> str | bool | None:
+        self.asked += 1
+        return self.verdicts.pop(0) if self.verdicts else None
+
+
+def test_a_live_camera_is_asked_whether_it_looks_swapped_until_a_frame_tells() -> None:
+    """The first frame only was asked: a dark one (auto-exposure settling) told nothing, and the
+    camera was never judged. It is asked until a frame tells, SWAP_TRIES frames at most."""
+    frame = np.zeros((480, 640), np.uint8)
+    told = _Verdicts(None, None, "left and right the other way round")
+    worker = Worker(told, None, None)  # type: ignore[arg-type]
+    for _ in range(5):
+        worker.check_swap(frame, frame)
+    assert told.asked == 3 and worker.swapped == "left and right the other way round"
+    never = _Verdicts()
+    worker = Worker(never, None, None)  # type: ignore[arg-type]
+    for _ in range(SWAP_TRIES + 10):
+        worker.check_swap(frame, frame)
+    assert never.asked == SWAP_TRIES and worker.swapped is None

@@ -172,3 +172,10 @@ def test_help_names_types_as_a_user_types_them() -> None:
     assert "null" not in shown.stdout.replace("(default: null)", "")
     # A flag that switches something off reads as one: never "--no-no-multicast-scouting".
     assert "--no-multicast-scouting" in shown.stdout and "--no-no-" not in shown.stdout
+
+
+def test_an_empty_namespace_is_none(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A deployment template's NS=${NS:-} gives OVERGRID_NAMESPACE=''; it stays no namespace."""
+    monkeypatch.setenv("OVERGRID_NAMESPACE", "")
+    assert ZenohSettings().namespace is None
+    assert ZenohSettings(namespace="site1/hall_2").namespace == "site1/hall_2"

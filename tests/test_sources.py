@@ -179,6 +179,9 @@ def test_a_jpeg_frame_cut_short_over_zenoh_is_refused_by_name() -> None:
     refused = decode_stereo_frame(cut, "p0", (640, 480), 1 << 24)
     assert isinstance(refused, Rejection) and refused.reason == "undecodable"
     assert "left jpeg image is cut short" in refused.detail
+    # Bytes after the end marker (parts cut from an MJPEG stream end in CR LF) are no harm.
+    padded = encode(STEREO_KIND, header, blobs={"left": blob + b"\r\n", "right": blob + b"\xff"})
+    assert not isinstance(decode_stereo_frame(padded, "p0", (640, 480), 1 << 24), Rejection)
 
 
 def test_a_recording_with_left_and_right_swapped_is_refused_at_start_up(tmp_path: Path) -> None:

@@ -696,9 +696,10 @@ class FloorModel:
 
     def floor_agreement(self, left_rect: U8, right_rect: U8) -> tuple[float, float]:
         """(share of the view where both images have texture, share of those where they agree at
-        the floor's disparity) for one rectified pair, learning nothing: on a textured floor
-        most of a view agrees, with left and right swapped (the floor then matches at minus
-        its disparity) hardly any."""
+        the floor's disparity) for one rectified pair, learning nothing. The floor test agrees
+        only where it is sure: on the default scene's concrete 2–5 % of the textured view, on a
+        plain floor 5–27 %, on speckle 5–75 %; with left and right swapped (the floor then
+        matches at minus its disparity) 0.03–1.2 % (24 views, three floors, two seeds)."""
         sigma = self.config.blur_sigma_px
         _, inside, test = self._tested(blur(left_rect, sigma), blur(right_rect, sigma))
         textured = test.textured & inside

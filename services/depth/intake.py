@@ -128,9 +128,11 @@ def _check_size(side: str, size: tuple[int, int], image_size: tuple[int, int]) -
 
 
 def jpeg_complete(blob: bytes) -> bool:
-    """Whether a JPEG ends with its end-of-image marker (padding after it aside): libjpeg decodes
-    a file cut short as grey below the cut, with a warning on stderr and no error."""
-    return blob.rstrip(b"\0").endswith(b"\xff\xd9")
+    """Whether a JPEG's end-of-image marker follows its last scan: libjpeg decodes a file cut
+    short as grey below the cut, with a warning on stderr and no error. (Scan data cannot hold
+    the marker's bytes; bytes after it, as parts cut from an MJPEG stream carry, are no harm.)"""
+    last_scan = blob.rfind(b"\xff\xda")
+    return last_scan >= 0 and blob.find(b"\xff\xd9", last_scan + 2) >= 0
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

@@ -232,11 +232,12 @@ class DepthPipeline:
             left_rect=left_rect,
         )
 
-    def swapped(self, left: np.ndarray, right: np.ndarray) -> str | None:
-        """Why ``left`` and ``right`` look swapped (the images, or the calibration's cameras), or
-        None: the floor agrees at its disparity in the other order and not in this one. Needs a
-        textured floor and the floor model; None where either is missing. A recording played
-        with its folders swapped gave a map of phantom obstacles and exit 0."""
+    def swapped(self, left: np.ndarray, right: np.ndarray) -> str | bool | None:
+        """Why ``left`` and ``right`` look swapped (the images, or the calibration's cameras):
+        the floor agrees at its disparity in the other order and not in this one; False when they
+        do not; None when this frame cannot tell (no floor model, or too little texture: a dark
+        first frame). A recording played with its folders swapped gave a map of phantom
+        obstacles and exit 0."""
         if self.floor_model is None:
             return None
         agreements = []
@@ -244,11 +245,13 @@ class DepthPipeline:
             rectified = self.rectifier.rectify(to_gray(first), to_gray(second))
             agreements.append(self.floor_model.floor_agreement(*rectified))
         (textured, given), (_, other) = agreements
-        if textured < SWAP_MIN_TEXTURED or other < SWAP_RATIO * max(given, SWAP_MIN_AGREEMENT):
+        if textured < SWAP_MIN_TEXTURED:
             return None
+        if other < SWAP_RATIO * max(given, SWAP_MIN_AGREEMENT):
+            return False
         return (
-            f"the floor matches with left and right the other way round ({other:.0%} of the "
-            f"textured view against {given:.0%}): are the left and right images, or the "
+            f"the floor matches with left and right the other way round ({other:.1%} of the "
+            f"textured view against {given:.1%}): are the left and right images, or the "
             "calibration's left and right cameras, swapped?"
         )
 

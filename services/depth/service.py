@@ -328,24 +328,29 @@ class Worker:
     recalibrated: int = 0
     swapped: str | None = None
     """Why the camera's left and right look swapped (:meth:`DepthPipeline.swapped`), judged on
-    the first frame of each calibration; None: they do not, or no texture told."""
-    swap_checked: bool = False
+    the first frame of each calibration with texture enough to tell; None: they do not, or no
+    frame has told yet."""
+    swap_tries: int = 0
+    """Frames of this calibration asked whether left and right look swapped, until one tells
+    (SWAP_TRIES at most: a view without texture never does)."""
 
     def use(self, pipeline: DepthPipeline) -> None:
         self.intake.image_size = pipeline.calib.image_size
         self.pipeline = pipeline
         self.recalibrated += 1
-        self.swap_checked = False
+        self.swap_tries = 0
 
     def check_swap(self, left: np.ndarray, right: np.ndarray) -> None:
         """Once per calibration: a camera's left and right swapped (its cables, or the
         calibration's cameras) map phantom obstacles everywhere; said loudly and in health."""
-        if self.swap_checked:
+        if self.swap_tries >= SWAP_TRIES:
             return
-        self.swap_checked = True
-        self.swapped = self.pipeline.swapped(left, right)
-        if self.swapped is not None:
-            log.error("left and right look swapped", extra={"why": self.swapped})
+        verdict = self.pipeline.swapped(left, right)
+        # A dark first frame (auto-exposure settling) tells nothing: the next may.
+        self.swap_tries = SWAP_TRIES if verdict is not None else self.swap_tries + 1
+        if isinstance(verdict, str):
+            self.swapped = verdict
+            log.error("left and right look swapped", extra={"why": verdict})
 
 
 def _watch_calibration(
@@ -429,6 +434,7 @@ def _recorded_loop(
         if isinstance(images, Rejection):
             counts.reject(images)
         else:
+            worker.check_swap(*images)  # (checked at start-up already with --calib)
             header = StereoFrameHeader(pair=settings.pair, seq=seq, stamp_ns=time.time_ns())
             _process(worker, counts, *images, header)
         if stop_wait(period_s):
@@ -588,6 +594,10 @@ def _summaries(
         except Exception:
             log.exception("summary failed")
 
+
+SWAP_TRIES = 20
+"""Frames asked at most, per calibration, whether left and right look swapped (two rectifications
+and floor tests each, a few milliseconds)."""
 
 FUSION_SILENT_MIN_S = 10.0
 """Fusion taking none of a publishing pair's tiles for this long (or two summary periods, if

@@ -110,7 +110,7 @@ def check_recording(source: Path, pipeline: DepthPipeline | None = None) -> None
     if isinstance(checked, Rejection):
         raise InputError(f"--images {source}: {name}: {checked.reason}: {checked.detail}")
     swapped = pipeline.swapped(*checked)
-    if swapped is not None:
+    if isinstance(swapped, str):
         raise InputError(f"--images {source}: {name}: {swapped}")
 
 

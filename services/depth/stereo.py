@@ -206,7 +206,7 @@ class Rectifier:
         return d_min, 16 * math.ceil((d_max - d_min) / 16)
 
 
-@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid"))
+@pydantic_dataclass(frozen=True, config=ConfigDict(extra="forbid", allow_inf_nan=False))
 class MatcherConfig:
     """The stereo matcher and its optional stages, declared once (the depth settings nest them as
     ``--matcher.*``)."""

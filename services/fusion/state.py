@@ -212,7 +212,16 @@ class FusionState:
             self.warn.warning(
                 "objects_internal", "tracking failed: the tracks begin anew", error=_internal(error)
             )
-            return None
+        # What the forgotten tracks served goes with them: their outlines and tops, and the list.
+        self.outlined, self.tops = [], []
+        self.grid.set_predicted([])
+        self.objects_header = ObjectsHeader(
+            epoch=self.grid.epoch_ns,
+            version=self.tracker.version,
+            stamp_ns=self.tracker.stamp_ns,
+            objects=[],
+        )
+        return self.objects_header
 
     def _refresh_objects(self) -> ObjectsHeader | None:
         """Merge and track the captures that are complete; the predicted layer holds the static

@@ -12,7 +12,7 @@ from pydantic import Field, ValidationInfo, field_validator
 from common.client import MAX_TIMEOUT_S
 from common.settings import CommaList, ZenohSettings, startup_error
 from services.ros2.cdr import Distro
-from services.ros2.grid_message import MapMode, PlanarPose
+from services.ros2.grid_message import INT32_MAX, MapMode, PlanarPose
 from services.ros2.rmw_zenoh import Durability, History, Reliability, TopicQos
 
 NODE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
@@ -42,7 +42,7 @@ NAME_RULES: dict[str, tuple[re.Pattern[str], str]] = {
 }
 """Each name setting's rule and what it is, for the one-line error."""
 
-HISTORY_DEPTH_MAX = 2**31 - 1
+HISTORY_DEPTH_MAX = INT32_MAX
 """A history depth DDS and rclpy take (an int32; rclpy refused more with a TypeError traceback)."""
 DurabilityName = Literal["transient_local", "volatile"]
 ReliabilityName = Literal["reliable", "best_effort"]

@@ -193,7 +193,6 @@ def test_a_file_setting_that_is_a_pipe_or_nested_too_deep_is_refused(tmp_path: P
     ("flag", "value", "says"),
     [
         ("--namespace", "site/*", "wildcard"),
-        ("--namespace", "", "empty chunk"),
         ("--namespace", "site//a", "empty chunk"),
         ("--connect", "tcp/127.0.0.1:99999", "port"),
         ("--connect", "tcp/[::1", "host"),
@@ -203,9 +202,9 @@ def test_a_file_setting_that_is_a_pipe_or_nested_too_deep_is_refused(tmp_path: P
 def test_a_namespace_or_endpoint_zenoh_cannot_use_is_refused(
     flag: str, value: str, says: str
 ) -> None:
-    """Zenoh's own error for a wildcard namespace named neither the flag nor the value; an empty
-    one was taken as none; in peer mode an endpoint of port 99999 or an open bracket started a
-    service that never connected."""
+    """Zenoh's own error for a wildcard namespace named neither the flag nor the value; in peer
+    mode an endpoint of port 99999 or an open bracket started a service that never connected.
+    (An empty namespace is none: a template's NS=${NS:-}.)"""
     assert_one_line_exit_2(run_overgrid("fusion", f"{flag}={value}"), flag, says)
 
 
@@ -254,6 +253,8 @@ def test_a_calibration_of_absurd_geometry_is_refused_at_start(
         ("fusion", "--max-tile-age-s", "inf"),
         ("up", "--fusion.max-tile-age-s", "nan"),
         ("save-frame", "--timeout-s", "1e300"),
+        ("depth", "--pair", "p0", "--model.obstacle-max-m", "inf"),  # blamed on the calibration
+        ("depth", "--pair", "p0", "--matcher.edge-filter-px", "nan"),
     ],
     ids=lambda args: " ".join(args[-2:]),
 )
