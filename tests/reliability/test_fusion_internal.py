@@ -42,32 +42,53 @@ class FlakyGrid(FusedGrid):
         return super().integrate(*args, **kwargs)
 
 
+class OwnerLoop:
+    """Fusion's owner loop on a thread of its own, fed through its inbox; what it publishes is
+    kept: map updates in ``updates``, object lists in ``objects``."""
+
+    def __init__(self, settings: FusionSettings, state: FusionState, state_dir: Path) -> None:
+        self.inbox = Inbox(64, 1 << 24)
+        self.writer = StateWriter(state_dir)
+        self.stop = threading.Event()
+        self.updates: list[bytes] = []
+        self.objects: list[bytes] = []
+        self.thread = threading.Thread(
+            target=run,
+            args=(
+                settings,
+                state,
+                self.inbox,
+                self.writer,
+                self.stop,
+                self.updates.append,
+                self.objects.append,
+                lambda: None,
+            ),
+        )
+        self.thread.start()
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(5)
+        self.writer.close()
+        assert not self.thread.is_alive()
+
+
 def test_the_owner_loop_counts_any_exception_of_one_tile_as_internal_and_goes_on(
     tmp_path: Path,
 ) -> None:
     settings = FusionSettings(state_dir=tmp_path, no_multicast_scouting=True)
     state = FusionState(settings, FlakyGrid(settings.grid_params()))
-    inbox = Inbox(64, 1 << 24)
-    writer = StateWriter(tmp_path)
-    stop = threading.Event()
-    updates: list[bytes] = []
-    loop = threading.Thread(
-        target=run,
-        args=(settings, state, inbox, writer, stop, updates.append, lambda _: None, lambda: None),
-    )
-    loop.start()
+    loop = OwnerLoop(settings, state, tmp_path)
     for seq in range(5):
         payload = tile_payload("p0", Window(4 * seq, 0, 4, 4), 3.0, seq=seq)
-        inbox.offer(Delivery("tile", "depth/p0/tile", time.time_ns(), payload))
+        loop.inbox.offer(Delivery("tile", "depth/p0/tile", time.time_ns(), payload))
         time.sleep(0.05)
     wait_for(lambda: sum(state.view.accepted.values()) == 2, 5, "the tiles after the failures")
-    assert loop.is_alive()
+    assert loop.thread.is_alive()
     assert state.view.rejected == {"internal": 3}
-    wait_for(lambda: bool(updates), 5, "an update of the fused tiles")
-    stop.set()
-    loop.join(5)
-    writer.close()
-    assert not loop.is_alive()
+    wait_for(lambda: bool(loop.updates), 5, "an update of the fused tiles")
+    loop.close()
 
 
 def test_the_owner_loop_counts_a_capture_whose_tracking_raised_and_goes_on(
@@ -87,37 +108,23 @@ def test_the_owner_loop_counts_a_capture_whose_tracking_raised_and_goes_on(
         return objects(*args, **kwargs)
 
     monkeypatch.setattr(state.tracker, "objects", failing_once)
-    inbox = Inbox(64, 1 << 24)
-    writer = StateWriter(tmp_path)
-    stop = threading.Event()
-    served: list[bytes] = []
-    loop = threading.Thread(
-        target=run,
-        args=(settings, state, inbox, writer, stop, lambda _: None, served.append, lambda: None),
-    )
-    loop.start()
+    loop = OwnerLoop(settings, state, tmp_path)
     box = DetectionRecord(
         center_m=(1.0, 1.0), size_m=(0.8, 0.5), yaw_rad=0.0, top_m=1.0, points=100, partial=False
     )
     for seq in range(5):
         header = DetectionsHeader(pair="p0", seq=seq, stamp_ns=time.time_ns(), detections=[box])
         payload = encode(DETECTIONS_KIND, header)
-        inbox.offer(Delivery("detections", "depth/p0/objects", time.time_ns(), payload))
+        loop.inbox.offer(Delivery("detections", "depth/p0/objects", time.time_ns(), payload))
         time.sleep(0.1)
-    inbox.offer(
-        Delivery(
-            "tile", "depth/p0/tile", time.time_ns(), tile_payload("p0", Window(0, 0, 4, 4), 3.0)
-        )
-    )
+    tile = tile_payload("p0", Window(0, 0, 4, 4), 3.0)
+    loop.inbox.offer(Delivery("tile", "depth/p0/tile", time.time_ns(), tile))
     wait_for(lambda: len(state.view.objects.objects) == 1, 5, "the box tracked anew")
     wait_for(lambda: sum(state.view.accepted.values()) == 1, 5, "the tile fused")
-    assert loop.is_alive()
+    assert loop.thread.is_alive()
     assert state.view.detections_rejected == {"internal": 1}
-    assert served  # the object lists after the failure were published
-    stop.set()
-    loop.join(5)
-    writer.close()
-    assert not loop.is_alive()
+    assert loop.objects  # the object lists after the failure were published
+    loop.close()
 
 
 def test_a_save_failing_any_way_is_counted_and_the_next_one_saves(
