@@ -420,12 +420,15 @@ def test_tiles_no_fusion_takes_are_said_whether_fusion_answers_or_not(
 class _Verdicts:
     """A pipeline's ``swapped`` answers, in turn (None: the frame cannot tell)."""
 
-    def __init__(self, *verdicts: str | bool | None) -> None:
+    def __init__(self, *verdicts: str | bool | Exception | None) -> None:
         self.verdicts, self.asked = list(verdicts), 0
 
     def swapped(self, left: np.ndarray, right: np.ndarray) -> str | bool | None:
         self.asked += 1
-        return self.verdicts.pop(0) if self.verdicts else None
+        verdict = self.verdicts.pop(0) if self.verdicts else None
+        if isinstance(verdict, Exception):
+            raise verdict
+        return verdict
 
 
 def test_a_live_camera_is_asked_whether_it_looks_swapped_until_a_frame_tells() -> None:
@@ -442,3 +445,9 @@ def test_a_live_camera_is_asked_whether_it_looks_swapped_until_a_frame_tells() -
     for _ in range(SWAP_TRIES + 10):
         worker.check_swap(frame, frame)
     assert never.asked == SWAP_TRIES and worker.swapped is None
+    # The check failing (OpenCV, memory) must not cost the frame: it is given up, not raised.
+    failing = _Verdicts(MemoryError("cannot allocate"))
+    worker = Worker(failing, None, None)  # type: ignore[arg-type]
+    for _ in range(3):
+        worker.check_swap(frame, frame)
+    assert failing.asked == 1 and worker.swapped is None

@@ -345,7 +345,12 @@ class Worker:
         calibration's cameras) map phantom obstacles everywhere; said loudly and in health."""
         if self.swap_tries >= SWAP_TRIES:
             return
-        verdict = self.pipeline.swapped(left, right)
+        try:
+            verdict = self.pipeline.swapped(left, right)
+        except Exception as error:  # a check beside the map: it must not cost the frame
+            self.swap_tries = SWAP_TRIES
+            log.warning("the left/right check failed", extra={"error": repr(error)[:200]})
+            return
         # A dark first frame (auto-exposure settling) tells nothing: the next may.
         self.swap_tries = SWAP_TRIES if verdict is not None else self.swap_tries + 1
         if isinstance(verdict, str):
@@ -387,6 +392,7 @@ def _process(
 ) -> None:
     """One checked frame through the pipeline; whatever it raises (MemoryError, numpy, OpenCV) is
     counted, and the caller's loop takes the next frame."""
+    worker.check_swap(left, right)
     try:
         worker.publisher.publish(
             worker.pipeline, left, right, header.seq, header.stamp_ns, upstream_ms
@@ -411,7 +417,6 @@ def _serve_frames(
                 "camera": (frame.received_ns - frame.header.stamp_ns) / 1e6,
                 "queue": (time.time_ns() - frame.received_ns) / 1e6,
             }
-            worker.check_swap(frame.left, frame.right)
             _process(worker, counts, frame.left, frame.right, frame.header, upstream_ms)
     finally:
         subscriber.undeclare()  # type: ignore[no-untyped-call]
@@ -434,7 +439,6 @@ def _recorded_loop(
         if isinstance(images, Rejection):
             counts.reject(images)
         else:
-            worker.check_swap(*images)  # (checked at start-up already with --calib)
             header = StereoFrameHeader(pair=settings.pair, seq=seq, stamp_ns=time.time_ns())
             _process(worker, counts, *images, header)
         if stop_wait(period_s):
