@@ -273,31 +273,30 @@ band points, takes none of the latter (:func:`inferred_over_floor`)."""
 
 
 def inferred_over_floor(
-    points: WorldPoints,
+    cell_ij: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]],
+    height_m: npt.NDArray[np.float32],
     inferred: npt.NDArray[np.bool_],
     kept: npt.NDArray[np.bool_],
-    resolution_m: float,
     band_min_m: float,
 ) -> npt.NDArray[np.bool_]:
-    """Of the ``kept`` points, the inferred band points (``inferred``: a height the floor model
-    carried over a hole from its edges, rules 7 and 8) that land in a cell where the same frame
-    measures at least INFERRED_FLOOR_MIN_POINTS floor points, and no fewer than those: the frame
-    sees the floor there, so nothing stands on it. A plain face below a top's edge takes the
-    top's height and lands out over the floor in front of it, toward the camera (the forklift's
-    detections ran 1.3–1.5 m long for 1.2; offline, default scene, of the cells its inferred
-    points reached 5–25 cm outside it, 70 % held floor the frame measured; of those inside it,
-    1.6 %). A few stray floor points among a plain top's many inferred ones leave it standing
-    (with two floor points enough, such cells read free: static false-free +0.03 points on one
-    scene). ``FloorModel._keep_standing`` lowers such a pixel where its image shows floor all
+    """Of the ``kept`` points (their cells ``cell_ij`` and heights), the inferred band points
+    (``inferred``: a height the floor model carried over a hole from its edges, rules 7 and 8) that
+    land in a cell where the same frame measures at least INFERRED_FLOOR_MIN_POINTS floor points,
+    and no fewer than those: the frame sees the floor there, so nothing stands on it. A plain face
+    below a top's edge takes the top's height and lands out over the floor in front of it, toward
+    the camera (the forklift's detections ran 1.3–1.5 m long for 1.2; offline, default scene, of the
+    cells its inferred points reached 5–25 cm outside it, 70 % held floor the frame measured; of
+    those inside it, 1.6 %). A few stray floor points among a plain top's many inferred ones leave
+    it standing (with two floor points enough, such cells read free: static false-free +0.03 points
+    on one scene). ``FloorModel._keep_standing`` lowers such a pixel where its image shows floor all
     around straight below it; this asks the cell the point lands in."""
-    candidates = inferred & kept & (points.height_m >= band_min_m)
+    candidates = inferred & kept & (height_m >= band_min_m)
     if not candidates.any():
         return candidates
-    i = cell_of(points.x_m, resolution_m).astype(np.int64)
-    j = cell_of(points.y_m, resolution_m).astype(np.int64)
+    i, j = cell_ij
     cell = (j - j.min()) * (i.max() - i.min() + 1) + (i - i.min())
     size = int(cell.max()) + 1
-    floor = kept & ~inferred & (points.height_m < band_min_m)
+    floor = kept & ~inferred & (height_m < band_min_m)
     floor_points = np.bincount(cell[floor], minlength=size)[cell]
     inferred_points = np.bincount(cell[candidates], minlength=size)[cell]
     enough = (floor_points >= INFERRED_FLOOR_MIN_POINTS) & (floor_points >= inferred_points)
@@ -328,13 +327,16 @@ def build_tile(
     flagged in ``inferred`` (one per point: a height the floor model carried in, not measured) are
     left out of a cell where the frame measures the floor (:func:`inferred_over_floor`)."""
     keep = in_model_range(points.height_m, points.height_sigma_m, params)
+    cell_ij = cell_of(points.x_m, resolution_m), cell_of(points.y_m, resolution_m)  # 1-D each
     if inferred is not None:
-        keep &= ~inferred_over_floor(points, inferred, keep, resolution_m, params.obstacle_min_m)
+        keep &= ~inferred_over_floor(
+            cell_ij, points.height_m, inferred, keep, params.obstacle_min_m
+        )
     x, y = points.x_m[keep], points.y_m[keep]
     height, sigma = points.height_m[keep], points.height_sigma_m[keep]
     out_of_view = None if top_out_of_view is None else top_out_of_view[keep]
     hidden_x, hidden_y = np.zeros((2, 0), np.float32) if hidden_xy_m is None else hidden_xy_m
-    i, j = cell_of(x, resolution_m), cell_of(y, resolution_m)  # 1-D each: contiguous min/max
+    i, j = cell_ij[0][keep], cell_ij[1][keep]
     hidden_i, hidden_j = cell_of(hidden_x, resolution_m), cell_of(hidden_y, resolution_m)
     all_i, all_j = np.concatenate([i, hidden_i]), np.concatenate([j, hidden_j])
     if all_i.size == 0:
