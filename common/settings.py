@@ -54,20 +54,27 @@ PORTED_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 """Zenoh's link protocols whose locator is HOST:PORT (a unix socket's is a path)."""
 
 
+def endpoint_parts(endpoint: str) -> tuple[str, str, str, str]:
+    """(protocol, address, host, port) of a Zenoh endpoint PROTOCOL/HOST:PORT[?metadata][#config];
+    host and port empty where the address has no colon."""
+    protocol, _, locator = endpoint.partition("/")
+    address = locator.split("?", 1)[0].split("#", 1)[0]
+    host, _, port = address.rpartition(":")
+    return protocol, address, host, port
+
+
 def _check_endpoints(endpoints: list[str]) -> list[str]:
     """PROTOCOL/HOST:PORT with a port Zenoh can use: in peer mode Zenoh starts with an endpoint
     of port 99999 or a bracket left open, logs a line at most and never connects."""
     for endpoint in endpoints:
-        protocol, slash, locator = endpoint.partition("/")
-        address = locator.split("?")[0].split("#")[0]
-        if not slash or not protocol or not address:
+        protocol, address, host, port = endpoint_parts(endpoint)
+        if "/" not in endpoint or not protocol or not address:
             raise ValueError(
                 f"{endpoint!r}: an endpoint is PROTOCOL/HOST:PORT, e.g. tcp/10.0.0.2:7447"
             )
         if protocol not in PORTED_PROTOCOLS:
             continue
-        host, colon, port = address.rpartition(":")
-        if not colon or not port.isdigit() or not 0 <= int(port) <= 65535:
+        if ":" not in address or not port.isdigit() or not 0 <= int(port) <= 65535:
             raise ValueError(f"{endpoint!r}: no port from 0 to 65535 after the host")
         if host.startswith("[") != host.endswith("]") or not host.strip("[]"):
             raise ValueError(f"{endpoint!r}: no host (an IPv6 address in brackets: [::1])")

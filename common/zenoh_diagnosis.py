@@ -16,6 +16,8 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+from common.settings import endpoint_parts
+
 TLS_KEY = "transport/link/tls/"
 CERTIFICATES = ("root_ca_certificate", "listen_certificate", "connect_certificate")
 KEY_PAIRS = (
@@ -99,12 +101,10 @@ def probe(
     """Why a session could not open on ``endpoint`` (``tcp/HOST:PORT`` or ``tls/HOST:PORT``);
     ``verify_name``: Zenoh's ``verify_name_on_connect``, whether the router's certificate must
     name the host."""
-    protocol, _, address = endpoint.partition("/")
-    address = address.split("#", 1)[0].split("?", 1)[0]
+    protocol, address, host, port = endpoint_parts(endpoint)
     if protocol not in ("tcp", "tls"):
         return Probe(endpoint, False, f"protocol {protocol!r} not probed (tcp or tls?)")
-    host, colon, port = address.rpartition(":")
-    if not colon or not port.isdigit():
+    if ":" not in address or not port.isdigit():
         return Probe(endpoint, True, "no port: an endpoint is PROTOCOL/HOST:PORT")
     host = host.strip("[]")
     try:
