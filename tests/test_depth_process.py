@@ -214,6 +214,41 @@ def test_left_and_right_swapped_are_named_in_the_log(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stderr
     assert "left and right the right way round" in done.stderr
     assert "'state': 'no_floor'" in done.stderr  # the summary's floor_model
+    assert "images too small" not in done.stderr  # 640 × 480 at --downscale 2
+
+
+def test_images_too_small_for_the_map_are_said_at_start_up(tmp_path: Path) -> None:
+    """320 × 240 cameras at --downscale 2 mapped with 58 % of the floor unknown and nothing said
+    why."""
+    scene = generate_scene(0)
+    calib = layout_pairs(RigSpec(pair_count=1, width_px=320, height_px=240), scene.floor_size_m)[0]
+    renderer = SceneRenderer(scene, [calib])
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+        image = encode_png(renderer.render_gray(f"p0_{side}", 320, 240))
+        for index in range(2):
+            (tmp_path / side / f"{index:04d}.png").write_bytes(image)
+    renderer.close()
+    calib_file = tmp_path / "calib.yaml"
+    calib_file.write_text(yaml.safe_dump(calib.model_dump(mode="json")))
+    done = run_overgrid(
+        "depth",
+        "--pair",
+        "p0",
+        "--calib",
+        str(calib_file),
+        "--images",
+        str(tmp_path),
+        "--rate-hz",
+        "20",
+        "--no-multicast-scouting",
+        "--namespace",
+        f"test_too_small_{os.getpid()}",
+    )
+    assert done.returncode == 0, done.stderr
+    assert "images too small" in done.stderr
+    assert "160×120 px (--downscale 2)" in done.stderr
+    assert "use --downscale 1, or cameras of 640×480 px or more" in done.stderr
 
 
 def test_a_video_that_does_not_read_is_one_line_at_start_up(tmp_path: Path) -> None:

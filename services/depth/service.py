@@ -34,7 +34,7 @@ from services.depth.intake import (
     decode_stereo_frame,
 )
 from services.depth.objects import detections_header
-from services.depth.pipeline import DepthPipeline
+from services.depth.pipeline import DepthPipeline, undersampled
 from services.depth.settings import DepthSettings
 from services.depth.sources import InputError, check_recording, load_calibration, recorded_frames
 
@@ -380,6 +380,14 @@ def _watch_calibration(
                 "calibration changed: pipeline rebuilt, the floor model learns again",
                 extra={"pair": settings.pair, "baseline_m": pipeline.calib.baseline_m},
             )
+            _say_if_undersampled(pipeline)
+
+
+def _say_if_undersampled(pipeline: DepthPipeline) -> None:
+    """A warning when the images are too small for the map (:func:`undersampled`)."""
+    why = undersampled(pipeline.rectifier.size, pipeline.config.downscale)
+    if why is not None:
+        log.warning("images too small", extra={"pair": pipeline.calib.pair, "why": why})
 
 
 def _process(
@@ -522,6 +530,7 @@ def main(settings: DepthSettings) -> None:
                 "input": str(settings.images or keys.stereo(settings.pair)),
             },
         )
+        _say_if_undersampled(pipeline)
 
         def fusion_health() -> dict[str, Any] | None:
             try:
