@@ -2,7 +2,9 @@ import time
 
 import pytest
 
+from common.codec import encode
 from common.lattice import Window
+from common.messages import DETECTIONS_KIND, DetectionRecord, DetectionsHeader
 from services.fusion.captures import CaptureGroups
 from services.fusion.grid import FusedGrid, GridParams
 from services.fusion.inbox import Delivery
@@ -46,9 +48,10 @@ def test_a_pair_missing_past_the_wait_is_not_waited_for_until_it_delivers() -> N
     groups.add("p0", T0_NS + FRAME_NS, ["b"], now_s=1.1)  # p1 lags: no wait
     assert _stamps(groups.ready(1.1, LIVE)) == [T0_NS + FRAME_NS]
     groups.add("p1", T0_NS + 2 * FRAME_NS, ["c"], now_s=1.2)  # p1 is back: waited for again
-    groups.add("p0", T0_NS + 3 * FRAME_NS, ["d"], now_s=1.3)
-    assert _stamps(groups.ready(1.3, LIVE)) == []
-    assert _stamps(groups.ready(2.2, LIVE)) == [T0_NS + 2 * FRAME_NS]
+    groups.add("p0", T0_NS + 3 * FRAME_NS, ["d"], now_s=1.3)  # p0 skipped p1's capture
+    assert _stamps(groups.ready(1.3, LIVE)) == [T0_NS + 2 * FRAME_NS]
+    assert _stamps(groups.ready(2.2, LIVE)) == []  # p0's capture waits for p1 …
+    assert _stamps(groups.ready(2.4, LIVE)) == [T0_NS + 3 * FRAME_NS]  # … as long as the wait
 
 
 def test_a_late_message_of_a_released_capture_is_released_at_once() -> None:
@@ -87,6 +90,61 @@ def test_a_pair_always_later_than_the_wait_holds_no_capture_back() -> None:
                 break
     # The first capture waits once; then p1 lags, and its late tiles do not undo that.
     assert held_s == [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+
+
+def _held_s(groups: CaptureGroups[str], offset_ns: int, frames: int = 8) -> list[float]:
+    """How long each of p0's captures is held when p1 stamps ``offset_ns`` after p0 and
+    delivers 0.1 s after it (2 Hz)."""
+    held_s = []
+    for k in range(frames):
+        now_s = 0.5 * k
+        groups.add("p0", T0_NS + k * FRAME_NS, [f"a{k}"], now_s)
+        groups.add("p1", T0_NS + k * FRAME_NS + offset_ns, ["b"], now_s + 0.1)
+        for step in range(21):
+            released = groups.ready(now_s + 0.1 + 0.1 * step, LIVE)
+            if any(("p0", f"a{k}") in items for _, items in released):
+                held_s.append(round(0.1 + 0.1 * step, 1))
+                break
+    return held_s
+
+
+def test_clocks_tens_of_ms_apart_are_one_capture() -> None:
+    """Camera boxes whose clocks differ by 50 ms: each capture split in two, neither ever
+    complete, and each waited out the second (capture → map 0.2 → 1.2 s)."""
+    groups: CaptureGroups[str] = CaptureGroups(wait_s=1.0)
+    held_s = _held_s(groups, 50_000_000)
+    # The first capture, before either pair's frame interval is known, is two.
+    assert held_s[2:] == [0.1] * 6
+    assert groups.lagging == set()
+
+
+@pytest.mark.parametrize("phase", [0.25, 0.5, 0.75])
+def test_cameras_not_triggered_together_hold_no_capture_past_a_frame(phase: float) -> None:
+    """Free-running cameras stamp anywhere within a frame interval of each other: a capture is
+    released once every pair delivered it or a frame past it."""
+    groups: CaptureGroups[str] = CaptureGroups(wait_s=1.0)
+    held_s = _held_s(groups, int(phase * FRAME_NS))
+    assert len(held_s) == 8 and max(held_s[2:]) <= 0.6, held_s
+    assert groups.lagging == set()
+
+
+def test_a_lagging_pair_that_comes_within_the_wait_again_is_waited_for_again() -> None:
+    """p1 stalled past the wait once (lagging), then delivered 50 ms after p0 as before: every
+    capture was released before it came, so it stayed lagging for good, and the tracker dropped
+    each of its detections as late."""
+    groups: CaptureGroups[str] = CaptureGroups(wait_s=1.0)
+    groups.add("p0", T0_NS, ["a"], now_s=0.0)
+    assert _stamps(groups.ready(1.0, LIVE)) == [T0_NS]
+    assert groups.lagging == {"p1"}
+    groups.add("p0", T0_NS + FRAME_NS, ["b"], now_s=1.5)
+    assert _stamps(groups.ready(1.5, LIVE)) == [T0_NS + FRAME_NS]  # not waited for
+    groups.add("p1", T0_NS + FRAME_NS, ["late"], now_s=1.55)  # 50 ms after p0's
+    assert groups.ready(1.55, LIVE) == [(T0_NS + FRAME_NS, [("p1", "late")])]
+    assert groups.lagging == set()
+    groups.add("p0", T0_NS + 2 * FRAME_NS, ["c"], now_s=2.0)
+    assert groups.ready(2.0, LIVE) == []  # waited for again
+    groups.add("p1", T0_NS + 2 * FRAME_NS, ["d"], now_s=2.05)
+    assert _stamps(groups.ready(2.05, LIVE)) == [T0_NS + 2 * FRAME_NS]
 
 
 def test_with_no_wait_nothing_is_held_and_no_pair_lags() -> None:
@@ -160,3 +218,88 @@ def test_a_held_tile_the_map_cannot_take_is_counted_by_its_reason() -> None:
     _deliver_tile(state, "p1", Window(1000, 1000, 8, 8), now)
     state.fuse_captures()
     assert dict(state.rejected) == {"growth": 1} and dict(state.accepted) == {"p0": 1}
+
+
+def _deliver_frame(state: FusionState, pair: str, seq: int, stamp_ns: int, x_m: float) -> None:
+    """A pair's tile and its one object of a frame."""
+    _deliver_tile(state, pair, Window(0 if pair == "p0" else 60, 0, 60, 60), stamp_ns)
+    found = DetectionRecord(
+        center_m=(x_m, 1.5), size_m=(0.6, 0.4), yaw_rad=0.0, top_m=1.0, points=500, partial=False
+    )
+    header = DetectionsHeader(pair=pair, seq=seq, stamp_ns=stamp_ns, detections=[found])
+    key = f"depth/{pair}/objects"
+    state.handle(Delivery("detections", key, time.time_ns(), encode(DETECTIONS_KIND, header)))
+
+
+def test_a_pair_that_stalled_once_keeps_its_objects_tracked() -> None:
+    """p1 stalled past the capture wait once, then delivered 50 ms after p0 as before: it stayed
+    lagging, each capture was tracked before its detections came, and its object left
+    ``map/objects`` for good with nothing counted or said. (Real time, a 0.2 s wait.)"""
+    state = FusionState(FusionSettings(capture_wait_s=0.2), FusedGrid(GridParams()))
+    for pair in ("p0", "p1"):
+        state.handle(Delivery("presence", f"depth/{pair}/alive/x{pair}", time.time_ns(), b""))
+
+    def pump(until_s: float) -> None:
+        while time.monotonic() < until_s:
+            state.fuse_captures()
+            state.refresh_objects()
+            time.sleep(0.005)
+
+    start_s, start_ns = time.monotonic(), time.time_ns()
+    for k in range(24):
+        frame_s = start_s + 0.1 * k
+        pump(frame_s)
+        _deliver_frame(state, "p0", k, start_ns + k * 100_000_000, 1.0)
+        pump(frame_s + 0.05)
+        if not 6 <= k < 10:  # p1 stalls 0.4 s, twice the wait
+            _deliver_frame(state, "p1", k, start_ns + k * 100_000_000, 4.0)
+        if k == 9:
+            assert state.tracker.captures.lagging == {"p1"}
+    pump(start_s + 2.45)
+    state.update_view()
+    pairs_seen = {pair for o in state.view.objects.objects for pair in o.pairs}
+    assert pairs_seen == {"p0", "p1"}
+    health = health_of(state.view, None, {})["pairs"]["p1"]
+    assert health["lagging"] is False
+    assert health["detections_late"] <= 1  # the one capture it came back late for, if any
+
+
+def test_a_clock_stepped_back_takes_tiles_again_and_moves_the_maps_times(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The site's clocks set back by an hour (an NTP server corrected): every tile was refused
+    as out of order for that hour, with nothing said of clocks."""
+    hour_ns = 3600 * 10**9
+    state = FusionState(FusionSettings(capture_wait_s=0.0), FusedGrid(GridParams()))
+    before_ns = time.time_ns()
+    _deliver_tile(state, "p0", Window(0, 0, 8, 8), before_ns)
+    state.fuse_captures()
+    assert state.grid.stamp_ns == before_ns
+    stamp_ns = before_ns - hour_ns + 500_000_000  # half a second later, on the clock set back
+    payload = tile_payload("p0", Window(0, 0, 8, 8), 0.8, stamp_ns=stamp_ns)
+    state.handle(Delivery("tile", "depth/p0/tile", stamp_ns, payload))
+    state.fuse_captures()
+    assert dict(state.rejected) == {} and dict(state.accepted) == {"p0": 2}
+    assert state.grid.stamp_ns == stamp_ns
+    assert float(state.grid.layer("last_seen_s").max()) == pytest.approx(stamp_ns / 1e9)
+    assert "the clock stepped back" in caplog.text
+
+
+def test_each_pairs_refused_tiles_are_named_and_the_clocks_said(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Two camera boxes' clocks off (5 s and an hour): for 16 s the log named the first pair
+    only ("capture stamp is 5.02 s old", 19 suppressed), never the one an hour off."""
+    state = FusionState(FusionSettings(), FusedGrid(GridParams()))
+    for pair in ("p0", "p2"):
+        state.handle(Delivery("presence", f"depth/{pair}/alive/x{pair}", time.time_ns(), b""))
+    for _ in range(5):
+        _deliver_tile(state, "p0", Window(0, 0, 8, 8), time.time_ns() - 5 * 10**9)
+        _deliver_tile(state, "p2", Window(8, 0, 8, 8), time.time_ns() - 3600 * 10**9)
+    refused = [r for r in caplog.records if r.getMessage() == "tile rejected"]
+    assert sorted(r.__dict__["on"] for r in refused) == ["depth/p0/tile", "depth/p2/tile"]
+    assert all("clocks synchronised" in r.__dict__["error"] for r in refused)
+    # Made-up pairs no process claims share one line per reason.
+    for k in range(5):
+        _deliver_tile(state, f"x{k}", Window(0, 0, 8, 8), time.time_ns() - 5 * 10**9)
+    assert len([r for r in caplog.records if r.getMessage() == "tile rejected"]) == 3

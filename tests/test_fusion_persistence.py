@@ -18,6 +18,8 @@ from services.fusion.persistence import (
     read_log,
     save_now,
 )
+from services.fusion.settings import FusionSettings
+from services.fusion.state import FusionState
 
 LAYERS = ("logodds", "height_m", "known", "last_seen_s", "occupancy")
 
@@ -301,3 +303,22 @@ def test_a_saved_top_no_tile_may_bring_now_is_read_back_unknown(tmp_path: Path) 
     restored = load_grid(GridParams(), tmp_path, epoch_ns=1).window_of("height_m", window)
     assert np.isnan(restored[0, 0]) and restored[0, 1] == pytest.approx(1.2)
     assert np.isnan(restored[0, 2])
+
+
+def test_a_state_saved_ahead_of_this_boxs_clock_decays_from_now(tmp_path: Path) -> None:
+    """Restored on a box whose clock is an hour behind the one that saved it, an obstacle stayed
+    at 92 through every decay pass for that hour, and the map's stamp claimed a capture an hour
+    in the future."""
+    hour_ns = 3600 * 10**9
+    now_ns = time.time_ns()
+    grid = FusedGrid(GridParams())
+    _fuse(grid, Window(0, 0, 4, 4), 2.0, now_ns + hour_ns)
+    save_now(grid, tmp_path)
+    state = FusionState(FusionSettings(), load_grid(GridParams(), tmp_path, epoch_ns=1))
+    restored = state.grid
+    assert abs(restored.stamp_ns - now_ns) < 10**9
+    assert abs(float(restored.layer("last_seen_s")[0, 0]) - now_ns / 1e9) < 1.0
+    later_s = now_ns / 1e9 + restored.params.decay_after_s + 30.0
+    for step in range(30):
+        restored.decay(later_s + step, 1.0)
+    assert restored.layer("occupancy")[0, 0] == -1  # decayed to unknown, as on one clock

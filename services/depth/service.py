@@ -628,8 +628,9 @@ class FusionIntake:
         self.grew_s = self.answered_s = time.monotonic()
         self.taking = Transitions(
             log,
-            "fusion takes none of this pair's tiles: does the router let this user put on "
-            "depth/PAIR/**, or does fusion refuse them (its health)?",
+            "fusion takes none of this pair's tiles: does fusion refuse them (fusion_rejected: "
+            "its log says why; a camera clock seconds off its box's is refused as stale), or "
+            "does the router not let this user put on depth/PAIR/**?",
             "fusion takes this pair's tiles again",
         )
         self.answering = Transitions(

@@ -424,6 +424,19 @@ class FusedGrid:
             self.version += 1
         return changed
 
+    def shift_time(self, step_s: float) -> None:
+        """Every time the map holds moved by ``step_s`` (the newest capture's stamp and each
+        cell's last observation): after a clock stepped back, the map's times are those of a
+        clock that no longer runs, and nothing would decay until it caught up (an hour, after an
+        hour's correction)."""
+        for key in list(self.chunks):
+            chunk = self._writable(key)
+            chunk.last_seen_s[chunk.known] += step_s
+            chunk.decay_check_s += step_s
+            self.changed.add(key)
+        self.stamp_ns = max(0, self.stamp_ns + round(step_s * 1e9))
+        self.version += 1
+
     def forget_occupied(self, cells: CellMasks, seen_before_s: float) -> int:
         """Occupied cells among ``cells`` last observed before ``seen_before_s`` become unknown;
         returns how many. A mover's wake: what put them there has gone, and no frame since has

@@ -92,11 +92,20 @@ def pair_of_key(key: str) -> str:
 
 
 def check_stamp(stamp_ns: int, now_ns: int, max_age_ns: int) -> None:
+    """A capture stamp within ``max_age_ns`` before fusion's clock and FUTURE_TOLERANCE_S after
+    it. Either side names the clocks: a camera box whose clock is off by seconds (no NTP) has
+    every frame refused, and "N s old" alone read as a slow link."""
     if now_ns - stamp_ns > max_age_ns:
-        raise Rejected("stale", f"capture stamp is {(now_ns - stamp_ns) / 1e9:.2f} s old")
+        raise Rejected(
+            "stale",
+            f"capture stamp is {(now_ns - stamp_ns) / 1e9:.2f} s behind this box's clock "
+            "(a camera clock behind, or frames delayed: are the boxes' clocks synchronised?)",
+        )
     if stamp_ns - now_ns > FUTURE_TOLERANCE_S * 1e9:
         raise Rejected(
-            "future", f"capture stamp is {(stamp_ns - now_ns) / 1e9:.2f} s in the future"
+            "future",
+            f"capture stamp is {(stamp_ns - now_ns) / 1e9:.2f} s ahead of this box's clock "
+            "(are the boxes' clocks synchronised?)",
         )
 
 

@@ -44,7 +44,7 @@ Rules that shape the tracks:
 from __future__ import annotations
 
 import math
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 
@@ -395,6 +395,9 @@ class ObjectTracker:
     """Detections waiting for the rest of their capture."""
     wake_footprints: deque[MoverView] = field(default_factory=deque)
     """Every observation of a moving track over the last ``wake_s``."""
+    late: Counter[str] = field(default_factory=Counter)
+    """Per pair, detections dropped as late: their capture came after a later one was tracked
+    (a filter steps forward in time only)."""
 
     def add(
         self, pair: str, stamp_ns: int, detections: list[DetectionRecord], now_s: float
@@ -406,8 +409,9 @@ class ObjectTracker:
         """Process every complete (or waited-for) capture in stamp order; True if tracks changed."""
         changed = False
         for group, detections in self.captures.ready(now_s, live_pairs):
-            if group <= self.stamp_ns:
-                continue  # older than a capture already processed
+            if group <= self.stamp_ns:  # older than a capture already processed
+                self.late.update(pair for pair, _ in detections)
+                continue
             self.update(group, merge_capture(detections, self.config.merge_gap_m))
             changed = True
         return changed

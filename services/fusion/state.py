@@ -31,6 +31,7 @@ from services.fusion.grid import (
 )
 from services.fusion.inbox import Delivery
 from services.fusion.intake import (
+    FUTURE_TOLERANCE_S,
     AcceptedTile,
     Rejected,
     TileGate,
@@ -44,6 +45,9 @@ from services.fusion.persistence import StateWriter
 from services.fusion.settings import FusionSettings
 
 log = logging.getLogger("fusion")
+CLOCK_STEP_MIN_S = FUTURE_TOLERANCE_S + 0.25
+"""The map's newest capture this far ahead of this box's clock (a capture is taken at most
+FUTURE_TOLERANCE_S ahead of it) means the clock stepped back since (``FusionState.check_clock``)."""
 FORGET_AFTER_FRAMES = 4
 """The tracks end with no capture for ``decay_after_s`` or this many frame intervals, whichever
 is longer: a pair replaying at one frame in 10 s keeps its tracks between frames."""
@@ -66,6 +70,8 @@ class View:
     """Pairs a capture is no longer held for (:class:`CaptureGroups`)."""
     rejected_by_pair: Mapping[tuple[str, str], int] = field(default_factory=dict)
     """Tiles and detections refused, by the pair whose key they came on."""
+    detections_late: Mapping[str, int] = field(default_factory=dict)
+    """Per pair, detections the tracker dropped as late (``ObjectTracker.late``)."""
     objects: ObjectsHeader = field(
         default_factory=lambda: ObjectsHeader(version=0, stamp_ns=0, objects=[])
     )
@@ -113,6 +119,7 @@ class FusionState:
         """When the tracker last had a capture: with none for ``decay_after_s`` (every pair
         stopped or died), the tracks and outlines are forgotten as the cells' evidence is."""
         self.warn = RateLimitedLog(log)
+        self.check_clock(time.time_ns())  # a state saved on a box whose clock was ahead
         frozen, self.unsaved = grid.freeze()
         self.view = View(frozen)
         """Replaced, never changed: readers on other threads take the reference and keep it."""
@@ -121,11 +128,37 @@ class FusionState:
     def alive(self) -> set[str]:
         return {pair for pair, instances in self.processes.items() if instances}
 
+    def check_clock(self, now_ns: int) -> None:
+        """Whether this box's clock (``now_ns``) stepped back behind the map's newest capture:
+        then the map's times move back with it, and what orders captures by stamp starts over
+        (each pair's newest tile, the captures held, the tracks). A site whose clocks an NTP
+        server set back by an hour had every tile refused as out of order for that hour, the
+        objects frozen and nothing decaying; a state saved on a box whose clock was ahead, the
+        same after a restart."""
+        ahead_s = (self.grid.stamp_ns - now_ns) / 1e9
+        if ahead_s <= CLOCK_STEP_MIN_S:
+            return
+        self.grid.shift_time(-ahead_s)
+        self.gate.newest_stamp_ns.clear()
+        wait_s = self.settings.capture_wait_s
+        self.tiles = CaptureGroups(wait_s=wait_s)
+        self.tracker.forget()
+        self.tracker.stamp_ns = 0
+        self.tracker.captures = CaptureGroups(wait_s=wait_s)
+        self.outlined, self.tops = [], []
+        self.grid.set_predicted([])
+        log.warning(
+            "this box's clock is behind the map's newest capture: the clock stepped back; the "
+            "map's times moved back with it, and the objects are tracked anew",
+            extra={"step_s": round(ahead_s, 3)},
+        )
+
     def handle(self, delivery: Delivery) -> None:
         """One message from the inbox; a bad one is counted by reason, never raised. Whatever
         else fusing it raises (a bug, memory) is counted as ``internal`` and logged with the
         exception: the owner's loop, and with it the map, outlives any one message."""
         try:
+            self.check_clock(delivery.arrival_ns)
             if delivery.kind == "tile":
                 self._tile(delivery)
             elif delivery.kind == "detections":
@@ -143,11 +176,20 @@ class FusionState:
             "detections": self.detections_rejected,
         }.get(kind, self.liveliness_rejected)
         counters[reason] += 1
+        pair = None
         if kind != "presence":
             with contextlib.suppress(ValueError):  # a key of no pair: counted by reason only
-                self.rejected_by_pair[keys.pair_of(key), kind] += 1
+                pair = keys.pair_of(key)
+                self.rejected_by_pair[pair, kind] += 1
+        # Each known pair's refusals are said apart (a second pair's clock an hour off was never
+        # named under the first's); a flood on made-up pairs stays one line per reason.
+        known = pair is not None and (pair in self.processes or pair in self.contributors)
         self.warn.warning(
-            f"{kind}_{reason}", f"{kind} rejected", reason=reason, on=key, error=detail[:200]
+            f"{kind}_{reason}_{pair}" if known else f"{kind}_{reason}",
+            f"{kind} rejected",
+            reason=reason,
+            on=key,
+            error=detail[:200],
         )
 
     def _tile(self, delivery: Delivery) -> None:
@@ -233,7 +275,17 @@ class FusionState:
         visible time); returns the new object list if the tracks changed."""
         now_ns = time.time_ns()
         resolution_m = self.grid.params.resolution_m
+        late_before = dict(self.tracker.late)
         changed = self.tracker.flush(time.monotonic(), self.alive)
+        for pair, count in self.tracker.late.items():
+            if count > late_before.get(pair, 0):
+                self.warn.warning(
+                    f"detections_late_{pair}",
+                    "detections came after a later capture was tracked: dropped (is the pair's "
+                    "depth process or its clock behind the others'? --capture-wait-s)",
+                    pair=pair,
+                    dropped=count,
+                )
         check = MapCheck()
         expired = False
         if changed:  # once a capture: tracks and evidence both moved
@@ -315,6 +367,7 @@ class FusionState:
             {pair: tuple(sorted(i)) for pair, i in self.processes.items()},
             frozenset(self.tiles.lagging),
             dict(self.rejected_by_pair),
+            dict(self.tracker.late),
             self.objects_header,
         )
 
@@ -378,6 +431,7 @@ def health_of(view: View, writer: StateWriter | None, dropped: Mapping[str, int]
                 "lagging": p in view.lagging,
                 "rejected": view.rejected_by_pair.get((p, "tile"), 0),
                 "detections_rejected": view.rejected_by_pair.get((p, "detections"), 0),
+                "detections_late": view.detections_late.get(p, 0),
             }
             for p in pairs
         },
