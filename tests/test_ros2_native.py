@@ -342,6 +342,20 @@ def test_no_empty_map_is_latched_and_a_silent_fusion_is_said(bus: Bus, tmp_path:
     fusion.wait(10)
     wait_for(lambda: b"fusion does not answer" in log.read_bytes(), 20, "the silence, said")
     assert b"svc=ros2" not in log.read_bytes()  # its own service's name on every line
+    # Back, and gone again: each said (after the first outage, the relay said nothing of the
+    # next ones, and "answers again" at random).
+    fusion = bus.start("fusion", "--state-dir", str(tmp_path / "state"))
+
+    def answered() -> bool:
+        tiles.put(tile_payload("p0", FIRST, 1.0, seq=time.monotonic_ns() // 1000))
+        return b"fusion answers again" in log.read_bytes()
+
+    wait_for(answered, 30, "fusion back, said")
+    fusion.send_signal(signal.SIGTERM)
+    fusion.wait(10)
+    wait_for(
+        lambda: log.read_bytes().count(b"fusion does not answer") == 2, 20, "the second silence"
+    )
 
 
 def _cube_ids(arrays: queue.Queue[zenoh.Sample]) -> list[int]:

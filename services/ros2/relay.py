@@ -119,6 +119,9 @@ class MapRelay:
                             self._publish_update(current, changed)
                         map_due = True
                     sent, last_change_s = current, time.monotonic()
+                    # A new map is fusion answering: said when it had not (else the next silence,
+                    # still "not answering", went unsaid, and its end said "answers again").
+                    self._fusion.update(True)
                 now = time.monotonic()
                 if map_due and now - last_map_s >= s.map_interval_s:
                     self._publish_map(sent)
