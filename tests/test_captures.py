@@ -303,3 +303,14 @@ def test_each_pairs_refused_tiles_are_named_and_the_clocks_said(
     for k in range(5):
         _deliver_tile(state, f"x{k}", Window(0, 0, 8, 8), time.time_ns() - 5 * 10**9)
     assert len([r for r in caplog.records if r.getMessage() == "tile rejected"]) == 3
+
+
+def test_a_tile_of_no_cell_is_taken_not_refused() -> None:
+    """A camera gone black gives a tile of no cell: it was refused as lying beyond the site
+    ("Window(0, 0, 0, 0) lies beyond …"), counted against its pair."""
+    state = FusionState(FusionSettings(capture_wait_s=0.0), FusedGrid(GridParams()))
+    _deliver_tile(state, "p0", Window(0, 0, 8, 8), time.time_ns())
+    _deliver_tile(state, "p0", Window(0, 0, 0, 0), time.time_ns())
+    state.fuse_captures()
+    assert dict(state.rejected) == {} and dict(state.accepted) == {"p0": 2}
+    assert int(state.grid.layer("known").sum()) == 64  # the first tile's cells, and no more

@@ -1682,3 +1682,32 @@ def test_a_pair_given_left_and_right_swapped_says_it_finds_no_floor() -> None:
             model.update(left, right, chain(left, right))
         states.append(model.state())
     assert states == ["ready", "no_floor"]
+
+
+def test_a_black_frame_is_neither_measured_nor_learned_from() -> None:
+    """One black frame (a camera's glitch, the lights out) made the whole view depart from its
+    background: the model learned the floor again from nothing and said no_floor for 10 s."""
+    rng = np.random.default_rng(12)
+    geometry = _synthetic_geometry()
+    width, height = SYNTHETIC_SIZE
+    texture = cv2.GaussianBlur(
+        rng.uniform(40, 220, (height, width)).astype(np.float32), (0, 0), 1.2
+    )
+    chain = DisparityChain(MatcherConfig(), 16, 32)
+    model = floor_model.FloorModel(geometry, (0.1, 2.0))
+    for _ in range(16):
+        left, right = _textured_pair(geometry.floor_disparity_px, rng, texture)
+        model.update(left, right, chain(left, right))
+    assert model.state() == "ready"
+    share, frames, relearned = model.modelled_share(), model.frames, model.relearned
+    black = (rng.normal(3.0, 1.0, (height, width))).clip(0, 255).astype(np.uint8)  # sensor noise
+    evidence = model.update(black, black, chain(black, black))
+    assert not np.isfinite(evidence).any()
+    assert model.state() == "blank"
+    assert (model.modelled_share(), model.frames, model.relearned) == (share, frames, relearned)
+    left, right = _textured_pair(geometry.floor_disparity_px, rng, texture)
+    model.update(left, right, chain(left, right))
+    assert model.state() == "ready" and model.relearned == relearned
+    # A plain floor alone in view, its grey within the sensor's noise, does show something.
+    plain = (rng.normal(140.0, 1.0, (height, width))).clip(0, 255).astype(np.uint8)
+    assert not floor_model.blank(plain)

@@ -272,6 +272,22 @@ PAINT_GAP_M = 0.16
 the baseline, is the paint's (lane lines are 5–10 cm wide; the model's growth stops a pixel or
 two before each of their edges)."""
 
+BLANK_GRAY = (20.0, 245.0, 2.0)
+"""A frame shows nothing when 99 % of its grey levels (at every 4th pixel) lie under the first
+(dark, covered), 99 % over the second (blinded), or all within the third of each other (a
+constant image: a camera that sends the same value). Not merely "uniform": a plain floor in view
+alone spans only the sensor's noise and its light's falloff, a few grey levels."""
+
+
+def blank(image: U8) -> bool:
+    """Whether a camera's image shows nothing (BLANK_GRAY). Such a frame is neither measured nor
+    learned from: one black frame made the whole view depart from its background, the model
+    learned the floor again from nothing, and said *no_floor* for 10 s, as for a calibration not
+    this pair's."""
+    dark, blinded, constant = BLANK_GRAY
+    low, high = np.percentile(image[::4, ::4], (1.0, 99.0))
+    return bool(high <= dark or low >= blinded or high - low < constant)
+
 
 @compiled
 def foot_px(
@@ -493,6 +509,8 @@ class FloorModel:
         estimate: :func:`restarts_from_blocks`)."""
         self.frames = 0
         self.relearned = 0
+        self.blank = False
+        """The last frame showed nothing (:func:`blank`)."""
         self._window = np.ones((self.config.window_px, self.config.window_px), np.uint8)
         nx, ny = geometry.nadir_px
         radius = np.maximum(np.hypot(u - nx, v - ny), 1e-3)
@@ -685,8 +703,11 @@ class FloorModel:
         return float(np.count_nonzero(self._modelled)) / float(self._modelled.size)
 
     def state(self) -> str:
-        """``ready``, ``learning``, or ``no_floor``: long past learning with nearly nothing
-        learned, the floor test finds no floor where the calibration puts it."""
+        """``ready``, ``learning``, ``no_floor`` (long past learning with nearly nothing learned,
+        the floor test finds no floor where the calibration puts it), or ``blank`` (the last
+        frame showed nothing)."""
+        if self.blank:
+            return "blank"
         share, cfg = self.modelled_share(), self.config
         if share >= cfg.ready_share:
             return "ready"
@@ -714,6 +735,11 @@ class FloorModel:
         """The disparity the tile is built from: this frame under the evidence rules (NaN where
         there is no evidence). Learns from the frame as well."""
         cfg = self.config
+        self.blank = blank(left_rect) or blank(right_rect)
+        if self.blank:  # nothing measured, nothing learned
+            self.inferred = np.zeros(self.shape, np.bool_)
+            self.hidden = np.zeros(self.shape, np.bool_)
+            return np.full(self.shape, np.nan, np.float32)
         left = blur(left_rect, cfg.blur_sigma_px)
         right = blur(right_rect, cfg.blur_sigma_px)
         warped, inside, test = self._tested(left, right)

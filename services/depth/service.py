@@ -598,7 +598,14 @@ def _summaries(
             if tiles > tiles_before:
                 intake.check(fusion_health(), time.monotonic())
             received_before, tiles_before = received, tiles
-            if counters.get("floor_model", {}).get("state") == "no_floor":
+            state = counters.get("floor_model", {}).get("state")
+            if state == "blank":
+                log.warning(
+                    "the camera's images show nothing (dark, covered or blinded): nothing is "
+                    "mapped from them",
+                    extra={"pair": pair},
+                )
+            elif state == "no_floor":
                 log.warning(
                     "the floor model finds no floor where the calibration puts it: is the "
                     "calibration this pair's, and are left and right the right way round?",

@@ -355,7 +355,10 @@ class FusedGrid:
     ) -> Window:
         """Add one tile's evidence; returns the map cells it touched. A refused tile changes
         nothing (no chunk, no growth). ``hidden``: cells without an update whose floor is hidden
-        now (see ``rules.combine_tile``)."""
+        now (see ``rules.combine_tile``). A tile of no cell (a frame that measured nothing: a
+        camera gone dark) touches none."""
+        if tile_window.empty:
+            return tile_window
         part = self._admit(tile_window)
         stamp_s = stamp_ns / 1e9
         if hidden is None:

@@ -145,7 +145,7 @@ class TileGate:
                 "resolution",
                 f"tile resolution {h.resolution_m} m ≠ map resolution {self.resolution_m} m",
             )
-        if self.site is not None and h.window.intersect(self.site).empty:
+        if self.site is not None and not h.window.empty and h.window.intersect(self.site).empty:
             raise Rejected(
                 "outside_map" if self.bounded else "outside_extent",
                 f"tile at cells {h.window} lies beyond the site {self.site}"
