@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -225,8 +226,16 @@ class MapFollower:
     @property
     def alive(self) -> bool:
         """Still following: False once closed or once its session closed (its copy then ages;
-        ``map.stamp_ns`` says how much)."""
+        :attr:`age_s` says how much)."""
         return self._thread.is_alive()
+
+    @property
+    def age_s(self) -> float:
+        """Seconds since the newest capture in the copy, by this box's clock (inf before any):
+        following goes on while fusion is gone, and the copy ages; a robot should not plan on
+        a map older than it can afford."""
+        stamp_ns = self.map.stamp_ns
+        return time.time() - stamp_ns / 1e9 if stamp_ns else math.inf
 
     def _run(self) -> None:
         for sample in self._subscriber:  # ends when the subscriber is undeclared

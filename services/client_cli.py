@@ -99,13 +99,25 @@ def health_cli(argv: Sequence[str] | None = None) -> None:
     print("\n".join(lines))
 
 
+STALE_S = 5.0
+"""A map, or a pair alive, with no capture newer than this is said STALE / NO TILE in ``overgrid
+health``: fusion's default ``decay_after_s``, after which the map forgets what it last saw (with
+every camera gone, each pair read "alive yes" and a person had to read the ages)."""
+
+
 def health_lines(answer: dict[str, Any]) -> list[str]:
     """The table ``overgrid health`` prints; built whole before any is printed, so an answer
     without a field it reads (no schema: a JSON object) ends in one line, not half a table."""
     m = answer["map"]
+    age_s = m.get("capture_age_s")
+    newest = (
+        "no capture yet"
+        if age_s is None
+        else f"newest capture {age_s:.1f} s ago" + ("  STALE" if age_s > STALE_S else "")
+    )
     lines = [
         f"map v{m['version']}  {m['cols']}×{m['rows']} cells @ {m['resolution_m']} m  "
-        f"origin {m['origin_m']}  known {m['known_cells']}",
+        f"origin {m['origin_m']}  known {m['known_cells']}  {newest}",
         f"tiles accepted {answer['tiles_accepted']}  rejected {answer['tiles_rejected'] or 0}",
     ]
     saved = answer.get("state") or {}
@@ -125,9 +137,13 @@ def health_lines(answer: dict[str, Any]) -> list[str]:
             "—" if row["capture_to_fused_ms"] is None else f"{row['capture_to_fused_ms']:.0f} ms"
         )
         notes = [f"CONFLICT: {len(row['processes'])} processes"] if row["conflict"] else []
+        stalled = row["alive"] and (row["last_tile_age_s"] or 0.0) > STALE_S
+        notes += [f"NO TILE FOR {row['last_tile_age_s']:.0f} s"] if stalled else []
         notes += ["LAGGING"] if row["lagging"] else []
         refused = row.get("detections_rejected", 0)
         notes += [f"{refused} detections rejected"] if refused else []
+        late = row.get("detections_late", 0)
+        notes += [f"{late} detections late"] if late else []
         lines.append(
             f"{pair:<10}{'yes' if row['alive'] else 'NO':<7}{row['tiles']:>8}"
             f"{row.get('rejected', 0):>10}{age:>12}{latency:>14}  {', '.join(notes)}".rstrip()

@@ -1,3 +1,4 @@
+import logging
 import time
 
 import pytest
@@ -314,3 +315,18 @@ def test_a_tile_of_no_cell_is_taken_not_refused() -> None:
     state.fuse_captures()
     assert dict(state.rejected) == {} and dict(state.accepted) == {"p0": 2}
     assert int(state.grid.layer("known").sum()) == 64  # the first tile's cells, and no more
+
+
+def test_a_pairs_last_process_leaving_is_a_warning(caplog: pytest.LogCaptureFixture) -> None:
+    """Every pair gone at once (a router lost) was four lines at info level."""
+    caplog.set_level(logging.INFO, logger="fusion")
+    state = FusionState(FusionSettings(), FusedGrid(GridParams()))
+    for instance in ("a", "b"):
+        state.handle(Delivery("presence", f"depth/p0/alive/{instance}", time.time_ns(), b""))
+    state.handle(Delivery("presence", "depth/p0/alive/a", time.time_ns(), b"", alive=False))
+    state.handle(Delivery("presence", "depth/p0/alive/b", time.time_ns(), b"", alive=False))
+    left = [(r.levelname, r.getMessage()) for r in caplog.records if "left" in r.getMessage()]
+    assert left == [
+        ("INFO", "depth process left"),
+        ("WARNING", "depth process left: no process left for the pair, its cells will decay"),
+    ]

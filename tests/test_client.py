@@ -6,6 +6,8 @@ replay; a forged update must not freeze it; answers that do not decode are MapUn
 from __future__ import annotations
 
 import json
+import math
+import time
 
 import numpy as np
 import pytest
@@ -23,9 +25,9 @@ RESOLUTION_M = 0.05
 EPOCH = 1_000
 
 
-def _map(window: Window, value: int, version: int) -> OccupancyMap:
+def _map(window: Window, value: int, version: int, stamp_ns: int = 0) -> OccupancyMap:
     cells = np.full((window.rows, window.cols), value, np.int8)
-    return OccupancyMap(cells, RESOLUTION_M, window.i0, window.j0, version, 0, epoch=EPOCH)
+    return OccupancyMap(cells, RESOLUTION_M, window.i0, window.j0, version, stamp_ns, epoch=EPOCH)
 
 
 def _update(
@@ -68,7 +70,7 @@ def _peer(bus: Bus) -> zenoh.Session:
 @pytest.mark.process
 def test_a_follower_behind_a_grown_map_fetches_until_it_has_the_newest(bus: Bus) -> None:
     empty = _map(Window(0, 0, 0, 0), -1, version=0)
-    grown = _map(Window(10, 20, 30, 40), 100, version=1)
+    grown = _map(Window(10, 20, 30, 40), 100, version=1, stamp_ns=time.time_ns() - 2 * 10**9)
     served = [empty]
     stale_answers_left = [3]
 
@@ -85,6 +87,7 @@ def test_a_follower_behind_a_grown_map_fetches_until_it_has_the_newest(bus: Bus)
     with _peer(bus) as session:
         follower = MapFollower(session, timeout_s=5)
         assert follower.map.revision == (EPOCH, 0)
+        assert follower.age_s == math.inf  # no capture yet
         served.append(grown)
         # One update that grows the map, then silence: no later update will trigger a fetch. (The
         # follower's subscription reached the router before its fetch did, on the same link.)
@@ -93,6 +96,7 @@ def test_a_follower_behind_a_grown_map_fetches_until_it_has_the_newest(bus: Bus)
         assert stale_answers_left == [0]  # it did meet the stale snapshots on its way
         np.testing.assert_array_equal(follower.map.occupancy, grown.occupancy)
         assert follower.map.window == grown.window
+        assert 2.0 <= follower.age_s < 30.0  # the capture's age, by this box's clock
         follower.close()
     queryable.undeclare()  # type: ignore[no-untyped-call]
 

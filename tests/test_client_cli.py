@@ -7,11 +7,13 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 import zenoh
 
 from common.lattice import Window
+from services.client_cli import health_lines
 from tests.conftest import REPO, Bus, assert_one_line_exit_2, run_overgrid
 from tests.test_ros2_native import start_fusion_with_a_tile
 
@@ -115,3 +117,48 @@ def test_a_reader_that_leaves_ends_the_command_without_a_traceback() -> None:
     command.stdout.close()
     assert command.wait(timeout=60) == 1
     assert command.stderr.read() == ""
+
+
+def _health_answer(capture_age_s: float | None, tile_age_s: float, alive: bool) -> dict[str, Any]:
+    row = {
+        "alive": alive,
+        "processes": ["a"] if alive else [],
+        "conflict": False,
+        "tiles": 40,
+        "last_tile_age_s": tile_age_s,
+        "capture_to_fused_ms": 90.0,
+        "lagging": False,
+        "rejected": 0,
+        "detections_rejected": 0,
+        "detections_late": 2,
+    }
+    return {
+        "pairs": {"p0": row},
+        "tiles_accepted": 40,
+        "tiles_rejected": {},
+        "map": {
+            "epoch": 1,
+            "version": 9,
+            "cols": 8,
+            "rows": 8,
+            "resolution_m": 0.05,
+            "origin_m": [0.0, 0.0],
+            "known_cells": 64,
+            "chunks": 1,
+            "capture_age_s": capture_age_s,
+        },
+        "state": {},
+    }
+
+
+def test_health_says_a_stale_map_and_a_live_pair_without_tiles() -> None:
+    """Every camera gone: each pair read "alive yes" with nothing in its note, and a person had
+    to read the ages to see the map was stale."""
+    stale = "\n".join(health_lines(_health_answer(15.7, 15.7, alive=True)))
+    assert "newest capture 15.7 s ago  STALE" in stale
+    assert "NO TILE FOR 16 s" in stale and "2 detections late" in stale
+    fresh = "\n".join(health_lines(_health_answer(0.4, 0.4, alive=True)))
+    assert "STALE" not in fresh and "NO TILE" not in fresh
+    gone = "\n".join(health_lines(_health_answer(15.7, 15.7, alive=False)))
+    assert "NO TILE" not in gone and "p0        NO" in gone  # a dead pair says so already
+    assert "no capture yet" in "\n".join(health_lines(_health_answer(None, 0.0, alive=True)))

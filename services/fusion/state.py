@@ -236,8 +236,15 @@ class FusionState:
             instances.add(presence.instance)
         else:
             instances.discard(presence.instance)
-        log.info(
-            "depth process joined" if presence.alive else "depth process left",
+        # The last process of a pair leaving is a pair the map no longer sees: a warning (every
+        # pair gone at once, a router lost, was four info lines).
+        level = logging.INFO if presence.alive or instances else logging.WARNING
+        log.log(
+            level,
+            "depth process joined"
+            if presence.alive
+            else "depth process left"
+            + ("" if instances else ": no process left for the pair, its cells will decay"),
             extra={"pair": presence.pair, "instance": presence.instance},
         )
 
@@ -451,6 +458,7 @@ def health_of(view: View, writer: StateWriter | None, dropped: Mapping[str, int]
             "origin_m": list(window.origin_m(frozen.resolution_m)),
             "known_cells": frozen.known_cells(),
             "chunks": len(frozen.chunks),
+            "capture_age_s": round(now - frozen.stamp_ns / 1e9, 3) if frozen.stamp_ns else None,
         },
         "state": state,
     }
