@@ -231,11 +231,12 @@ class MapFollower:
 
     @property
     def age_s(self) -> float:
-        """Seconds since the newest capture in the copy, by this box's clock (inf before any):
-        following goes on while fusion is gone, and the copy ages; a robot should not plan on
-        a map older than it can afford."""
+        """Seconds since the newest capture in the copy, by this box's clock (inf before any; 0
+        for a capture stamped ahead of it, a camera clock a little fast): following goes on
+        while fusion is gone, and the copy ages; a robot should not plan on a map older than it
+        can afford."""
         stamp_ns = self.map.stamp_ns
-        return time.time() - stamp_ns / 1e9 if stamp_ns else math.inf
+        return max(0.0, time.time() - stamp_ns / 1e9) if stamp_ns else math.inf
 
     def _run(self) -> None:
         for sample in self._subscriber:  # ends when the subscriber is undeclared

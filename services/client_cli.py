@@ -101,19 +101,20 @@ def health_cli(argv: Sequence[str] | None = None) -> None:
 
 STALE_S = 5.0
 """A map, or a pair alive, with no capture newer than this is said STALE / NO TILE in ``overgrid
-health``: fusion's default ``decay_after_s``, after which the map forgets what it last saw (with
-every camera gone, each pair read "alive yes" and a person had to read the ages)."""
+health`` (with every camera gone, each pair read "alive yes" and a person had to read the ages):
+what fusion's health says (``stale_after_s``, its ``decay_after_s``, after which the map forgets
+what it saw), this from a fusion that does not say."""
 
 
 def health_lines(answer: dict[str, Any]) -> list[str]:
     """The table ``overgrid health`` prints; built whole before any is printed, so an answer
     without a field it reads (no schema: a JSON object) ends in one line, not half a table."""
     m = answer["map"]
-    age_s = m.get("capture_age_s")
+    age_s, stale_s = m.get("capture_age_s"), float(m.get("stale_after_s", STALE_S))
     newest = (
         "no capture yet"
         if age_s is None
-        else f"newest capture {age_s:.1f} s ago" + ("  STALE" if age_s > STALE_S else "")
+        else f"newest capture {age_s:.1f} s ago" + ("  STALE" if age_s > stale_s else "")
     )
     lines = [
         f"map v{m['version']}  {m['cols']}×{m['rows']} cells @ {m['resolution_m']} m  "
@@ -137,7 +138,7 @@ def health_lines(answer: dict[str, Any]) -> list[str]:
             "—" if row["capture_to_fused_ms"] is None else f"{row['capture_to_fused_ms']:.0f} ms"
         )
         notes = [f"CONFLICT: {len(row['processes'])} processes"] if row["conflict"] else []
-        stalled = row["alive"] and (row["last_tile_age_s"] or 0.0) > STALE_S
+        stalled = row["alive"] and (row["last_tile_age_s"] or 0.0) > stale_s
         notes += [f"NO TILE FOR {row['last_tile_age_s']:.0f} s"] if stalled else []
         notes += ["LAGGING"] if row["lagging"] else []
         refused = row.get("detections_rejected", 0)

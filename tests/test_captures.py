@@ -1,6 +1,7 @@
 import logging
 import time
 
+import numpy as np
 import pytest
 
 from common.codec import encode
@@ -127,6 +128,50 @@ def test_cameras_not_triggered_together_hold_no_capture_past_a_frame(phase: floa
     held_s = _held_s(groups, int(phase * FRAME_NS))
     assert len(held_s) == 8 and max(held_s[2:]) <= 0.6, held_s
     assert groups.lagging == set()
+
+
+def test_a_pair_that_is_not_live_has_no_say_in_the_window() -> None:
+    """A pair heard twice 10 ms apart (one that left, or a forged one) narrowed the window to
+    30 ms for good: the live pairs' captures, 50 ms apart, split again."""
+    groups: CaptureGroups[str] = CaptureGroups(wait_s=1.0)
+    _held_s(groups, 50_000_000, frames=4)
+    groups.add("ghost", T0_NS + 4 * FRAME_NS, ["g"], 2.0)
+    groups.add("ghost", T0_NS + 4 * FRAME_NS + 10_000_000, ["g"], 2.0)
+    groups.ready(2.0, LIVE)
+    assert groups.window_ns() == pytest.approx(0.4 * FRAME_NS)
+    assert "ghost" not in groups.newest_ns
+
+
+def test_a_slow_replays_pairs_seconds_apart_are_one_capture_and_none_lags() -> None:
+    """At 0.1 Hz, pairs 2.5 s apart: the window (4 s) was longer than the wait (1 s), so each
+    capture went out half, and the second pair stayed lagging for good."""
+    frame_ns = 10 * 10**9
+    groups: CaptureGroups[str] = CaptureGroups(wait_s=1.0)
+    sizes = []
+    for k in range(6):
+        now_s = 10.0 * k
+        groups.add("p0", T0_NS + k * frame_ns, ["a"], now_s)
+        sizes += [len(items) for _, items in groups.ready(now_s + 1.5, LIVE)]
+        groups.add("p1", T0_NS + k * frame_ns + 2_500_000_000, ["b"], now_s + 2.5)
+        sizes += [len(items) for _, items in groups.ready(now_s + 2.5, LIVE)]
+        sizes += [len(items) for _, items in groups.ready(now_s + 9.9, LIVE)]
+    assert sizes[-5:] == [2] * 5 and groups.lagging == set()  # once the interval is known
+
+
+def test_at_30_hz_no_capture_holds_two_frames_of_one_pair() -> None:
+    """The 30 ms window is a whole frame at 30 Hz: with a few ms of jitter, one capture in six
+    held two frames of one pair."""
+    frame_ns = 33_333_333
+    rng = np.random.default_rng(4)
+    groups: CaptureGroups[str] = CaptureGroups(wait_s=1.0)
+    released = []
+    for k in range(300):  # p1's frames come two frames after p0's
+        for pair, frame in (("p0", k), ("p1", k - 2)):
+            jitter_ns = int(rng.uniform(-4e6, 4e6))
+            groups.add(pair, T0_NS + frame * frame_ns + jitter_ns, [pair], k / 30)
+        released += groups.ready(k / 30 + 0.01, LIVE)
+    doubled = [items for _, items in released if len(items) != len({p for p, _ in items})]
+    assert not doubled and len(released) >= 290
 
 
 def test_a_lagging_pair_that_comes_within_the_wait_again_is_waited_for_again() -> None:
@@ -330,3 +375,54 @@ def test_a_pairs_last_process_leaving_is_a_warning(caplog: pytest.LogCaptureFixt
         ("INFO", "depth process left"),
         ("WARNING", "depth process left: no process left for the pair, its cells will decay"),
     ]
+
+
+def test_late_detections_of_a_pair_not_live_are_neither_counted_nor_said(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """1000 forged detections on made-up pairs, each a capture behind the tracker: 1000 warning
+    lines, and 1000 keys kept in each of four tables."""
+    state = FusionState(FusionSettings(capture_wait_s=0.0), FusedGrid(GridParams()))
+    state.handle(Delivery("presence", "depth/p0/alive/x", time.time_ns(), b""))
+    now_ns = time.time_ns()
+    _deliver_frame(state, "p0", 0, now_ns, 1.0)
+    state.fuse_captures()
+    state.refresh_objects()
+    record = DetectionRecord(
+        center_m=(4.0, 1.5), size_m=(0.6, 0.4), yaw_rad=0.0, top_m=1.0, points=500, partial=False
+    )
+    for k in range(50):
+        found = DetectionsHeader(
+            pair=f"fake{k}", seq=0, stamp_ns=now_ns - 10**8, detections=[record]
+        )
+        key = f"depth/fake{k}/objects"
+        state.handle(Delivery("detections", key, time.time_ns(), encode(DETECTIONS_KIND, found)))
+        state.refresh_objects()
+    assert "detections came after" not in caplog.text
+    assert dict(state.tracker.late) == {}
+    assert set(state.tracker.captures.newest_ns) <= {"p0"}
+
+
+def test_a_clock_stepped_back_takes_the_old_tracks_off_map_objects() -> None:
+    """After the step, map/objects kept serving the old tracks, stamped an hour ahead."""
+    state = FusionState(FusionSettings(capture_wait_s=0.0), FusedGrid(GridParams()))
+    now_ns = time.time_ns()
+    for k in range(4):
+        _deliver_frame(state, "p0", k, now_ns + k * 100_000_000 - 10**9, 1.0)
+        state.fuse_captures()
+        state.refresh_objects()
+    assert state.objects_header.objects
+    stamp_ns = now_ns - 3600 * 10**9
+    payload = tile_payload("p0", Window(0, 0, 8, 8), 0.8, stamp_ns=stamp_ns)
+    state.handle(Delivery("tile", "depth/p0/tile", stamp_ns, payload))
+    published = state.refresh_objects()
+    assert published is not None and published.objects == []
+    assert state.refresh_objects() is None  # said once
+
+
+def test_a_process_never_seen_leaving_changes_nothing(caplog: pytest.LogCaptureFixture) -> None:
+    """A DELETE for a pair never seen made it a known pair (its refusals then said apart) and
+    logged a warning per message."""
+    state = FusionState(FusionSettings(), FusedGrid(GridParams()))
+    state.handle(Delivery("presence", "depth/zz/alive/x", time.time_ns(), b"", alive=False))
+    assert state.processes == {} and "left" not in caplog.text

@@ -119,7 +119,9 @@ def test_a_reader_that_leaves_ends_the_command_without_a_traceback() -> None:
     assert command.stderr.read() == ""
 
 
-def _health_answer(capture_age_s: float | None, tile_age_s: float, alive: bool) -> dict[str, Any]:
+def _health_answer(
+    capture_age_s: float | None, tile_age_s: float, alive: bool, stale_after_s: float = 5.0
+) -> dict[str, Any]:
     row = {
         "alive": alive,
         "processes": ["a"] if alive else [],
@@ -146,6 +148,7 @@ def _health_answer(capture_age_s: float | None, tile_age_s: float, alive: bool) 
             "known_cells": 64,
             "chunks": 1,
             "capture_age_s": capture_age_s,
+            "stale_after_s": stale_after_s,
         },
         "state": {},
     }
@@ -162,3 +165,5 @@ def test_health_says_a_stale_map_and_a_live_pair_without_tiles() -> None:
     gone = "\n".join(health_lines(_health_answer(15.7, 15.7, alive=False)))
     assert "NO TILE" not in gone and "p0        NO" in gone  # a dead pair says so already
     assert "no capture yet" in "\n".join(health_lines(_health_answer(None, 0.0, alive=True)))
+    patient = "\n".join(health_lines(_health_answer(15.7, 15.7, True, stale_after_s=30.0)))
+    assert "STALE" not in patient and "NO TILE" not in patient  # fusion's --decay-after-s 30

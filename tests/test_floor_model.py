@@ -1703,7 +1703,7 @@ def test_a_black_frame_is_neither_measured_nor_learned_from() -> None:
     black = (rng.normal(3.0, 1.0, (height, width))).clip(0, 255).astype(np.uint8)  # sensor noise
     evidence = model.update(black, black, chain(black, black))
     assert not np.isfinite(evidence).any()
-    assert model.state() == "blank"
+    assert model.state() == "blank" and model.blank_frames == 1
     assert (model.modelled_share(), model.frames, model.relearned) == (share, frames, relearned)
     left, right = _textured_pair(geometry.floor_disparity_px, rng, texture)
     model.update(left, right, chain(left, right))

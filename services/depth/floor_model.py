@@ -510,7 +510,9 @@ class FloorModel:
         self.frames = 0
         self.relearned = 0
         self.blank = False
-        """The last frame showed nothing (:func:`blank`)."""
+        """The last frame showed nothing (:func:`blank`) …"""
+        self.blank_frames = 0
+        """… and how many did."""
         self._window = np.ones((self.config.window_px, self.config.window_px), np.uint8)
         nx, ny = geometry.nadir_px
         radius = np.maximum(np.hypot(u - nx, v - ny), 1e-3)
@@ -737,6 +739,7 @@ class FloorModel:
         cfg = self.config
         self.blank = blank(left_rect) or blank(right_rect)
         if self.blank:  # nothing measured, nothing learned
+            self.blank_frames += 1
             self.inferred = np.zeros(self.shape, np.bool_)
             self.hidden = np.zeros(self.shape, np.bool_)
             return np.full(self.shape, np.nan, np.float32)

@@ -59,19 +59,26 @@ the seen floor unknown, against 0.86 and 4 % at 640 × 480; at ``--downscale 1``
 with 8.8 % of the objects' cells free)."""
 
 
-def undersampled(size_px: tuple[int, int], downscale: int) -> str | None:
-    """Why images processed at ``size_px`` (width, height) give a poor map, or None: said once
-    at start-up, as nothing else tells a site why its map is mostly unknown."""
-    width, height = size_px
+def undersampled(image_size_px: tuple[int, int], downscale: int) -> str | None:
+    """Why cameras of ``image_size_px`` (width, height) processed at 1/``downscale`` give a poor
+    map, or None: said once at start-up, as nothing else tells a site why its map is mostly
+    unknown. Both the processing resolution and the cameras' count: 320 × 240 cameras mapped
+    poorly at ``--downscale 1`` too (TUNED_SIZE_PX)."""
     tuned_width, tuned_height = TUNED_SIZE_PX
-    if width >= tuned_width and height >= tuned_height:
-        return None
-    advice = "--downscale 1, or " if downscale > 1 else ""
-    return (
-        f"images are processed at {width}×{height} px (--downscale {downscale}), under the "
-        f"{tuned_width}×{tuned_height} px overgrid is tuned for: expect a coarse map, much of it "
-        f"unknown; use {advice}cameras of {tuned_width * 2}×{tuned_height * 2} px or more"
-    )
+    camera_width, camera_height = tuned_width * 2, tuned_height * 2
+    width, height = image_size_px
+    if width < camera_width or height < camera_height:
+        return (
+            f"the cameras' images are {width}×{height} px, under the {camera_width}×"
+            f"{camera_height} px overgrid is tuned for: expect a coarse map, much of it unknown"
+        )
+    if width // downscale < tuned_width or height // downscale < tuned_height:
+        return (
+            f"images are processed at {width // downscale}×{height // downscale} px "
+            f"(--downscale {downscale}), under the {tuned_width}×{tuned_height} px overgrid is "
+            "tuned for: expect a coarse map, much of it unknown (--downscale 2)"
+        )
+    return None
 
 
 @dataclass(frozen=True)
@@ -317,6 +324,7 @@ class DepthPipeline:
             "modelled_share": round(model.modelled_share(), 4),
             "frames": model.frames,
             "relearned": model.relearned,
+            "blank_frames": model.blank_frames,
             "restarted_px": model.restarted,
             "disagreed_px": model.disagreed,
             "disparity_offset_px": round(float(model.residual_coef[0, 0]), 3),

@@ -385,7 +385,7 @@ def _watch_calibration(
 
 def _say_if_undersampled(pipeline: DepthPipeline) -> None:
     """A warning when the images are too small for the map (:func:`undersampled`)."""
-    why = undersampled(pipeline.rectifier.size, pipeline.config.downscale)
+    why = undersampled(pipeline.calib.image_size, pipeline.config.downscale)
     if why is not None:
         log.warning("images too small", extra={"pair": pipeline.calib.pair, "why": why})
 
@@ -587,7 +587,7 @@ def _summaries(
     puts on keys it may not write without a word to the writer)."""
     frames = Transitions(log, "no frame from the camera in the last summary period", "frames again")
     intake = FusionIntake(pair, max(2 * period_s, FUSION_SILENT_MIN_S))
-    received_before, tiles_before = 0, 0
+    received_before, tiles_before, blank_before = 0, 0, 0
     while not stop.wait(period_s):
         try:  # a summary line is not worth the thread
             counters = health()
@@ -598,14 +598,16 @@ def _summaries(
             if tiles > tiles_before:
                 intake.check(fusion_health(), time.monotonic())
             received_before, tiles_before = received, tiles
-            state = counters.get("floor_model", {}).get("state")
-            if state == "blank":
+            floor = counters.get("floor_model", {})
+            blank = floor.get("blank_frames", 0)
+            if blank > blank_before:  # said each period with such a frame, now or gone since
                 log.warning(
-                    "the camera's images show nothing (dark, covered or blinded): nothing is "
-                    "mapped from them",
-                    extra={"pair": pair},
+                    "the camera's images showed nothing (dark, covered, blinded or stuck): "
+                    "nothing is mapped from those frames",
+                    extra={"pair": pair, "blank_frames": blank - blank_before},
                 )
-            elif state == "no_floor":
+            blank_before = blank
+            if floor.get("state") == "no_floor":
                 log.warning(
                     "the floor model finds no floor where the calibration puts it: is the "
                     "calibration this pair's, and are left and right the right way round?",

@@ -20,14 +20,18 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
+import numpy as np
+
 Item = TypeVar("Item")
 
-WINDOW_SHARE = 0.4
-"""Stamps of different pairs within this share of the fastest pair's frame interval are one
-capture: under half of it, so no pair's next frame joins its last one's capture."""
+WINDOW_SHARE = (0.4, 0.45)
+"""Stamps of different pairs within the first share of the fastest live pair's frame interval are
+one capture (``window_s`` at least, but never past the second share: under half an interval, so
+no pair's next frame joins its last one's capture; at 30 Hz, 30 ms took two frames of one pair
+into one capture, one in six)."""
 STEPS_KEPT = 8
-"""A pair's frame interval is the shortest of its last steps between stamps: a dropped frame
-(a step of two intervals) does not widen the window."""
+"""A pair's frame interval is the median of its last steps between stamps: a dropped frame (a
+step of two intervals) or a repeated one (a step of nothing) does not move it."""
 RELEASED_KEPT = 64
 """Captures released whose first arrival is remembered (:meth:`CaptureGroups.add`)."""
 
@@ -37,14 +41,16 @@ class CaptureGroups(Generic[Item]):
     """Items (tiles, detections) of each pair, grouped by capture stamp, released in stamp order
     once complete: every live pair delivered the capture or a later one (a pair's messages come
     in order: it has none of this one), or a later capture is complete (the missing pairs
-    skipped it), or ``wait_s`` passed. A pair missing from a capture released by waiting is
-    *lagging*: no capture waits for it again until it delivers one in time (a pair alive whose
-    messages are refused, or that is always later than ``wait_s``, must not hold every capture
-    back by ``wait_s``). With no wait, nothing is held and no pair is lagging."""
+    skipped it), or the wait passed (``wait_s``, or the window if longer: a slow replay's pairs
+    seconds apart). A pair missing from a capture released by waiting is *lagging*: no capture
+    waits for it again until it delivers one in time, or within the wait of the capture's first
+    message (a pair alive whose messages are refused, or that is always later than the wait,
+    must not hold every capture back by it). With no wait, nothing is held and no pair is
+    lagging. Only the live pairs' stamps set the window: a pair that left, or a forged one, has
+    no say."""
 
     window_s: float = 0.03
-    """Stamps of different pairs this close together are one capture, at least (and within
-    WINDOW_SHARE of the frame interval)."""
+    """Stamps of different pairs this close together are one capture, at least (WINDOW_SHARE)."""
     wait_s: float = 1.0
     """A capture incomplete this long is taken as it is (a pair died, or skipped it)."""
     pending: dict[int, list[tuple[str, Item]]] = field(default_factory=dict)
@@ -56,9 +62,15 @@ class CaptureGroups(Generic[Item]):
     released_since_s: dict[int, float] = field(default_factory=dict)
     """The first arrival of the last RELEASED_KEPT captures released."""
     lagging: set[str] = field(default_factory=set)
+    live: set[str] = field(default_factory=set)
+    """The live pairs as :meth:`ready` was last told."""
     newest_ns: dict[str, int] = field(default_factory=dict)
     steps_ns: dict[str, deque[int]] = field(default_factory=dict)
-    """Each pair's last steps between its stamps, for the frame interval."""
+    """Each live pair's newest stamp and last steps between its stamps (the frame interval)."""
+
+    def emptied(self) -> CaptureGroups[Item]:
+        """A new, empty one with the same window and wait."""
+        return CaptureGroups(window_s=self.window_s, wait_s=self.wait_s)
 
     def add(self, pair: str, stamp_ns: int, items: list[Item], now_s: float) -> None:
         """One pair's items of one capture (an empty list still says the pair delivered it).
@@ -76,7 +88,7 @@ class CaptureGroups(Generic[Item]):
                 for g, since_s in self.released_since_s.items()
                 if abs(g - stamp_ns) <= window_ns
             )
-            if now_s - next(released, -math.inf) < self.wait_s:
+            if now_s - next(released, -math.inf) < self._wait_s():
                 self.lagging.discard(pair)
         else:  # in time for a capture: waited for again
             self.lagging.discard(pair)
@@ -93,10 +105,19 @@ class CaptureGroups(Generic[Item]):
             self.newest_ns[pair] = stamp_ns
 
     def window_ns(self) -> float:
-        """How close stamps of different pairs must be to be one capture: ``window_s``, or
-        WINDOW_SHARE of the fastest pair's frame interval when that is wider."""
-        intervals = [min(steps) for steps in self.steps_ns.values() if steps]
-        return max(self.window_s * 1e9, WINDOW_SHARE * min(intervals, default=0))
+        """How close stamps of different pairs must be to be one capture (WINDOW_SHARE)."""
+        intervals = [
+            float(np.median(steps)) for pair, steps in self.steps_ns.items() if pair in self.live
+        ]
+        if not intervals:
+            return self.window_s * 1e9
+        share, most = WINDOW_SHARE
+        interval_ns = min(intervals)
+        return min(max(self.window_s * 1e9, share * interval_ns), most * interval_ns)
+
+    def _wait_s(self) -> float:
+        """How long an incomplete capture is held: ``wait_s``, or the window if longer."""
+        return max(self.wait_s, self.window_ns() / 1e9) if self.wait_s > 0 else 0.0
 
     def _late(self, group: int) -> bool:
         """A capture released already (its stamp, or one within the window of it: a pair's
@@ -107,9 +128,13 @@ class CaptureGroups(Generic[Item]):
         self, now_s: float, live_pairs: set[str], everything: bool = False
     ) -> list[tuple[int, list[tuple[str, Item]]]]:
         """The captures to take now, oldest first (``everything``: all pending, at shutdown)."""
+        self.live = set(live_pairs)
+        for gone in set(self.newest_ns) - self.live:  # a pair that left, or a forged one
+            del self.newest_ns[gone]
+            self.steps_ns.pop(gone, None)
         expected = live_pairs - self.lagging
         groups = sorted(self.pending)
-        window_ns = self.window_ns()
+        window_ns, wait_s = self.window_ns(), self._wait_s()
         # A pair delivered a capture, or one past it: its frames fall between captures (cameras
         # not triggered together), and it has none of this one to wait for.
         delivered = [
@@ -119,10 +144,10 @@ class CaptureGroups(Generic[Item]):
         complete = [expected <= pairs for pairs in delivered]
         out = []
         for k, group in enumerate(groups):
-            waited = now_s - self.since_s[group] >= self.wait_s
+            waited = now_s - self.since_s[group] >= wait_s
             if not (everything or self._late(group) or any(complete[k:]) or waited):
                 break  # captures are taken in order
-            if waited and self.wait_s > 0 and not any(complete[k:]):
+            if waited and wait_s > 0 and not any(complete[k:]):
                 self.lagging |= expected - delivered[k]
             out.append((group, self.pending.pop(group)))
             self.released_since_s[group] = self.since_s.pop(group)

@@ -396,8 +396,8 @@ class ObjectTracker:
     wake_footprints: deque[MoverView] = field(default_factory=deque)
     """Every observation of a moving track over the last ``wake_s``."""
     late: Counter[str] = field(default_factory=Counter)
-    """Per pair, detections dropped as late: their capture came after a later one was tracked
-    (a filter steps forward in time only)."""
+    """Per live pair, detections dropped as late: their capture came after a later one was
+    tracked (a filter steps forward in time only)."""
 
     def add(
         self, pair: str, stamp_ns: int, detections: list[DetectionRecord], now_s: float
@@ -410,7 +410,7 @@ class ObjectTracker:
         changed = False
         for group, detections in self.captures.ready(now_s, live_pairs):
             if group <= self.stamp_ns:  # older than a capture already processed
-                self.late.update(pair for pair, _ in detections)
+                self.late.update(pair for pair, _ in detections if pair in live_pairs)
                 continue
             self.update(group, merge_capture(detections, self.config.merge_gap_m))
             changed = True
@@ -424,6 +424,13 @@ class ObjectTracker:
         self.wake_footprints.clear()
         self.version += 1
         self.paused = True
+
+    def restart(self) -> None:
+        """Every track ends, and so does the order of captures by stamp: the clock they were
+        stamped by stepped back (``FusionState.check_clock``)."""
+        self.forget()
+        self.stamp_ns = 0
+        self.captures = self.captures.emptied()
 
     def _predict(self, track: Track, stamp_ns: int) -> tuple[F64, F64]:
         dt = (stamp_ns - track.stamp_ns) / 1e9

@@ -402,7 +402,7 @@ class StateWriter:
 
     def _saved(self, frozen: FrozenMap) -> None:
         self.saved_version = max(self.saved_version, frozen.version)
-        self.saved_s = time.time()
+        self.saved_s = time.monotonic()
 
     def _retry(self, keys: set[ChunkKey]) -> None:
         with self._wake:  # these chunks again with the next hand-over

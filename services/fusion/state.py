@@ -72,6 +72,9 @@ class View:
     """Tiles and detections refused, by the pair whose key they came on."""
     detections_late: Mapping[str, int] = field(default_factory=dict)
     """Per pair, detections the tracker dropped as late (``ObjectTracker.late``)."""
+    stale_after_s: float = 5.0
+    """A map with no newer capture than this is stale: the grid's ``decay_after_s``, after which
+    it forgets what it saw."""
     objects: ObjectsHeader = field(
         default_factory=lambda: ObjectsHeader(version=0, stamp_ns=0, objects=[])
     )
@@ -119,6 +122,7 @@ class FusionState:
         """When the tracker last had a capture: with none for ``decay_after_s`` (every pair
         stopped or died), the tracks and outlines are forgotten as the cells' evidence is."""
         self.warn = RateLimitedLog(log)
+        self._objects_emptied = False
         self.check_clock(time.time_ns())  # a state saved on a box whose clock was ahead
         frozen, self.unsaved = grid.freeze()
         self.view = View(frozen)
@@ -140,13 +144,9 @@ class FusionState:
             return
         self.grid.shift_time(-ahead_s)
         self.gate.newest_stamp_ns.clear()
-        wait_s = self.settings.capture_wait_s
-        self.tiles = CaptureGroups(wait_s=wait_s)
-        self.tracker.forget()
-        self.tracker.stamp_ns = 0
-        self.tracker.captures = CaptureGroups(wait_s=wait_s)
-        self.outlined, self.tops = [], []
-        self.grid.set_predicted([])
+        self.tiles = self.tiles.emptied()
+        self.tracker.restart()
+        self._tracks_begin_anew()
         log.warning(
             "this box's clock is behind the map's newest capture: the clock stepped back; the "
             "map's times moved back with it, and the objects are tracked anew",
@@ -181,23 +181,26 @@ class FusionState:
             with contextlib.suppress(ValueError):  # a key of no pair: counted by reason only
                 pair = keys.pair_of(key)
                 self.rejected_by_pair[pair, kind] += 1
-        # Each known pair's refusals are said apart (a second pair's clock an hour off was never
-        # named under the first's); a flood on made-up pairs stays one line per reason.
-        known = pair is not None and (pair in self.processes or pair in self.contributors)
         self.warn.warning(
-            f"{kind}_{reason}_{pair}" if known else f"{kind}_{reason}",
+            self._warning_key(f"{kind}_{reason}", pair),
             f"{kind} rejected",
             reason=reason,
             on=key,
             error=detail[:200],
         )
 
+    def _warning_key(self, what: str, pair: str | None) -> str:
+        """A rate-limited warning's key: each known pair's said apart (a second pair's clock an
+        hour off was never named under the first's); a flood on made-up pairs stays one line."""
+        known = pair is not None and (pair in self.alive or pair in self.contributors)
+        return f"{what}_{pair}" if known else what
+
     def _tile(self, delivery: Delivery) -> None:
         """A pair's tile: checked now, fused with the rest of its capture (:meth:`fuse_captures`)."""
         tile = self.gate.admit(delivery.payload, delivery.arrival_ns, delivery.key)
         self.gate.accepted(tile)
         pair = tile.header.pair
-        self.last_tile_s[pair] = time.time()
+        self.last_tile_s[pair] = time.monotonic()
         self.tiles.add(pair, tile.header.stamp_ns, [(delivery.key, tile)], time.monotonic())
 
     def fuse_captures(self, everything: bool = False) -> None:
@@ -223,6 +226,8 @@ class FusionState:
 
     def _presence(self, delivery: Delivery) -> None:
         presence = decode_presence(delivery.key, delivery.alive)
+        if not presence.alive and presence.instance not in self.processes.get(presence.pair, ()):
+            return  # a process never seen leaving: nothing changes
         instances = self.processes.setdefault(presence.pair, set())
         if presence.alive:
             if instances - {presence.instance}:
@@ -254,14 +259,24 @@ class FusionState:
         one capture would break each one after). The owner's loop, and with it the map, goes on
         (it died: a detection's yaw of 1e308 made a NaN size the object list refused)."""
         try:
-            return self._refresh_objects()
+            refreshed = self._refresh_objects()
         except Exception as error:
             self.detections_rejected["internal"] += 1
             self.tracker.forget()
             self.warn.warning(
                 "objects_internal", "tracking failed: the tracks begin anew", error=_internal(error)
             )
-        # What the forgotten tracks served goes with them: their outlines and tops, and the list.
+            self._tracks_begin_anew()
+            refreshed = None
+        if self._objects_emptied:  # the empty list of tracks forgotten since the last call
+            self._objects_emptied = False
+            return refreshed or self.objects_header
+        return refreshed
+
+    def _tracks_begin_anew(self) -> None:
+        """What forgotten tracks served goes with them: their outlines and tops, and the list
+        (published at the next :meth:`refresh_objects`: after a clock step, ``map/objects`` kept
+        the old tracks, stamped an hour ahead)."""
         self.outlined, self.tops = [], []
         self.grid.set_predicted([])
         self.objects_header = ObjectsHeader(
@@ -270,7 +285,7 @@ class FusionState:
             stamp_ns=self.tracker.stamp_ns,
             objects=[],
         )
-        return self.objects_header
+        self._objects_emptied = True
 
     def _refresh_objects(self) -> ObjectsHeader | None:
         """Merge and track the captures that are complete; the predicted layer holds the static
@@ -287,11 +302,11 @@ class FusionState:
         for pair, count in self.tracker.late.items():
             if count > late_before.get(pair, 0):
                 self.warn.warning(
-                    f"detections_late_{pair}",
+                    self._warning_key("detections_late", pair),
                     "detections came after a later capture was tracked: dropped (is the pair's "
                     "depth process or its clock behind the others'? --capture-wait-s)",
                     pair=pair,
-                    dropped=count,
+                    dropped_total=count,
                 )
         check = MapCheck()
         expired = False
@@ -375,6 +390,7 @@ class FusionState:
             frozenset(self.tiles.lagging),
             dict(self.rejected_by_pair),
             dict(self.tracker.late),
+            self.grid.params.decay_after_s,
             self.objects_header,
         )
 
@@ -421,7 +437,9 @@ def health_of(view: View, writer: StateWriter | None, dropped: Mapping[str, int]
     if writer is not None:
         state = {
             "saved_version": writer.saved_version,
-            "last_save_age_s": round(now - writer.saved_s, 3) if writer.saved_s else None,
+            "last_save_age_s": (
+                round(time.monotonic() - writer.saved_s, 3) if writer.saved_s else None
+            ),
             "save_errors": writer.errors,
         }
     return {
@@ -431,7 +449,7 @@ def health_of(view: View, writer: StateWriter | None, dropped: Mapping[str, int]
                 "processes": list(view.processes.get(p, ())),
                 "conflict": len(view.processes.get(p, ())) > 1,
                 "tiles": view.accepted.get(p, 0),
-                "last_tile_age_s": round(now - view.last_tile_s[p], 3)
+                "last_tile_age_s": round(time.monotonic() - view.last_tile_s[p], 3)
                 if p in view.last_tile_s
                 else None,
                 "capture_to_fused_ms": view.capture_to_fused_ms.get(p),
@@ -458,7 +476,10 @@ def health_of(view: View, writer: StateWriter | None, dropped: Mapping[str, int]
             "origin_m": list(window.origin_m(frozen.resolution_m)),
             "known_cells": frozen.known_cells(),
             "chunks": len(frozen.chunks),
-            "capture_age_s": round(now - frozen.stamp_ns / 1e9, 3) if frozen.stamp_ns else None,
+            "capture_age_s": (
+                round(max(0.0, now - frozen.stamp_ns / 1e9), 3) if frozen.stamp_ns else None
+            ),
+            "stale_after_s": view.stale_after_s,
         },
         "state": state,
     }
