@@ -285,7 +285,9 @@ def blank(image: U8) -> bool:
     learned the floor again from nothing, and said *no_floor* for 10 s, as for a calibration not
     this pair's."""
     dark, blinded, constant = BLANK_GRAY
-    low, high = np.percentile(image[::4, ::4], (1.0, 99.0))
+    # The percentiles from the grey levels' histogram: np.percentile's sort cost 0.16 ms a frame.
+    below = np.cumsum(np.bincount(image[::4, ::4].ravel(), minlength=256))
+    low, high = np.searchsorted(below, (0.01 * below[-1], 0.99 * below[-1]))
     return bool(high <= dark or low >= blinded or high - low < constant)
 
 
