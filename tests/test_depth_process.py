@@ -23,7 +23,7 @@ from common.messages import CALIB_KIND, STEREO_KIND, TILE_KIND, StereoFrameHeade
 from common.png import encode_png
 from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
-from services.camera_sim.scene import generate_scene
+from services.camera_sim.scene import SceneSpec, generate_scene
 from services.depth.pipeline import undersampled
 from services.depth.service import CALIB_RECHECK_S, SWAP_TRIES, FusionIntake, Worker
 from tests.conftest import Bus, assert_one_line_exit_2, run_overgrid, wait_for
@@ -182,35 +182,53 @@ def test_recorded_images_and_calibration_file_go_through_the_same_pipeline(
     assert all(t.cols * t.rows > 10_000 for t in sink.tiles)
 
 
-def test_a_swapped_recording_is_one_line_at_start_up(tmp_path: Path) -> None:
-    """Swapped streams mapped on (valid disparity 0.71 → 0.08) and nothing said why. (This test
-    once rendered without setting the scene's time: black frames, which said "no floor" as
-    swapped ones do, and told nothing of the swap check.)"""
-    scene = generate_scene(1)
-    calib = layout_pairs(RigSpec(pair_count=1), scene.floor_size_m)[0]
+def _rendered_recording(
+    folder: Path, scene: SceneSpec, calib: StereoCalibration, cameras: dict[str, str], frames: int
+) -> Path:
+    """A recording of ``scene`` at one instant in ``folder`` (``cameras``: the camera each side's
+    folder holds) and its calibration file, returned."""
     renderer = SceneRenderer(scene, [calib])
-    renderer.set_time(0.0)
-    sides = {"left": "p0_right", "right": "p0_left"}  # swapped
-    for side, camera in sides.items():
-        (tmp_path / side).mkdir()
-        image = encode_png(renderer.render_gray(camera, 640, 480))
-        for index in range(3):
-            (tmp_path / side / f"{index:04d}.png").write_bytes(image)
+    renderer.set_time(0.0)  # without, the renders are black
+    width, height = calib.image_size
+    for side, camera in cameras.items():
+        (folder / side).mkdir()
+        image = encode_png(renderer.render_gray(camera, width, height))
+        for index in range(frames):
+            (folder / side / f"{index:04d}.png").write_bytes(image)
     renderer.close()
-    calib_file = tmp_path / "calib.yaml"
+    calib_file = folder / "calib.yaml"
     calib_file.write_text(yaml.safe_dump(calib.model_dump(mode="json")))
-    done = run_overgrid(
+    return calib_file
+
+
+def _replayed(
+    folder: Path, calib_file: Path, name: str, *flags: str
+) -> subprocess.CompletedProcess[str]:
+    """``overgrid depth`` over the recording in ``folder``, in a namespace of its own."""
+    return run_overgrid(
         "depth",
         "--pair",
         "p0",
         "--calib",
         str(calib_file),
         "--images",
-        str(tmp_path),
+        str(folder),
+        *flags,
         "--no-multicast-scouting",
         "--namespace",
-        f"test_swapped_{os.getpid()}",
+        f"test_{name}_{os.getpid()}",
     )
+
+
+def test_a_swapped_recording_is_one_line_at_start_up(tmp_path: Path) -> None:
+    """Swapped streams mapped on (valid disparity 0.71 → 0.08) and nothing said why. (This test
+    once rendered without setting the scene's time: black frames, which said "no floor" as
+    swapped ones do, and told nothing of the swap check.)"""
+    scene = generate_scene(1)
+    calib = layout_pairs(RigSpec(pair_count=1), scene.floor_size_m)[0]
+    swapped = {"left": "p0_right", "right": "p0_left"}
+    calib_file = _rendered_recording(tmp_path, scene, calib, swapped, frames=3)
+    done = _replayed(tmp_path, calib_file, "swapped")
     assert_one_line_exit_2(done, "--images", "left and right the other way round")
 
 
@@ -223,22 +241,8 @@ def test_a_camera_gone_black_is_said_and_maps_nothing(tmp_path: Path) -> None:
             (tmp_path / side / f"{index:04d}.png").write_bytes(
                 encode_png(np.zeros((480, 640), np.uint8))
             )
-    done = run_overgrid(
-        "depth",
-        "--pair",
-        "p0",
-        "--calib",
-        str(_calibration_file(tmp_path)),
-        "--images",
-        str(tmp_path),
-        "--rate-hz",
-        "8",
-        "--summary-s",
-        "0.2",
-        "--no-multicast-scouting",
-        "--namespace",
-        f"test_black_{os.getpid()}",
-    )
+    calib_file = _calibration_file(tmp_path)
+    done = _replayed(tmp_path, calib_file, "black", "--rate-hz", "8", "--summary-s", "0.2")
     assert "the camera's images showed nothing" in done.stderr, done.stderr
     assert "the floor model finds no floor" not in done.stderr
     assert "Traceback" not in done.stderr
@@ -249,30 +253,9 @@ def test_images_too_small_for_the_map_are_said_at_start_up(tmp_path: Path) -> No
     why."""
     scene = generate_scene(0)
     calib = layout_pairs(RigSpec(pair_count=1, width_px=320, height_px=240), scene.floor_size_m)[0]
-    renderer = SceneRenderer(scene, [calib])
-    renderer.set_time(0.0)
-    for side in ("left", "right"):
-        (tmp_path / side).mkdir()
-        image = encode_png(renderer.render_gray(f"p0_{side}", 320, 240))
-        for index in range(2):
-            (tmp_path / side / f"{index:04d}.png").write_bytes(image)
-    renderer.close()
-    calib_file = tmp_path / "calib.yaml"
-    calib_file.write_text(yaml.safe_dump(calib.model_dump(mode="json")))
-    done = run_overgrid(
-        "depth",
-        "--pair",
-        "p0",
-        "--calib",
-        str(calib_file),
-        "--images",
-        str(tmp_path),
-        "--rate-hz",
-        "20",
-        "--no-multicast-scouting",
-        "--namespace",
-        f"test_too_small_{os.getpid()}",
-    )
+    cameras = {"left": "p0_left", "right": "p0_right"}
+    calib_file = _rendered_recording(tmp_path, scene, calib, cameras, frames=2)
+    done = _replayed(tmp_path, calib_file, "too_small", "--rate-hz", "20")
     assert done.returncode == 0, done.stderr
     assert "images too small" in done.stderr
     assert "the cameras' images are 320×240 px, under the 640×480 px" in done.stderr

@@ -1661,16 +1661,22 @@ def test_on_a_plain_floor_a_floor_reading_never_modelled_needs_the_floor_test() 
     assert min(free_floor[8:]) > 0.9 * max(free_floor[8:]) > 2000, free_floor
 
 
-def test_a_pair_given_left_and_right_swapped_says_it_finds_no_floor() -> None:
-    """Swapped cameras (or a calibration not the pair's) mapped on with the floor model learning
-    forever and nothing in health said why."""
-    rng = np.random.default_rng(11)
-    geometry = _synthetic_geometry()
+def _textured_floor(
+    seed: int,
+) -> tuple[np.random.Generator, floor_geometry.FloorGeometry, np.ndarray, DisparityChain]:
+    """The synthetic geometry with a blurred random texture on its floor, and a matcher."""
+    rng = np.random.default_rng(seed)
     width, height = SYNTHETIC_SIZE
     texture = cv2.GaussianBlur(
         rng.uniform(40, 220, (height, width)).astype(np.float32), (0, 0), 1.2
     )
-    chain = DisparityChain(MatcherConfig(), 16, 32)
+    return rng, _synthetic_geometry(), texture, DisparityChain(MatcherConfig(), 16, 32)
+
+
+def test_a_pair_given_left_and_right_swapped_says_it_finds_no_floor() -> None:
+    """Swapped cameras (or a calibration not the pair's) mapped on with the floor model learning
+    forever and nothing in health said why."""
+    rng, geometry, texture, chain = _textured_floor(11)
     config = floor_config.FloorModelConfig(no_floor_frames=12)
     states = []
     for swapped in (False, True):
@@ -1687,13 +1693,8 @@ def test_a_pair_given_left_and_right_swapped_says_it_finds_no_floor() -> None:
 def test_a_black_frame_is_neither_measured_nor_learned_from() -> None:
     """One black frame (a camera's glitch, the lights out) made the whole view depart from its
     background: the model learned the floor again from nothing and said no_floor for 10 s."""
-    rng = np.random.default_rng(12)
-    geometry = _synthetic_geometry()
+    rng, geometry, texture, chain = _textured_floor(12)
     width, height = SYNTHETIC_SIZE
-    texture = cv2.GaussianBlur(
-        rng.uniform(40, 220, (height, width)).astype(np.float32), (0, 0), 1.2
-    )
-    chain = DisparityChain(MatcherConfig(), 16, 32)
     model = floor_model.FloorModel(geometry, (0.1, 2.0))
     for _ in range(16):
         left, right = _textured_pair(geometry.floor_disparity_px, rng, texture)

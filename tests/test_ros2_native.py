@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -333,11 +334,16 @@ def test_no_empty_map_is_latched_and_a_silent_fusion_is_said(bus: Bus, tmp_path:
     assert b"first map published" not in log.read_bytes()
     tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
 
-    def published() -> bool:
-        tiles.put(tile_payload("p0", FIRST, 1.0, seq=time.monotonic_ns() // 1000))
-        return b"first map published" in log.read_bytes()
+    def tile_until(said: bytes) -> Callable[[], bool]:
+        """A tile put at each poll, until the relay's log says ``said``."""
 
-    wait_for(published, 30, "the first /map, once the map has cells")
+        def poll() -> bool:
+            tiles.put(tile_payload("p0", FIRST, 1.0, seq=time.monotonic_ns() // 1000))
+            return said in log.read_bytes()
+
+        return poll
+
+    wait_for(tile_until(b"first map published"), 30, "the first /map, once the map has cells")
     fusion.send_signal(signal.SIGTERM)
     fusion.wait(10)
     wait_for(lambda: b"fusion does not answer" in log.read_bytes(), 20, "the silence, said")
@@ -345,12 +351,7 @@ def test_no_empty_map_is_latched_and_a_silent_fusion_is_said(bus: Bus, tmp_path:
     # Back, and gone again: each said (after the first outage, the relay said nothing of the
     # next ones, and "answers again" at random).
     fusion = bus.start("fusion", "--state-dir", str(tmp_path / "state"))
-
-    def answered() -> bool:
-        tiles.put(tile_payload("p0", FIRST, 1.0, seq=time.monotonic_ns() // 1000))
-        return b"fusion answers again" in log.read_bytes()
-
-    wait_for(answered, 30, "fusion back, said")
+    wait_for(tile_until(b"fusion answers again"), 30, "fusion back, said")
     fusion.send_signal(signal.SIGTERM)
     fusion.wait(10)
     wait_for(
