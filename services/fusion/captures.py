@@ -16,11 +16,10 @@ waited out ``wait_s``, and capture → map went from 0.2 s to 1.2 s.)
 from __future__ import annotations
 
 import math
+import statistics
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
-
-import numpy as np
 
 Item = TypeVar("Item")
 
@@ -78,7 +77,7 @@ class CaptureGroups(Generic[Item]):
         self._step(pair, stamp_ns)
         window_ns = self.window_ns()
         group = next((g for g in self.pending if abs(g - stamp_ns) <= window_ns), stamp_ns)
-        if self._late(group):
+        if self._late(group, window_ns):
             # Released already. A lagging pair whose message came within the wait of the
             # capture's first is waited for again: one that had stalled once and then delivered
             # a few ms after the others stayed lagging for good (its captures were always
@@ -88,7 +87,7 @@ class CaptureGroups(Generic[Item]):
                 for g, since_s in self.released_since_s.items()
                 if abs(g - stamp_ns) <= window_ns
             )
-            if now_s - next(released, -math.inf) < self._wait_s():
+            if now_s - next(released, -math.inf) < self._wait_s(window_ns):
                 self.lagging.discard(pair)
         else:  # in time for a capture: waited for again
             self.lagging.discard(pair)
@@ -107,7 +106,7 @@ class CaptureGroups(Generic[Item]):
     def window_ns(self) -> float:
         """How close stamps of different pairs must be to be one capture (WINDOW_SHARE)."""
         intervals = [
-            float(np.median(steps)) for pair, steps in self.steps_ns.items() if pair in self.live
+            statistics.median(steps) for pair, steps in self.steps_ns.items() if pair in self.live
         ]
         if not intervals:
             return self.window_s * 1e9
@@ -115,14 +114,14 @@ class CaptureGroups(Generic[Item]):
         interval_ns = min(intervals)
         return min(max(self.window_s * 1e9, share * interval_ns), most * interval_ns)
 
-    def _wait_s(self) -> float:
+    def _wait_s(self, window_ns: float) -> float:
         """How long an incomplete capture is held: ``wait_s``, or the window if longer."""
-        return max(self.wait_s, self.window_ns() / 1e9) if self.wait_s > 0 else 0.0
+        return max(self.wait_s, window_ns / 1e9) if self.wait_s > 0 else 0.0
 
-    def _late(self, group: int) -> bool:
+    def _late(self, group: int, window_ns: float) -> bool:
         """A capture released already (its stamp, or one within the window of it: a pair's
         clock a few ms off the others')."""
-        return group <= self.released_ns + self.window_ns()
+        return group <= self.released_ns + window_ns
 
     def ready(
         self, now_s: float, live_pairs: set[str], everything: bool = False
@@ -134,7 +133,8 @@ class CaptureGroups(Generic[Item]):
             self.steps_ns.pop(gone, None)
         expected = live_pairs - self.lagging
         groups = sorted(self.pending)
-        window_ns, wait_s = self.window_ns(), self._wait_s()
+        window_ns = self.window_ns()
+        wait_s = self._wait_s(window_ns)
         # A pair delivered a capture, or one past it: its frames fall between captures (cameras
         # not triggered together), and it has none of this one to wait for.
         delivered = [
@@ -145,7 +145,7 @@ class CaptureGroups(Generic[Item]):
         out = []
         for k, group in enumerate(groups):
             waited = now_s - self.since_s[group] >= wait_s
-            if not (everything or self._late(group) or any(complete[k:]) or waited):
+            if not (everything or self._late(group, window_ns) or any(complete[k:]) or waited):
                 break  # captures are taken in order
             if waited and wait_s > 0 and not any(complete[k:]):
                 self.lagging |= expected - delivered[k]
