@@ -158,6 +158,23 @@ def test_a_slow_replays_pairs_seconds_apart_are_one_capture_and_none_lags() -> N
     assert sizes[-5:] == [2] * 5 and groups.lagging == set()  # once the interval is known
 
 
+def test_a_wait_as_long_as_the_window_is_no_longer_than_a_tile_may_be_old() -> None:
+    """At 0.1 Hz the window (4 s) made the wait 4 s: a tile held past ``max_tile_age_s`` (2 s),
+    older than tiles fusion refuses. And a pair that left stayed lagging in health for good."""
+    frame_ns = 10 * 10**9
+    groups: CaptureGroups[str] = CaptureGroups(wait_s=1.0, wait_max_s=2.0)
+    for k in range(3):  # both pairs, long enough for the interval to be known
+        groups.add("p0", T0_NS + k * frame_ns, ["a"], 10.0 * k)
+        groups.add("p1", T0_NS + k * frame_ns, ["b"], 10.0 * k)
+        groups.ready(10.0 * k, LIVE)
+    groups.add("p0", T0_NS + 3 * frame_ns, ["a"], 30.0)  # p1, alive, silent
+    assert groups.ready(31.9, LIVE) == []
+    assert _stamps(groups.ready(32.0, LIVE)) == [T0_NS + 3 * frame_ns]
+    assert groups.lagging == {"p1"}
+    groups.ready(33.0, {"p0"})  # p1's token went
+    assert groups.lagging == set()
+
+
 def test_at_30_hz_no_capture_holds_two_frames_of_one_pair() -> None:
     """The 30 ms window is a whole frame at 30 Hz: with a few ms of jitter, one capture in six
     held two frames of one pair."""
@@ -380,8 +397,8 @@ def test_a_pairs_last_process_leaving_is_a_warning(caplog: pytest.LogCaptureFixt
 def test_late_detections_of_a_pair_not_live_are_neither_counted_nor_said(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
-    """1000 forged detections on made-up pairs, each a capture behind the tracker: 1000 warning
-    lines, and 1000 keys kept in each of four tables."""
+    """Forged detections on made-up pairs, each a capture behind the tracker: a warning line
+    each (1000 for 1000), and a key each kept in four tables."""
     state = FusionState(FusionSettings(capture_wait_s=0.0), FusedGrid(GridParams()))
     state.handle(Delivery("presence", "depth/p0/alive/x", time.time_ns(), b""))
     now_ns = time.time_ns()

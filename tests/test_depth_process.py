@@ -25,7 +25,7 @@ from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.camera_sim.scene import SceneSpec, generate_scene
 from services.depth.pipeline import undersampled
-from services.depth.service import CALIB_RECHECK_S, SWAP_TRIES, FusionIntake, Worker
+from services.depth.service import CALIB_RECHECK_S, SWAP_TRIES, FusionIntake, Worker, _summaries
 from tests.conftest import Bus, assert_one_line_exit_2, run_overgrid, wait_for
 
 pytestmark = pytest.mark.process
@@ -258,11 +258,12 @@ def test_images_too_small_for_the_map_are_said_at_start_up(tmp_path: Path) -> No
     done = _replayed(tmp_path, calib_file, "too_small", "--rate-hz", "20")
     assert done.returncode == 0, done.stderr
     assert "images too small" in done.stderr
-    assert "the cameras' images are 320×240 px, under the 640×480 px" in done.stderr
+    assert "the cameras' images are 320×240 px, under half the pixels of the 640×480" in done.stderr
 
 
 def test_undersampled_names_small_cameras_at_any_downscale_and_a_downscale_too_deep() -> None:
     assert undersampled((640, 480), 2) is None and undersampled((1280, 960), 4) is None
+    assert undersampled((640, 400), 2) is None  # a 16:10 sensor: most of the pixels
     for downscale in (1, 2):  # at --downscale 1, 320 × 240 cameras: IoU 0.52, 21 % unknown
         assert "the cameras' images are 320×240 px" in (undersampled((320, 240), downscale) or "")
     assert "processed at 160×120 px (--downscale 4)" in (undersampled((640, 480), 4) or "")
@@ -503,3 +504,29 @@ def test_a_live_camera_is_asked_whether_it_looks_swapped_until_a_frame_tells() -
     for _ in range(3):
         worker.check_swap(frame, frame)
     assert failing.asked == 1 and worker.swapped is None
+
+
+def test_the_summary_says_no_floor_and_each_period_with_blank_frames(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The summary's floor warnings, period by period: a blank frame in a period (the counter
+    of a rebuilt pipeline starting again from 0 included: 20 after 500 went unsaid), and a
+    floor model that finds no floor."""
+    answers = [
+        {"received": 1, "floor_model": {"state": "ready", "blank_frames": 500}},
+        {"received": 2, "floor_model": {"state": "ready", "blank_frames": 500}},
+        {"received": 3, "floor_model": {"state": "learning", "blank_frames": 20}},  # rebuilt
+        {"received": 4, "floor_model": {"state": "no_floor", "blank_frames": 20}},
+    ]
+    stop = threading.Event()
+
+    def health() -> dict[str, Any]:
+        if len(answers) == 1:
+            stop.set()
+        return answers.pop(0)
+
+    _summaries("p0", health, lambda: None, 0.01, stop)
+    said = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    blank = [m for m in said if m.startswith("the camera's images showed nothing")]
+    assert len(blank) == 2, said  # the first period's 500, the rebuilt pipeline's 20
+    assert sum(m.startswith("the floor model finds no floor") for m in said) == 1

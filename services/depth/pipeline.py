@@ -62,21 +62,23 @@ with 8.8 % of the objects' cells free)."""
 def undersampled(image_size_px: tuple[int, int], downscale: int) -> str | None:
     """Why cameras of ``image_size_px`` (width, height) processed at 1/``downscale`` give a poor
     map, or None: said once at start-up, as nothing else tells a site why its map is mostly
-    unknown. Both the processing resolution and the cameras' count: 320 × 240 cameras mapped
-    poorly at ``--downscale 1`` too (TUNED_SIZE_PX)."""
+    unknown. Both the cameras' pixels and those processed count (half of TUNED_SIZE_PX's, or
+    more, each): 320 × 240 cameras mapped poorly at ``--downscale 1`` too."""
     tuned_width, tuned_height = TUNED_SIZE_PX
-    camera_width, camera_height = tuned_width * 2, tuned_height * 2
+    tuned_px = tuned_width * tuned_height
     width, height = image_size_px
-    if width < camera_width or height < camera_height:
+    if width * height < 2 * tuned_px:  # a quarter of 640 × 480's 4 × tuned_px, measured poor
         return (
-            f"the cameras' images are {width}×{height} px, under the {camera_width}×"
-            f"{camera_height} px overgrid is tuned for: expect a coarse map, much of it unknown"
+            f"the cameras' images are {width}×{height} px, under half the pixels of the "
+            f"{2 * tuned_width}×{2 * tuned_height} overgrid is tuned for: expect a coarse map, "
+            f"much of it unknown (cameras of {2 * tuned_width}×{2 * tuned_height} px or more)"
         )
-    if width // downscale < tuned_width or height // downscale < tuned_height:
+    if (width // downscale) * (height // downscale) < tuned_px // 2:
         return (
             f"images are processed at {width // downscale}×{height // downscale} px "
-            f"(--downscale {downscale}), under the {tuned_width}×{tuned_height} px overgrid is "
-            "tuned for: expect a coarse map, much of it unknown (--downscale 2)"
+            f"(--downscale {downscale}), under half the pixels of the {tuned_width}×"
+            f"{tuned_height} overgrid is tuned for: expect a coarse map, much of it unknown "
+            "(--downscale 2)"
         )
     return None
 

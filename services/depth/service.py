@@ -600,6 +600,8 @@ def _summaries(
             received_before, tiles_before = received, tiles
             floor = counters.get("floor_model", {})
             blank = floor.get("blank_frames", 0)
+            if blank < blank_before:  # a new pipeline (calibration changed) counts from 0
+                blank_before = 0
             if blank > blank_before:  # said each period with such a frame, now or gone since
                 log.warning(
                     "the camera's images showed nothing (dark, covered, blinded or stuck): "

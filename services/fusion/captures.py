@@ -49,9 +49,13 @@ class CaptureGroups(Generic[Item]):
     no say."""
 
     window_s: float = 0.03
-    """Stamps of different pairs this close together are one capture, at least (WINDOW_SHARE)."""
+    """Stamps of different pairs this close together are one capture, unless under half a frame
+    interval forbids it (WINDOW_SHARE: above 15 Hz the window is 0.45 of an interval)."""
     wait_s: float = 1.0
-    """A capture incomplete this long is taken as it is (a pair died, or skipped it)."""
+    """A capture incomplete this long is taken as it is (a pair died, or skipped it) …"""
+    wait_max_s: float = math.inf
+    """… or the window, if longer, up to this (fusion's ``max_tile_age_s``: a tile held longer
+    is older than tiles it refuses)."""
     pending: dict[int, list[tuple[str, Item]]] = field(default_factory=dict)
     """Capture stamp → (pair, item) in arrival order."""
     pairs: dict[int, set[str]] = field(default_factory=dict)
@@ -69,7 +73,7 @@ class CaptureGroups(Generic[Item]):
 
     def emptied(self) -> CaptureGroups[Item]:
         """A new, empty one with the same window and wait."""
-        return CaptureGroups(window_s=self.window_s, wait_s=self.wait_s)
+        return CaptureGroups(window_s=self.window_s, wait_s=self.wait_s, wait_max_s=self.wait_max_s)
 
     def add(self, pair: str, stamp_ns: int, items: list[Item], now_s: float) -> None:
         """One pair's items of one capture (an empty list still says the pair delivered it).
@@ -115,8 +119,11 @@ class CaptureGroups(Generic[Item]):
         return min(max(self.window_s * 1e9, share * interval_ns), most * interval_ns)
 
     def _wait_s(self, window_ns: float) -> float:
-        """How long an incomplete capture is held: ``wait_s``, or the window if longer."""
-        return max(self.wait_s, window_ns / 1e9) if self.wait_s > 0 else 0.0
+        """How long an incomplete capture is held: ``wait_s``, or the window if longer, up to
+        ``wait_max_s``."""
+        if self.wait_s <= 0:
+            return 0.0
+        return max(self.wait_s, min(window_ns / 1e9, self.wait_max_s))
 
     def _late(self, group: int, window_ns: float) -> bool:
         """A capture released already (its stamp, or one within the window of it: a pair's
@@ -131,6 +138,7 @@ class CaptureGroups(Generic[Item]):
         for gone in set(self.newest_ns) - self.live:  # a pair that left, or a forged one
             del self.newest_ns[gone]
             self.steps_ns.pop(gone, None)
+        self.lagging &= self.live  # a pair gone lags no more (health showed it so for good)
         expected = live_pairs - self.lagging
         groups = sorted(self.pending)
         window_ns = self.window_ns()

@@ -41,6 +41,7 @@ from services.fusion.intake import (
 from services.fusion.map_check import MapCheck
 from services.fusion.object_layers import serve_tracks
 from services.fusion.objects import ObjectTracker
+from services.fusion.params import GridParams
 from services.fusion.persistence import StateWriter
 from services.fusion.settings import FusionSettings
 
@@ -72,7 +73,7 @@ class View:
     """Tiles and detections refused, by the pair whose key they came on."""
     detections_late: Mapping[str, int] = field(default_factory=dict)
     """Per pair, detections the tracker dropped as late (``ObjectTracker.late``)."""
-    stale_after_s: float = 5.0
+    stale_after_s: float = GridParams().decay_after_s
     """A map with no newer capture than this is stale: the grid's ``decay_after_s``, after which
     it forgets what it saw."""
     objects: ObjectsHeader = field(
@@ -105,11 +106,12 @@ class FusionState:
         self.processes: dict[str, set[str]] = {}
         """Each pair's depth processes alive (liveliness tokens ``depth/{pair}/alive/{instance}``)."""
         self.contributors: set[str] = set()
+        wait_s, wait_max_s = settings.capture_wait_s, settings.max_tile_age_s
         self.tiles: CaptureGroups[tuple[str, AcceptedTile]] = CaptureGroups(
-            wait_s=settings.capture_wait_s
+            wait_s=wait_s, wait_max_s=wait_max_s
         )
         """Admitted tiles (with their keys) waiting for the rest of their capture."""
-        self.tracker = ObjectTracker(captures=CaptureGroups(wait_s=settings.capture_wait_s))
+        self.tracker = ObjectTracker(captures=CaptureGroups(wait_s=wait_s, wait_max_s=wait_max_s))
         self.objects_header = ObjectsHeader(epoch=grid.epoch_ns, version=0, stamp_ns=0, objects=[])
         self.outlined: CellMasks = []
         """The static objects' footprints the map agrees with, less their edge cells the frames
@@ -125,7 +127,7 @@ class FusionState:
         self._objects_emptied = False
         self.check_clock(time.time_ns())  # a state saved on a box whose clock was ahead
         frozen, self.unsaved = grid.freeze()
-        self.view = View(frozen)
+        self.view = View(frozen, stale_after_s=grid.params.decay_after_s)
         """Replaced, never changed: readers on other threads take the reference and keep it."""
 
     @property
@@ -144,13 +146,14 @@ class FusionState:
             return
         self.grid.shift_time(-ahead_s)
         self.gate.newest_stamp_ns.clear()
+        held = sum(len(tiles) for tiles in self.tiles.pending.values())
         self.tiles = self.tiles.emptied()
         self.tracker.restart()
         self._tracks_begin_anew()
         log.warning(
             "this box's clock is behind the map's newest capture: the clock stepped back; the "
             "map's times moved back with it, and the objects are tracked anew",
-            extra={"step_s": round(ahead_s, 3)},
+            extra={"step_s": round(ahead_s, 3), "held_tiles_dropped": held},
         )
 
     def handle(self, delivery: Delivery) -> None:
@@ -270,7 +273,7 @@ class FusionState:
             refreshed = None
         if self._objects_emptied:  # the empty list of tracks forgotten since the last call
             self._objects_emptied = False
-            return refreshed or self.objects_header
+            return self.objects_header if refreshed is None else refreshed
         return refreshed
 
     def _tracks_begin_anew(self) -> None:
