@@ -19,7 +19,7 @@ import zenoh
 from common import keys
 from common.camera import StereoCalibration
 from common.codec import CodecError, Message, decode
-from common.logs import RateLimitedLog
+from common.logs import CountedRefusals
 from common.messages import (
     CALIB_KIND,
     MAP_UPDATE_KIND,
@@ -199,10 +199,10 @@ class MapFollower:
         self._recent: deque[Message[MapUpdateHeader]] = deque(maxlen=UPDATES_BACKLOG)
         self.callback_errors = 0
         """``on_change`` calls that raised (logged; the follower goes on)."""
-        self.rejected: dict[str, int] = {}
+        self._refused = CountedRefusals(log, "map follower: update refused")
+        self.rejected = self._refused.counts
         """Updates refused where they enter, by reason (``update_problem``, ``undecodable``;
         logged, rate-limited): the copy stays as it was, and is fetched if the update was newer."""
-        self._warn = RateLimitedLog(log)
         self._closed = False
         try:
             self._subscriber = session.declare_subscriber(
@@ -260,13 +260,15 @@ class MapFollower:
         try:
             message = decode(payload, MAP_UPDATE_KIND, MapUpdateHeader)
         except CodecError as error:
-            self._refuse("undecodable", error=str(error)[:200])
+            self._refused.refuse("undecodable", error=str(error)[:200])
             return None
         h = message.header
         reason = update_problem(message)
         if reason is not None:
             arrays = {name: f"{a.dtype} {a.shape}" for name, a in message.arrays.items()}
-            self._refuse(reason, version=h.version, window=str(h.window), arrays=str(arrays))
+            self._refused.refuse(
+                reason, version=h.version, window=str(h.window), arrays=str(arrays)
+            )
         with self._lock:
             if reason is None:
                 self._recent.append(message)
@@ -275,10 +277,6 @@ class MapFollower:
         if behind:  # a gap, a grown map, a new epoch or a refused update: fetch, then replay
             changed = self._catch_up() or changed
         return changed
-
-    def _refuse(self, reason: str, **fields: Any) -> None:
-        self.rejected[reason] = self.rejected.get(reason, 0) + 1
-        self._warn.warning(reason, "map follower: update refused", reason=reason, **fields)
 
     def _catch_up(self) -> OccupancyMap | None:
         """Fetch ``map/latest`` until the copy reaches the newest update seen. A snapshot may be

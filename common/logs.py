@@ -62,6 +62,20 @@ class RateLimitedLog:
         self._logger.warning(msg, extra=fields)
 
 
+class CountedRefusals:
+    """Messages refused, counted by reason (``counts``), each reason said in a rate-limited
+    warning with its count so far: what a client refuses is seen in its counters and its log."""
+
+    def __init__(self, logger: logging.Logger, msg: str) -> None:
+        self.counts: dict[str, int] = {}
+        self._msg = msg
+        self._warn = RateLimitedLog(logger)
+
+    def refuse(self, reason: str, **fields: Any) -> None:
+        self.counts[reason] = self.counts.get(reason, 0) + 1
+        self._warn.warning(reason, self._msg, reason=reason, count=self.counts[reason], **fields)
+
+
 class Transitions:
     """A condition watched over time, logged only when it changes: a warning when it goes
     wrong, an info line when it is right again (``first_right`` the first time, if it started

@@ -22,7 +22,7 @@ from common import keys
 from common.client import MapFollower, MapUnavailable, health, latest, objects
 from common.codec import CodecError, decode
 from common.lattice import Window
-from common.logs import RateLimitedLog, Transitions
+from common.logs import CountedRefusals, RateLimitedLog, Transitions
 from common.messages import OBJECTS_KIND, ObjectsHeader
 from common.occupancy_map import OccupancyMap
 from services.ros2.grid_message import (
@@ -67,7 +67,8 @@ class MapRelay:
         self.wake = threading.Event()
         """Set by each new map version, and by a stop."""
         self.counts = {"map": 0, "update": 0, "height": 0, "objects": 0, "tf_static": 0}
-        self.rejected: dict[str, int] = {}
+        self._refused = CountedRefusals(log, "message not published")
+        self.rejected = self._refused.counts
         """Messages not published, by reason (``objects_undecodable``, ``{kind}_unpublishable``:
         a value a ROS message cannot carry); each reason logged, rate-limited."""
         self._warn = RateLimitedLog(log)
@@ -209,14 +210,7 @@ class MapRelay:
         return True
 
     def _reject(self, reason: str, error: Exception) -> None:
-        self.rejected[reason] = self.rejected.get(reason, 0) + 1
-        self._warn.warning(
-            reason,
-            "message not published",
-            reason=reason,
-            error=f"{type(error).__name__}: {error}"[:200],
-            count=self.rejected[reason],
-        )
+        self._refused.refuse(reason, error=f"{type(error).__name__}: {error}"[:200])
 
     def _publish_map(self, occupancy_map: OccupancyMap) -> bool:
         """A whole /map, unless the map has no cell yet (a 0 × 0 grid latched for late joiners
