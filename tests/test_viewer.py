@@ -16,6 +16,7 @@ import sys
 import time
 import zipfile
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +34,7 @@ from common.png import decode_png
 from common.settings import parse_settings
 from services.camera_sim.rig import RigSpec, layout_pairs
 from services.evaluation.metrics import seen_by_cameras
-from services.viewer.address import available_port, page_url
+from services.viewer.address import available_port, lan_addresses, page_url, page_urls
 from services.viewer.feed import FeedState
 from services.viewer.footprints import clip_convex, pair_footprint
 from services.viewer.server import ViewSettings, exposure_warning, status_message
@@ -275,9 +276,20 @@ def test_serving_beyond_loopback_without_a_token_is_warned_of() -> None:
 def test_address_helpers() -> None:
     assert page_url("0.0.0.0", 8470) == "http://127.0.0.1:8470/"
     assert page_url("::1", 80, "a b") == "http://[::1]:80/?token=a%20b"
+    assert page_urls("127.0.0.1", 80) == ["http://127.0.0.1:80/"]
+    # On every interface, the LAN's URLs too: addresses of this box (it can bind them).
+    lan = lan_addresses()
+    assert page_urls("0.0.0.0", 80, "t") == [
+        "http://127.0.0.1:80/?token=t",
+        *(f"http://{address}:80/?token=t" for address in lan),
+    ]
+    for address in lan:
+        assert not address.startswith("127.")
+        with socket.socket() as bound:
+            bound.bind((address, 0))
     port = free_port()
     assert available_port("127.0.0.1", port) == port
-    with __import__("socket").socket() as held:
+    with socket.socket() as held:
         held.bind(("127.0.0.1", port))
         held.listen()
         assert available_port("127.0.0.1", port) != port
@@ -430,8 +442,9 @@ def _chromium() -> str:
     return path
 
 
-@pytest.fixture
-def browser_page(tmp_path: Path) -> Iterator[Any]:
+@contextmanager
+def _browser(tmp_path: Path, **device: Any) -> Iterator[Any]:
+    """A page of a fresh chromium profile; ``device``: Playwright's viewport, pixel ratio, touch."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as playwright:
@@ -440,13 +453,19 @@ def browser_page(tmp_path: Path) -> Iterator[Any]:
             executable_path=_chromium(),
             args=CHROMIUM_ARGS,
             headless=True,
-            viewport={"width": 1280, "height": 800},
+            **{"viewport": {"width": 1280, "height": 800}, **device},
         )
         context.set_default_timeout(20_000)
         try:
             yield context.new_page()
         finally:
             context.close()
+
+
+@pytest.fixture
+def browser_page(tmp_path: Path) -> Iterator[Any]:
+    with _browser(tmp_path) as page:
+        yield page
 
 
 def _serve_calibrations(session: zenoh.Session) -> list[Any]:
@@ -812,3 +831,73 @@ def test_a_fusion_that_lost_its_map_is_followed_anew(
     # The lost map is gone from view (once the page has drawn the new map: a frame may be pending).
     page.wait_for_function(f"() => !({_drawn_as(page, 1.25, 1.25, 'occupied')})()", timeout=5_000)
     assert _rgb(page, 1.25, 1.25) != PICTURE_COLORS["occupied"]
+
+
+def _touch(cdp: Any, *fingers: tuple[float, float], kind: str = "touchMove") -> None:
+    """One touch event of real input (Chromium's DevTools protocol), fingers in page CSS pixels."""
+    points = [{"x": x, "y": y, "id": k} for k, (x, y) in enumerate(fingers)]
+    cdp.send("Input.dispatchTouchEvent", {"type": kind, "touchPoints": points})
+
+
+@pytest.mark.process
+def test_a_phone_shows_a_sharp_map_and_pinches_it(bus: Bus, tmp_path: Path) -> None:
+    """On a phone (390 CSS px wide, three device pixels to one, touch): the canvas holds a device
+    pixel per pixel of the screen, the panel goes under the map, two fingers zoom about their
+    midpoint and one drags, a tap reads the cell out."""
+    bus.start("fusion", "--state-dir", str(tmp_path / "state"), log_path=tmp_path / "fusion.log")
+    port = free_port()
+    bus.start("view", "--http-port", str(port), log_path=tmp_path / "view.log")
+    tiles = bus.session.declare_publisher(
+        "depth/p0/tile", encoding=WIRE_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
+    )
+    seq = iter(range(10_000))
+
+    def scene_fused() -> bool:
+        tiles.put(tile_payload("p0", _window_m(0.5, 0.5, 5.5, 4.5), -2.0, seq=next(seq)))
+        box = _window_m(2.0, 2.0, 2.6, 2.6)
+        tiles.put(tile_payload("p0", box, 3.0, seq=next(seq), height_m=1.2))
+        time.sleep(0.2)
+        return (_value_at(bus.session, 2.3, 2.3) or 0) > 65
+
+    wait_for(scene_fused, 60, "the box in the map")
+    phone = {"width": 390, "height": 844}
+    with _browser(
+        tmp_path, viewport=phone, device_scale_factor=3, is_mobile=True, has_touch=True
+    ) as page:
+        page.goto(f"http://127.0.0.1:{port}/")
+        page.wait_for_function(_drawn_as(page, 2.3, 2.3, "occupied"))
+        page.wait_for_function(_drawn_as(page, 1.0, 3.5, "free"))
+        css_width, backing_width = page.evaluate(
+            "[document.getElementById('map').clientWidth, document.getElementById('map').width]"
+        )
+        assert backing_width == 3 * css_width  # not a third of the pixels, stretched (blurred)
+        assert css_width == phone["width"]  # the panel is under the map, not beside it
+        _screenshot(page, tmp_path, "viewer-phone.png")
+
+        corner = page.locator("#map").bounding_box()
+        sx, sy = page.evaluate("window.overgridView.worldToScreen(2.3, 2.3)")
+        x, y = corner["x"] + sx, corner["y"] + sy
+        fitted = page.evaluate("window.overgridView.state.view.pxPerM")
+        cdp = page.context.new_cdp_session(page)
+        _touch(cdp, (x - 30, y), (x + 30, y), kind="touchStart")
+        for step in range(1, 6):  # fingers 60 → 150 px apart, about the box
+            _touch(cdp, (x - 30 - 9 * step, y), (x + 30 + 9 * step, y))
+        _touch(cdp, kind="touchEnd")
+        page.wait_for_function(f"() => window.overgridView.state.view.pxPerM > {2 * fitted}")
+        assert page.evaluate("window.overgridView.state.view.pxPerM") == pytest.approx(
+            2.5 * fitted, rel=0.02
+        )
+        assert page.evaluate("window.overgridView.worldToScreen(2.3, 2.3)") == pytest.approx(
+            [sx, sy], abs=1
+        )
+        page.wait_for_function(_drawn_as(page, 2.3, 2.3, "occupied"))
+
+        _touch(cdp, (x, y), kind="touchStart")
+        for step in range(1, 5):
+            _touch(cdp, (x + 10 * step, y))
+        _touch(cdp, kind="touchEnd")
+        assert page.evaluate("window.overgridView.worldToScreen(2.3, 2.3)") == pytest.approx(
+            [sx + 40, sy], abs=1
+        )
+        page.tap("#map", position={"x": sx + 40, "y": sy})
+        assert "height 1.20 m" in page.inner_text("#readout")

@@ -42,7 +42,7 @@ from common.occupancy_map import OccupancyMap
 from common.sensor_model import SensorModelParams
 from common.settings import ZenohSettings, parse_settings, startup_error
 from common.zenoh_session import open_session
-from services.viewer.address import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, LOOPBACK_HOSTS, page_url
+from services.viewer.address import DEFAULT_HTTP_HOST, DEFAULT_HTTP_PORT, LOOPBACK_HOSTS, page_urls
 from services.viewer.feed import FeedPeriods, FeedState, MapFeed
 from services.viewer.status import fusion_status
 from services.viewer.wire import NO_HEIGHT_MM, MapLayers, frames_between, full_frame
@@ -432,9 +432,9 @@ async def serve(settings: ViewSettings, feed: MapFeed, stop: threading.Event) ->
             f"--http-host {settings.http_host}: cannot serve on {where}: {error.strerror or error}"
         )
     port = int(runner.addresses[0][1])  # the one asked for, or the free one the system chose
-    url = page_url(settings.http_host, port, settings.token)
-    log.info("serving", extra={"url": url})
-    print(f"overgrid view: {url}", flush=True)
+    url, *lan = page_urls(settings.http_host, port, settings.token)
+    log.info("serving", extra={"url": url, "lan_urls": ",".join(lan)})
+    print(f"overgrid view: {url}" + "".join(f"\n  from the LAN: {u}" for u in lan), flush=True)
     pushing = asyncio.create_task(broadcaster.run())
     try:
         await asyncio.to_thread(stop.wait)

@@ -28,7 +28,9 @@
     hello: null,
     map: null, // {i0, j0, cols, rows, resolution_m, version, stamp_ns, occupancy, height, image}
     status: null,
-    view: { cx: 0, cy: 0, pxPerM: 40 },
+    // The view in CSS pixels (w × h, the canvas's size on the page); the canvas holds
+    // devicePixelRatio device pixels to each, or the map and its labels blur on a phone.
+    view: { cx: 0, cy: 0, pxPerM: 40, w: 1, h: 1, pixelRatio: 1 },
     userMoved: false,
     socket: null,
     socketStartedMs: 0,
@@ -130,34 +132,43 @@
   // ---- view ---------------------------------------------------------------------------------
   function worldToScreen(x, y) {
     const v = state.view;
-    return [canvas.width / 2 + (x - v.cx) * v.pxPerM, canvas.height / 2 - (y - v.cy) * v.pxPerM];
+    return [v.w / 2 + (x - v.cx) * v.pxPerM, v.h / 2 - (y - v.cy) * v.pxPerM];
   }
 
   function screenToWorld(sx, sy) {
     const v = state.view;
-    return [v.cx + (sx - canvas.width / 2) / v.pxPerM, v.cy - (sy - canvas.height / 2) / v.pxPerM];
+    return [v.cx + (sx - v.w / 2) / v.pxPerM, v.cy - (sy - v.h / 2) / v.pxPerM];
   }
 
   function fit() {
     const map = state.map;
     if (!map || map.cols === 0) return;
+    measure();
     const r = map.resolution_m;
     const width = map.cols * r;
     const height = map.rows * r;
     state.view.cx = map.i0 * r + width / 2;
     state.view.cy = map.j0 * r + height / 2;
-    state.view.pxPerM = 0.95 * Math.min(canvas.width / width, canvas.height / height);
+    state.view.pxPerM = 0.95 * Math.min(state.view.w / width, state.view.h / height);
     queueDraw();
   }
 
-  function resize() {
+  // The canvas's size on the page and its backing store at the device's pixel ratio (which a
+  // browser zoom changes too); true if either changed.
+  function measure() {
+    const v = state.view;
+    const ratio = window.devicePixelRatio || 1;
     const w = Math.max(canvas.clientWidth, 1);
     const h = Math.max(canvas.clientHeight, 1);
-    if (canvas.width !== w || canvas.height !== h) {
-      canvas.width = w;
-      canvas.height = h;
-      if (state.map && !state.userMoved) fit();
-    }
+    if (v.w === w && v.h === h && v.pixelRatio === ratio) return false;
+    Object.assign(v, { w, h, pixelRatio: ratio });
+    canvas.width = Math.round(w * ratio);
+    canvas.height = Math.round(h * ratio);
+    return true;
+  }
+
+  function resize() {
+    if (measure() && state.map && !state.userMoved) fit();
   }
 
   function queueDraw() {
@@ -171,9 +182,10 @@
 
   function draw() {
     resize();
-    ctx.setTransform(1, 0, 0, 1, 0, 0);
+    const v = state.view;
+    ctx.setTransform(v.pixelRatio, 0, 0, v.pixelRatio, 0, 0); // draw in CSS pixels
     ctx.fillStyle = "#d9dce2";
-    ctx.fillRect(0, 0, canvas.width, canvas.height);
+    ctx.fillRect(0, 0, v.w, v.h);
     const map = state.map;
     if (map && map.cols > 0) {
       const r = map.resolution_m;
@@ -328,8 +340,8 @@
   }
 
   function drawAxesGlyph() {
-    const x0 = canvas.width - 60;
-    const y0 = canvas.height - 20;
+    const x0 = state.view.w - 60;
+    const y0 = state.view.h - 20;
     arrow(x0, y0, x0 + 36, y0, COLORS.axisX);
     arrow(x0, y0, x0, y0 - 36, COLORS.axisY);
     ctx.font = "bold 12px system-ui, sans-serif";
@@ -345,7 +357,7 @@
     const lengthM = steps.find((m) => m * k >= 80) || steps[steps.length - 1];
     const px = lengthM * k;
     const x0 = 16;
-    const y0 = canvas.height - 18;
+    const y0 = state.view.h - 18;
     ctx.fillStyle = "rgba(255, 255, 255, 0.85)";
     ctx.fillRect(x0 - 6, y0 - 22, px + 12, 30);
     ctx.fillStyle = "#1d1f24";
@@ -649,49 +661,73 @@
   }, 1000);
 
   // ---- pointer: pan, zoom, readout ----------------------------------------------------------
-  let drag = null;
+  // A mouse drags and wheels; fingers drag, and two pinch (zoom about their midpoint, pan with it).
+  const pressed = new Map(); // pointer id → its [x, y] on the canvas, in CSS pixels
+  let pinch = null; // the two first pointers' distance and midpoint when last seen
+
+  function onCanvas(event) {
+    const rect = canvas.getBoundingClientRect();
+    return [event.clientX - rect.left, event.clientY - rect.top];
+  }
+
+  function pinchOf() {
+    const [a, b] = pressed.values();
+    return { distance: Math.max(Math.hypot(a[0] - b[0], a[1] - b[1]), 1), mid: [(a[0] + b[0]) / 2, (a[1] + b[1]) / 2] };
+  }
+
+  // Scale the view by `factor`, and put the world point that was under `from` under `to`.
+  function zoomAt(from, to, factor) {
+    const [wx, wy] = screenToWorld(from[0], from[1]);
+    state.view.pxPerM = Math.min(Math.max(state.view.pxPerM * factor, 1), 5000);
+    const [nx, ny] = screenToWorld(to[0], to[1]);
+    state.view.cx += wx - nx;
+    state.view.cy += wy - ny;
+    state.userMoved = true;
+    queueDraw();
+  }
+
   canvas.addEventListener("pointerdown", (event) => {
-    drag = { x: event.clientX, y: event.clientY };
+    pressed.set(event.pointerId, onCanvas(event));
+    pinch = pressed.size >= 2 ? pinchOf() : null;
     canvas.setPointerCapture(event.pointerId);
     canvas.classList.add("dragging");
+    state.pointer = onCanvas(event); // a tap reads the cell out too
+    renderReadout();
   });
   canvas.addEventListener("pointermove", (event) => {
-    const rect = canvas.getBoundingClientRect();
-    state.pointer = [event.clientX - rect.left, event.clientY - rect.top];
-    if (drag) {
-      state.view.cx -= (event.clientX - drag.x) / state.view.pxPerM;
-      state.view.cy += (event.clientY - drag.y) / state.view.pxPerM;
-      drag = { x: event.clientX, y: event.clientY };
-      state.userMoved = true;
-      queueDraw();
+    const at = onCanvas(event);
+    state.pointer = at;
+    const before = pressed.get(event.pointerId);
+    if (before) {
+      pressed.set(event.pointerId, at);
+      if (pinch) {
+        const now = pinchOf();
+        zoomAt(pinch.mid, now.mid, now.distance / pinch.distance);
+        pinch = now;
+      } else {
+        zoomAt(before, at, 1);
+      }
     }
     renderReadout();
   });
-  const endDrag = () => {
-    drag = null;
-    canvas.classList.remove("dragging");
+  const release = (event) => {
+    pressed.delete(event.pointerId);
+    pinch = pressed.size >= 2 ? pinchOf() : null;
+    if (pressed.size === 0) canvas.classList.remove("dragging");
   };
-  canvas.addEventListener("pointerup", endDrag);
-  canvas.addEventListener("pointerleave", () => {
+  canvas.addEventListener("pointerup", release);
+  canvas.addEventListener("pointercancel", release);
+  canvas.addEventListener("pointerleave", (event) => {
+    if (event.pointerType === "touch") return; // a lifted finger: the cell it tapped stays read out
     state.pointer = null; // the readout is of the cell under the pointer: none now
     readout.textContent = "\u00a0"; // its line kept: the canvas must not change size under it
   });
-  canvas.addEventListener("pointercancel", endDrag);
   canvas.addEventListener(
     "wheel",
     (event) => {
       event.preventDefault();
-      const rect = canvas.getBoundingClientRect();
-      const sx = event.clientX - rect.left;
-      const sy = event.clientY - rect.top;
-      const [wx, wy] = screenToWorld(sx, sy);
-      const factor = Math.exp(-event.deltaY * 0.0015);
-      state.view.pxPerM = Math.min(Math.max(state.view.pxPerM * factor, 1), 5000);
-      const [nx, ny] = screenToWorld(sx, sy);
-      state.view.cx += wx - nx; // the point under the pointer stays put
-      state.view.cy += wy - ny;
-      state.userMoved = true;
-      queueDraw();
+      const at = onCanvas(event);
+      zoomAt(at, at, Math.exp(-event.deltaY * 0.0015)); // the point under the pointer stays put
       renderReadout();
     },
     { passive: false },
@@ -714,14 +750,18 @@
     pixelAt(x, y) {
       draw();
       const [sx, sy] = worldToScreen(x, y);
-      return Array.from(ctx.getImageData(Math.round(sx), Math.round(sy), 1, 1).data);
+      const k = state.view.pixelRatio;
+      return Array.from(ctx.getImageData(Math.round(sx * k), Math.round(sy * k), 1, 1).data);
     },
-    // The [r, g, b] of every pixel within `radius` px of world point (x, y): for thin lines.
+    // The [r, g, b] of every device pixel within `radius` CSS px of world point (x, y): for thin
+    // lines.
     pixelsNear(x, y, radius) {
       draw();
       const [sx, sy] = worldToScreen(x, y);
-      const size = 2 * radius + 1;
-      const data = ctx.getImageData(Math.round(sx) - radius, Math.round(sy) - radius, size, size).data;
+      const k = state.view.pixelRatio;
+      const reach = Math.round(radius * k);
+      const size = 2 * reach + 1;
+      const data = ctx.getImageData(Math.round(sx * k) - reach, Math.round(sy * k) - reach, size, size).data;
       const pixels = [];
       for (let k = 0; k < data.length; k += 4) pixels.push([data[k], data[k + 1], data[k + 2]]);
       return pixels;
