@@ -158,7 +158,9 @@ def update_problem(message: Message[MapUpdateHeader]) -> str | None:
     names. (An update from a version to itself, or two forming a cycle, replayed for ever under
     the copy's lock: every reader of ``follower.map`` hung.)"""
     h = message.header
-    if h.version <= h.previous_version:
+    if h.version <= h.previous_version or (
+        h.final_version is not None and h.final_version < h.version
+    ):
         return "version_order"
     occupancy = message.arrays.get("occupancy")
     if occupancy is None:
@@ -180,7 +182,11 @@ class MapFollower:
     It subscribes before it fetches and keeps the recent updates, so a fetched map older than the
     newest update is brought up to date by replaying them (fusion builds ``map/latest`` snapshots
     at a pace bounded by their cost, while updates go out at once). Updates are applied on the
-    follower's own thread (a ring channel hands them over): a fetch never blocks a Zenoh callback."""
+    follower's own thread (a ring channel hands them over): a fetch never blocks a Zenoh callback.
+
+    One change of the map goes out as a chain of updates (one per group of changed chunks); the
+    copy moves to the chain's end only (``final_version``), so it is never part one capture, part
+    the one before: a mover drawn half where it was."""
 
     def __init__(
         self,
@@ -196,6 +202,8 @@ class MapFollower:
         self._lock = threading.Lock()
         self.refetches = 0
         self.applied = 0
+        self._reached: tuple[int, int] = (-1, -1)
+        """The (epoch, version) the kept updates reach from the copy, whole or not."""
         self._recent: deque[Message[MapUpdateHeader]] = deque(maxlen=UPDATES_BACKLOG)
         self.callback_errors = 0
         """``on_change`` calls that raised (logged; the follower goes on)."""
@@ -212,6 +220,7 @@ class MapFollower:
             raise MapUnavailable(f"{keys.MAP_UPDATES}: {error}") from None
         try:
             self._map = latest(session, timeout_s=timeout_s)
+            self._reached = self._map.revision
         except MapUnavailable:
             self._subscriber.undeclare()  # type: ignore[no-untyped-call]
             raise
@@ -222,6 +231,13 @@ class MapFollower:
     def map(self) -> OccupancyMap:
         with self._lock:
             return self._map
+
+    @property
+    def reached(self) -> tuple[int, int]:
+        """The (epoch, version) the updates received reach: past the copy's while the rest of a
+        chain is on its way."""
+        with self._lock:
+            return self._reached
 
     @property
     def alive(self) -> bool:
@@ -273,7 +289,7 @@ class MapFollower:
             if reason is None:
                 self._recent.append(message)
             changed = self._replay()
-            behind = h.revision > self._map.revision
+            behind = h.revision > self._reached
         if behind:  # a gap, a grown map, a new epoch or a refused update: fetch, then replay
             changed = self._catch_up() or changed
         return changed
@@ -293,17 +309,18 @@ class MapFollower:
                     self._map = changed = fresh
                 changed = self._replay() or changed
                 newest = max((m.header.revision for m in self._recent), default=(-1, -1))
-                caught_up = self._map.revision >= newest
+                caught_up = self._reached >= newest
             if caught_up or time.monotonic() + RETRY_PERIOD_S > deadline:
                 return changed
             time.sleep(RETRY_PERIOD_S)
 
     def _replay(self) -> OccupancyMap | None:
         """Apply every kept update that continues the copy (same epoch and map window, previous
-        version the copy's), into one new copy; it, if any applied. Call with the lock held."""
+        version the copy's), into one new copy, kept if it ends a chain; it, if so. Notes the
+        version reached in ``_reached``. Call with the lock held."""
         current = self._map
         occupancy = None
-        version, stamp_ns = current.version, current.stamp_ns
+        version, stamp_ns, final, applied = current.version, current.stamp_ns, current.version, 0
         while True:
             following = next(
                 (
@@ -322,9 +339,12 @@ class MapFollower:
                 occupancy = current.occupancy.copy()
             occupancy[h.window.slices_in(current.window)] = following.arrays["occupancy"]
             version, stamp_ns = h.version, h.stamp_ns
-            self.applied += 1
-        if occupancy is None:
+            final = h.version if h.final_version is None else h.final_version
+            applied += 1
+        self._reached = (current.epoch, version)
+        if occupancy is None or version < final:  # the rest of the chain is on its way
             return None
+        self.applied += applied
         self._map = replace(
             current,
             occupancy=occupancy,

@@ -151,6 +151,13 @@ class MapUpdateHeader(_OnLattice):
     model_config = SERVED
     version: int = Field(ge=0, description="change counter within the epoch")
     previous_version: int = Field(ge=0, description="the version this update applies to")
+    final_version: int | None = Field(
+        None,
+        ge=0,
+        description="the version the chain of updates of one publish ends at, map/latest's: a "
+        "copy at an earlier version of the chain is part new, part old (None: every version "
+        "is whole, as fusions before this field sent)",
+    )
     epoch: int = Field(0, ge=0, description=EPOCH_DESCRIPTION)
     stamp_ns: int = Field(ge=0)
     map_i0: int

@@ -4,9 +4,15 @@ import time
 import numpy as np
 import pytest
 
-from common.codec import encode
+from common.codec import decode, encode
 from common.lattice import Window
-from common.messages import DETECTIONS_KIND, DetectionRecord, DetectionsHeader
+from common.messages import (
+    DETECTIONS_KIND,
+    MAP_UPDATE_KIND,
+    DetectionRecord,
+    DetectionsHeader,
+    MapUpdateHeader,
+)
 from services.fusion.captures import CaptureGroups
 from services.fusion.grid import FusedGrid, GridParams
 from services.fusion.inbox import Delivery
@@ -251,6 +257,23 @@ def test_fusion_takes_a_capture_into_the_map_when_its_last_pair_arrives() -> Non
     state.fuse_captures()
     assert state.grid.stamp_ns == now + 2_000_000
     assert dict(state.accepted) == {"p0": 1, "p1": 1}
+
+
+def test_a_capture_goes_out_as_one_chain_that_names_its_end() -> None:
+    """Two pairs' tiles far apart are two updates; each names the version the chain ends at, the
+    one ``map/latest`` serves, so a follower moves its copy there only (never half a capture)."""
+    state = FusionState(FusionSettings(capture_wait_s=0.0), FusedGrid(GridParams()))
+    now = time.time_ns()
+    _deliver_tile(state, "p0", Window(0, 0, 8, 8), now)
+    _deliver_tile(state, "p1", Window(4000, 0, 8, 8), now)
+    state.fuse_captures()
+    before = state.view.frozen.version
+    headers = [decode(p, MAP_UPDATE_KIND, MapUpdateHeader).header for p in state.publish()]
+    assert len(headers) == 2
+    versions = [before] + [h.version for h in headers]
+    assert [h.previous_version for h in headers] == versions[:-1]  # each continues the last
+    end = state.view.frozen.version
+    assert headers[-1].version == end and all(h.final_version == end for h in headers)
 
 
 def test_with_no_capture_wait_each_tile_is_fused_as_it_comes() -> None:

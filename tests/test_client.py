@@ -35,12 +35,14 @@ def _update(
     previous_version: int,
     arrays: dict[str, np.ndarray] | None = None,
     window: Window | None = None,
+    final_version: int | None = None,
 ) -> bytes:
     """``grown`` whole as an update of ``previous_version``; or ``arrays`` over ``window``."""
     w, m = window or grown.window, grown.window
     header = MapUpdateHeader(
         version=grown.version,
         previous_version=previous_version,
+        final_version=final_version,
         epoch=EPOCH,
         stamp_ns=0,
         resolution_m=RESOLUTION_M,
@@ -166,6 +168,46 @@ def test_an_update_that_does_not_step_the_version_forward_is_refused(bus: Bus) -
         genuine = _map(first.window, 100, version=1)
         updates.put(_update(genuine, 0))
         wait_for(lambda: follower.map.revision == (EPOCH, 1), 5, "the genuine update applied")
+        follower.close()
+    queryable.undeclare()  # type: ignore[no-untyped-call]
+
+
+@pytest.mark.process
+def test_the_copy_moves_only_to_the_end_of_a_chain(bus: Bus) -> None:
+    """Fusion sends one change as a chain of updates (a group of chunks each): a copy that took
+    each as it came was part new capture, part old (a mover drawn half where it was) for as
+    long as the rest took, stamped with the new capture, and ``overgrid eval`` scored such
+    copies. A chain whose end is lost is fetched past."""
+    window = Window(0, 0, 4, 2)
+    served = [_map(window, 0, version=0)]
+    queryable = bus.session.declare_queryable(
+        "map/latest", lambda query: query.reply("map/latest", served[-1].to_msgpack())
+    )
+    updates = bus.session.declare_publisher("map/updates", encoding=WIRE_ENCODING)
+    left, right = Window(0, 0, 2, 2), Window(2, 0, 2, 2)
+    changes: list[OccupancyMap] = []
+    with _peer(bus) as session:
+        follower = MapFollower(session, timeout_s=5, on_change=lambda m, _s: changes.append(m))
+
+        def half(version: int, part: Window, value: int, final: int) -> bytes:
+            cells = {"occupancy": np.full((2, 2), value, np.int8)}
+            return _update(_map(window, 0, version), version - 1, cells, part, final)
+
+        updates.put(half(1, left, 100, final=2))
+        wait_for(lambda: follower.reached == (EPOCH, 1), 5, "the first half")
+        time.sleep(0.3)
+        assert follower.map.version == 0 and changes == [] and follower.refetches == 0
+        updates.put(half(2, right, 100, final=2))
+        wait_for(lambda: follower.map.version == 2, 5, "the chain's end")
+        assert [m.version for m in changes] == [2]
+        assert (changes[0].occupancy == 100).all()
+
+        # Version 4, the end of the next chain, never arrives: the one after is fetched past.
+        served.append(_map(window, 0, version=5))
+        updates.put(half(3, left, 0, final=4))
+        updates.put(half(5, right, 0, final=5))
+        wait_for(lambda: follower.map.version == 5, 10, "the copy fetched past the lost end")
+        assert [m.version for m in changes] == [2, 5] and (follower.map.occupancy == 0).all()
         follower.close()
     queryable.undeclare()  # type: ignore[no-untyped-call]
 

@@ -415,6 +415,7 @@ def update_payload(
     header = MapUpdateHeader(
         version=frozen.version if version is None else version,
         previous_version=previous_version,
+        final_version=frozen.version,
         epoch=frozen.epoch_ns,
         stamp_ns=frozen.stamp_ns,
         resolution_m=frozen.resolution_m,
