@@ -1,5 +1,7 @@
+import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -179,3 +181,15 @@ def test_an_empty_namespace_is_none(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("OVERGRID_NAMESPACE", "")
     assert ZenohSettings().namespace is None
     assert ZenohSettings(namespace="site1/hall_2").namespace == "site1/hall_2"
+
+
+def test_a_session_tries_its_lost_router_again_within_half_a_second(tmp_path: Path) -> None:
+    """Zenoh's own default retried 1, 3, 7 s after the loss: a router restarted by systemd kept
+    every box off the map for 7 s. A config file's own ``connect/retry`` is kept."""
+    config = zenoh_session.zenoh_config(ZenohSettings())
+    retry = json.loads(config.get_json("connect/retry"))
+    assert retry["period_init_ms"] <= 100 and retry["period_max_ms"] <= 500
+    own = tmp_path / "own.json5"
+    own.write_text("{ connect: { retry: { period_init_ms: 2000, period_max_ms: 8000 } } }")
+    kept = zenoh_session.zenoh_config(ZenohSettings(config=own))
+    assert json.loads(kept.get_json("connect/retry"))["period_init_ms"] == 2000
