@@ -317,6 +317,43 @@ def _deliver_frame(state: FusionState, pair: str, seq: int, stamp_ns: int, x_m: 
     state.handle(Delivery("detections", key, time.time_ns(), encode(DETECTIONS_KIND, header)))
 
 
+def _deliver_detections(state: FusionState, pair: str, seq: int, stamp_ns: int) -> None:
+    header = DetectionsHeader(pair=pair, seq=seq, stamp_ns=stamp_ns, detections=[])
+    key = f"depth/{pair}/objects"
+    state.handle(Delivery("detections", key, time.time_ns(), encode(DETECTIONS_KIND, header)))
+
+
+def test_a_capture_goes_out_with_its_objects() -> None:
+    """Depth sends a frame's tile, then its detections (tens of ms later): a map published in
+    between held the new capture's evidence under the tracks of the one before (a mover's new
+    cells free, its layers where it was). The map waits for the capture's objects, no longer
+    than the capture wait, and not for pairs that send none."""
+    state = FusionState(FusionSettings(capture_wait_s=0.5), FusedGrid(GridParams()))
+    for pair in ("p0", "p1"):
+        state.handle(Delivery("presence", f"depth/{pair}/alive/x{pair}", time.time_ns(), b""))
+    now_s, now_ns = time.monotonic(), time.time_ns()
+    for k, stamp_ns in enumerate((now_ns - 1_000_000_000, now_ns - 500_000_000)):
+        for pair in ("p0", "p1"):
+            _deliver_tile(state, pair, Window(0 if pair == "p0" else 60, 0, 60, 60), stamp_ns)
+        state.fuse_captures()
+        assert state.objects_pending(now_s) == (k > 0)  # detections flow since the first
+        for pair in ("p0", "p1"):
+            _deliver_detections(state, pair, k, stamp_ns)
+        state.refresh_objects()
+        assert not state.objects_pending(now_s)
+        state.publish()
+    for pair in ("p0", "p1"):
+        _deliver_tile(state, pair, Window(0 if pair == "p0" else 60, 0, 60, 60), now_ns)
+    state.fuse_captures()
+    _deliver_detections(state, "p0", 2, now_ns)
+    state.refresh_objects()
+    assert state.objects_pending(time.monotonic())  # p1's objects of it are still to come
+    assert not state.objects_pending(time.monotonic() + 0.5)  # waited for long enough
+    state.handle(Delivery("presence", "depth/p1/alive/xp1", time.time_ns(), b"", alive=False))
+    state.handle(Delivery("presence", "depth/p0/alive/xp0", time.time_ns(), b"", alive=False))
+    assert not state.objects_pending(time.monotonic())  # no live pair sends detections
+
+
 def test_a_pair_that_stalled_once_keeps_its_objects_tracked() -> None:
     """p1 stalled past the capture wait once, then delivered 50 ms after p0 as before: it stayed
     lagging, each capture was tracked before its detections came, and its object left

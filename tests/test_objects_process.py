@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from common import keys
-from common.client import MapUnavailable, latest, objects, query_first
+from common.client import MapFollower, MapUnavailable, health, latest, objects, query_first
 from common.codec import WIRE_ENCODING, decode, encode
 from common.lattice import Window
+from common.mapfiles import FREE_MAX
 from common.messages import (
     DETECTIONS_KIND,
     OBJECTS_KIND,
@@ -203,3 +204,52 @@ def test_a_movers_top_is_served_occupied_until_captures_stop(bus: Bus, tmp_path:
     assert at(left) == (False, -1)
     assert [(t.object_class, t.settled) for t in _tracked(bus)] == [("moving", False)]
     wait_for(lambda: at(top) == (False, -1), 10, "the top gone once captures stopped")
+
+
+def test_a_capture_is_published_with_its_objects(bus: Bus, tmp_path: Path) -> None:
+    """Depth sends a frame's tile first and its detections once measured (15–50 ms later live;
+    0.3 s here). A box crossing measured floor whose plain top gives no reading: published as
+    soon as the tile came, the map served the floor the box had just driven onto free (the
+    tracks, and the cells they contest, were still the capture's before), 1.3 % of the
+    obstacles' cells live on a plain floor. Every version of a capture's stamp comes with its
+    objects: the box's new centre is never free in it."""
+    bus.start("fusion", "--state-dir", str(tmp_path / "state"), "--publish-interval-s", "0.02")
+    tiles = bus.session.declare_publisher(keys.tile("p0"), encoding=WIRE_ENCODING)
+    detections = bus.session.declare_publisher(keys.objects("p0"), encoding=WIRE_ENCODING)
+    alive = bus.session.liveliness().declare_token("depth/p0/alive/test")  # as a depth process
+    wait_for(lambda: bool(query_first(bus.session, keys.MAP_OBJECTS, 30)), 30, "map/objects")
+    wait_for(lambda: "p0" in health(bus.session, timeout_s=2)["pairs"], 10, "p0's token seen")
+    floor = Window(0, 0, 120, 80)  # 6 × 4 m, measured free but where the box stands
+    tiles.put(tile_payload("p0", floor, -3.0, seq=0, stamp_ns=time.time_ns() - 10**9))
+
+    def free_at(x_m: float) -> bool:
+        return 0 <= latest(bus.session, timeout_s=5).value_at(x_m, 2.0) <= FREE_MAX
+
+    wait_for(lambda: free_at(3.0), 10, "free floor")
+    maps: list[OccupancyMap] = []
+    follower = MapFollower(bus.session, timeout_s=10, on_change=lambda m, _s: maps.append(m))
+    centres: dict[int, float] = {}
+    for seq in range(1, 7):
+        stamp_ns, x_m = time.time_ns(), 0.8 + 0.6 * seq
+        arrays = tile_arrays(floor, -1.0)
+        box = (slice(32, 48), slice(int((x_m - 0.6) / 0.05), int((x_m + 0.6) / 0.05)))
+        arrays["count"][box], arrays["logodds"][box] = 0, 0.0  # its plain top: no reading
+        tiles.put(tile_payload("p0", floor, 0.0, seq=seq, stamp_ns=stamp_ns, arrays=arrays))
+        time.sleep(0.3)
+        found = DetectionRecord(
+            center_m=(x_m, 2.0),
+            size_m=(1.2, 0.8),
+            yaw_rad=0.0,
+            top_m=1.1,
+            points=900,
+            partial=False,
+        )
+        header = DetectionsHeader(pair="p0", seq=seq, stamp_ns=stamp_ns, detections=[found])
+        detections.put(encode(DETECTIONS_KIND, header))
+        centres[stamp_ns] = x_m
+        time.sleep(0.2)
+    follower.close()
+    alive.undeclare()  # type: ignore[no-untyped-call]
+    shown = [(centres[m.stamp_ns], m.value_at(centres[m.stamp_ns], 2.0)) for m in maps[1:]]
+    assert len({x for x, _ in shown}) >= 5  # the captures were followed
+    assert not any(0 <= value <= FREE_MAX for _, value in shown), shown

@@ -329,7 +329,7 @@ def run(
     while not stop.is_set():
         pending = state.grid.version != state.view.frozen.version
         wait_s = IDLE_WAIT_S
-        if pending:
+        if pending and not state.objects_pending(time.monotonic()):  # else the detections wake it
             wait_s = max(0.0, settings.publish_interval_s - (time.monotonic() - last["publish"]))
         for delivery in inbox.take(min(wait_s, IDLE_WAIT_S)):
             state.handle(delivery)
@@ -354,6 +354,7 @@ def run(
         if (
             state.grid.version != state.view.frozen.version
             and now - last["publish"] >= settings.publish_interval_s
+            and not state.objects_pending(now)  # a capture goes out with its objects
         ):
             payloads = state.publish()
             last["publish"] = now
