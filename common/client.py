@@ -14,6 +14,7 @@ from dataclasses import replace
 from typing import Any, TypeVar
 
 import numpy as np
+import numpy.typing as npt
 import zenoh
 
 from common import keys
@@ -147,6 +148,11 @@ def calibrations(session: zenoh.Session, timeout_s: float = 5.0) -> list[StereoC
 
 CATCH_UP_LIMIT_S = 5.0
 """How long a follower behind the newest update keeps fetching ``map/latest`` to reach it."""
+CHAIN_END_WAIT_S = 0.5
+"""How long a copy waits for the rest of a chain of updates (fusion sends one within
+milliseconds) before it fetches ``map/latest``: the end was lost (updates are sent best effort)
+and nothing may come after it while the map stands still."""
+CHAIN_POLL_S = 0.02
 UPDATES_BACKLOG = 64
 """Updates a follower keeps: waiting to be applied, and the recent ones it may replay onto a map it
 fetched (map/latest may be a little older than the newest update)."""
@@ -255,19 +261,45 @@ class MapFollower:
         return max(0.0, time.time() - stamp_ns / 1e9) if stamp_ns else math.inf
 
     def _run(self) -> None:
-        for sample in self._subscriber:  # ends when the subscriber is undeclared
+        samples = iter(self._subscriber)  # ends when the subscriber is undeclared
+        chain_since_s: float | None = None  # waiting for the rest of a chain since
+        while True:
+            if chain_since_s is None:
+                sample = next(samples, None)
+                if sample is None:
+                    return
+            else:
+                try:
+                    sample = self._subscriber.handler.try_recv()
+                except zenoh.ZError:  # undeclared: closed
+                    return
+                if sample is None and time.monotonic() - chain_since_s < CHAIN_END_WAIT_S:
+                    time.sleep(CHAIN_POLL_S)
+                    continue
             arrival_s = time.time()
             try:
-                changed = self._on_update(sample.payload.to_bytes())
+                if sample is None:  # the chain's end was lost: fetch past it
+                    changed = self._catch_up()
+                else:
+                    changed = self._on_update(sample.payload.to_bytes())
             except (MapUnavailable, zenoh.ZError):
-                continue  # fusion gone mid-fetch: the next update or epoch tries again
-            if changed is None or self._on_change is None:
-                continue
-            try:
-                self._on_change(changed, arrival_s)
-            except Exception:  # the robot's own: one failure must not stop the copy
-                self.callback_errors += 1
-                log.exception("map follower: on_change raised; following goes on")
+                changed = None  # fusion gone mid-fetch: the next update or epoch tries again
+            with self._lock:
+                mid_chain = self._reached > self._map.revision
+            if not mid_chain:
+                chain_since_s = None
+            elif chain_since_s is None or sample is None:
+                chain_since_s = time.monotonic()
+            self._notify(changed, arrival_s)
+
+    def _notify(self, changed: OccupancyMap | None, arrival_s: float) -> None:
+        if changed is None or self._on_change is None:
+            return
+        try:
+            self._on_change(changed, arrival_s)
+        except Exception:  # the robot's own: one failure must not stop the copy
+            self.callback_errors += 1
+            log.exception("map follower: on_change raised; following goes on")
 
     def _on_update(self, payload: bytes) -> OccupancyMap | None:
         """The new copy this update makes, if any. A refused update is never kept for replay
@@ -309,7 +341,7 @@ class MapFollower:
                     self._map = changed = fresh
                 changed = self._replay() or changed
                 newest = max((m.header.revision for m in self._recent), default=(-1, -1))
-                caught_up = self._reached >= newest
+                caught_up = self._map.revision >= newest
             if caught_up or time.monotonic() + RETRY_PERIOD_S > deadline:
                 return changed
             time.sleep(RETRY_PERIOD_S)
@@ -320,7 +352,9 @@ class MapFollower:
         version reached in ``_reached``. Call with the lock held."""
         current = self._map
         occupancy = None
-        version, stamp_ns, final, applied = current.version, current.stamp_ns, current.version, 0
+        version, stamp_ns, applied = current.version, current.stamp_ns, 0
+        whole: tuple[npt.NDArray[np.int8], int, int, int] | None = None
+        """The cells, version, stamp and updates applied at the last chain's end walked."""
         while True:
             following = next(
                 (
@@ -337,13 +371,17 @@ class MapFollower:
             h = following.header
             if occupancy is None:
                 occupancy = current.occupancy.copy()
+            elif whole is not None and whole[0] is occupancy:  # walking on past a chain's end
+                whole = (occupancy.copy(), *whole[1:])
             occupancy[h.window.slices_in(current.window)] = following.arrays["occupancy"]
             version, stamp_ns = h.version, h.stamp_ns
-            final = h.version if h.final_version is None else h.final_version
             applied += 1
+            if h.final_version is None or h.version >= h.final_version:
+                whole = (occupancy, version, stamp_ns, applied)
         self._reached = (current.epoch, version)
-        if occupancy is None or version < final:  # the rest of the chain is on its way
+        if whole is None:  # nothing applied, or the rest of the chain is on its way
             return None
+        occupancy, version, stamp_ns, applied = whole
         self.applied += applied
         self._map = replace(
             current,

@@ -34,8 +34,9 @@ the lines lagged the link by up to a second, and said "lost" after it was back."
 RECONNECT_RETRY = "{period_init_ms: 100, period_max_ms: 500, period_increase_factor: 2}"
 """``connect/retry`` unless the config file sets it: a session that lost its router tries again
 0.1, 0.3, 0.7 s after, then every 0.5 s. Zenoh's default (1 s, doubling to 4 s: tries 1, 3, 7,
-11 s after) kept every box off the map until 3 s after a router down 1.5 s, 7 s after one down
-3.5 s (a systemd restart). The cost: a refused connection every 0.5 s per session meanwhile."""
+11 s after) kept every box off the map until 3 s after a router down 1.5–2.3 s (a systemd
+restart at RestartSec=2), 7 s after one down 3.4–4.9 s. The cost: a refused connection every
+0.5 s per session meanwhile."""
 
 
 JSON5_POINTER = re.compile(r"^\s*--> (\d+):(\d+)$")

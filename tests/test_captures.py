@@ -323,35 +323,52 @@ def _deliver_detections(state: FusionState, pair: str, seq: int, stamp_ns: int) 
     state.handle(Delivery("detections", key, time.time_ns(), encode(DETECTIONS_KIND, header)))
 
 
-def test_a_capture_goes_out_with_its_objects() -> None:
+def test_a_capture_goes_out_with_its_objects(caplog: pytest.LogCaptureFixture) -> None:
     """Depth sends a frame's tile, then its detections (tens of ms later): a map published in
     between held the new capture's evidence under the tracks of the one before (a mover's new
-    cells free, its layers where it was). The map waits for the capture's objects, no longer
-    than the capture wait, and not for pairs that send none."""
-    state = FusionState(FusionSettings(capture_wait_s=0.5), FusedGrid(GridParams()))
+    cells free, its layers where it was). The map waits for the capture's objects from the pairs
+    that sent the capture before's, no longer than the capture wait; a pair that stopped sending
+    them is not waited for again."""
+    state = FusionState(FusionSettings(capture_wait_s=0.3), FusedGrid(GridParams()))
     for pair in ("p0", "p1"):
         state.handle(Delivery("presence", f"depth/{pair}/alive/x{pair}", time.time_ns(), b""))
-    now_s, now_ns = time.monotonic(), time.time_ns()
-    for k, stamp_ns in enumerate((now_ns - 1_000_000_000, now_ns - 500_000_000)):
+    start_ns = time.time_ns() - 400_000_000  # captures 0.1 s apart, none stale
+
+    def capture(k: int, detected_by: tuple[str, ...]) -> tuple[float, float]:
+        """Capture k's tiles fused, then the detections of ``detected_by``: the hold before them
+        and after."""
+        stamp_ns = start_ns + k * 100_000_000
         for pair in ("p0", "p1"):
             _deliver_tile(state, pair, Window(0 if pair == "p0" else 60, 0, 60, 60), stamp_ns)
         state.fuse_captures()
-        assert state.objects_pending(now_s) == (k > 0)  # detections flow since the first
-        for pair in ("p0", "p1"):
+        before = state.objects_hold_s(time.monotonic())
+        for pair in detected_by:
             _deliver_detections(state, pair, k, stamp_ns)
         state.refresh_objects()
-        assert not state.objects_pending(now_s)
-        state.publish()
-    for pair in ("p0", "p1"):
-        _deliver_tile(state, pair, Window(0 if pair == "p0" else 60, 0, 60, 60), now_ns)
-    state.fuse_captures()
-    _deliver_detections(state, "p0", 2, now_ns)
+        return before, state.objects_hold_s(time.monotonic())
+
+    assert capture(0, ("p0", "p1")) == (0.0, 0.0)  # nothing says objects come yet
+    state.publish()
+    before, after = capture(1, ("p0", "p1"))
+    assert 0.0 < before <= 0.3 and after == 0.0
+    state.publish()
+    before, after = capture(2, ("p0",))  # p1's objects of it never come
+    assert before > 0.0 and after > 0.0
+    assert state.objects_hold_s(time.monotonic() + 0.3) == 0.0  # waited for long enough
+    with caplog.at_level(logging.WARNING):
+        state.say_if_objects_overdue()
+    assert "objects did not come within the capture wait" in caplog.text
+    state.publish()
+    time.sleep(0.35)  # the tracker takes capture 2 without p1's
     state.refresh_objects()
-    assert state.objects_pending(time.monotonic())  # p1's objects of it are still to come
-    assert not state.objects_pending(time.monotonic() + 0.5)  # waited for long enough
-    state.handle(Delivery("presence", "depth/p1/alive/xp1", time.time_ns(), b"", alive=False))
-    state.handle(Delivery("presence", "depth/p0/alive/xp0", time.time_ns(), b"", alive=False))
-    assert not state.objects_pending(time.monotonic())  # no live pair sends detections
+    before, after = capture(3, ("p0",))
+    assert before > 0.0 and after == 0.0  # p0 is waited for, p1 no more
+    # p0's objects stop (its detections refused, or measuring them failed): after one hold in
+    # vain its captures go out at once (waited for each, the map went out once a second).
+    state.publish()
+    assert capture(4, ())[0] > 0.0
+    state.publish()
+    assert capture(5, ()) == (0.0, 0.0)
 
 
 def test_a_pair_that_stalled_once_keeps_its_objects_tracked() -> None:

@@ -208,6 +208,13 @@ def test_the_copy_moves_only_to_the_end_of_a_chain(bus: Bus) -> None:
         updates.put(half(5, right, 0, final=5))
         wait_for(lambda: follower.map.version == 5, 10, "the copy fetched past the lost end")
         assert [m.version for m in changes] == [2, 5] and (follower.map.occupancy == 0).all()
+
+        # Version 7, the chain's end, is lost, and nothing comes after it (the map stands still):
+        # the copy does not wait on the chain for ever, it fetches.
+        served.append(_map(window, 100, version=7))
+        updates.put(half(6, left, 100, final=7))
+        wait_for(lambda: follower.map.version == 7, 10, "the copy fetched past a quiet lost end")
+        assert [m.version for m in changes] == [2, 5, 7] and (follower.map.occupancy == 100).all()
         follower.close()
     queryable.undeclare()  # type: ignore[no-untyped-call]
 

@@ -329,8 +329,10 @@ def run(
     while not stop.is_set():
         pending = state.grid.version != state.view.frozen.version
         wait_s = IDLE_WAIT_S
-        if pending and not state.objects_pending(time.monotonic()):  # else the detections wake it
-            wait_s = max(0.0, settings.publish_interval_s - (time.monotonic() - last["publish"]))
+        if pending:  # held for a capture's objects: until they come (they wake it) or the hold ends
+            held_s = state.objects_hold_s(time.monotonic())
+            since_s = time.monotonic() - last["publish"]
+            wait_s = held_s if held_s > 0 else max(0.0, settings.publish_interval_s - since_s)
         for delivery in inbox.take(min(wait_s, IDLE_WAIT_S)):
             state.handle(delivery)
         state.fuse_captures()
@@ -354,8 +356,9 @@ def run(
         if (
             state.grid.version != state.view.frozen.version
             and now - last["publish"] >= settings.publish_interval_s
-            and not state.objects_pending(now)  # a capture goes out with its objects
+            and state.objects_hold_s(now) == 0  # a capture goes out with its objects
         ):
+            state.say_if_objects_overdue()
             payloads = state.publish()
             last["publish"] = now
             for payload in payloads:

@@ -126,7 +126,11 @@ class FusionState:
         self.warn = RateLimitedLog(log)
         self._objects_emptied = False
         self.fused_capture_ns: int | None = None
-        """The newest capture whose tiles the map took (its group's stamp)."""
+        """The newest capture whose tiles the map took (its group's stamp) …"""
+        self.fused_pairs: set[str] = set()
+        """… the pairs whose tiles it had …"""
+        self.previous_capture_ns: int | None = None
+        """… and the capture the map took before it."""
         self.unpublished_since_s: float | None = None
         """When the map first took a capture it has not published since (monotonic)."""
         self.check_clock(time.time_ns())  # a state saved on a box whose clock was ahead
@@ -152,7 +156,7 @@ class FusionState:
         self.gate.newest_stamp_ns.clear()
         held = sum(len(tiles) for tiles in self.tiles.pending.values())
         self.tiles = self.tiles.emptied()
-        self.fused_capture_ns = None
+        self.fused_capture_ns = self.previous_capture_ns = None
         self.tracker.restart()
         self._tracks_begin_anew()
         log.warning(
@@ -216,7 +220,8 @@ class FusionState:
         now_s = time.monotonic()
         for group, tiles in self.tiles.ready(now_s, self.alive, everything):
             if tiles:
-                self.fused_capture_ns = group
+                self.previous_capture_ns, self.fused_capture_ns = self.fused_capture_ns, group
+                self.fused_pairs = {pair for pair, _ in tiles}
                 if self.unpublished_since_s is None:
                     self.unpublished_since_s = now_s
             for pair, (key, tile) in tiles:
@@ -232,21 +237,41 @@ class FusionState:
                 self.contributors.add(pair)
                 self.capture_to_fused_ms[pair] = (time.time_ns() - tile.header.stamp_ns) / 1e6
 
-    def objects_pending(self, now_s: float) -> bool:
-        """Whether the map's newest capture waits for its objects before it goes out: the
-        tracker has not taken that capture yet, a live pair sends detections at all, and the map
-        has held a capture back for less than ``capture_wait_s``. Published a capture ahead of its
-        tracks, the map served free the floor a mover had just driven onto (the movers' layers
-        still stood where it was) until its objects came tens of ms later: live, on a plain
-        floor, such maps read 1.3 % of the obstacles' cells free, 0.4 % once the objects came."""
-        if self.fused_capture_ns is None or self.unpublished_since_s is None:
+    def objects_hold_s(self, now_s: float) -> float:
+        """How much longer the map's newest capture waits for its objects before it goes out (0:
+        it need not): while :meth:`_objects_awaited`, for at most ``capture_wait_s`` since the
+        map first held a capture back. Published a capture ahead of its tracks, the map served
+        free the floor a mover had just driven onto (the movers' layers still stood where it
+        was) until its objects came tens of ms later: live, on a plain floor, such maps read
+        1.3 % of the obstacles' cells free, 0.4 % once the objects came."""
+        if self.unpublished_since_s is None or not self._objects_awaited():
+            return 0.0
+        return max(0.0, self.unpublished_since_s + self.settings.capture_wait_s - now_s)
+
+    def say_if_objects_overdue(self) -> None:
+        """Before a publish: a capture whose objects the hold waited for in vain is said."""
+        if self.settings.capture_wait_s > 0 and self._objects_awaited():
+            self.warn.warning(
+                "objects_overdue",
+                "a capture's objects did not come within the capture wait: its map went out "
+                "without them (is a pair's depth process slow to measure objects? "
+                "--capture-wait-s)",
+                pairs=",".join(sorted(self.fused_pairs)),
+            )
+
+    def _objects_awaited(self) -> bool:
+        """Whether objects of the newest capture the map took are still to come: the tracker has
+        not taken that capture, and a live pair of it sent detections of the capture before (a
+        pair that sends none, or stopped, or whose detections are refused, is not waited for)."""
+        if self.fused_capture_ns is None or self.previous_capture_ns is None:
             return False
-        captures = self.tracker.captures
-        if captures.released_ns >= self.fused_capture_ns - self.tiles.window_ns():
+        captures, window_ns = self.tracker.captures, self.tiles.window_ns()
+        if captures.released_ns >= self.fused_capture_ns - window_ns:
             return False
-        if not captures.newest_ns.keys() & self.alive:  # no live pair sends detections
-            return False
-        return now_s - self.unpublished_since_s < self.settings.capture_wait_s
+        since_ns = self.previous_capture_ns - window_ns
+        return any(
+            captures.newest_ns.get(pair, -1) >= since_ns for pair in self.fused_pairs & self.alive
+        )
 
     def _detections(self, delivery: Delivery) -> None:
         """One pair's objects of one frame: held until the rest of the capture arrives."""
