@@ -40,6 +40,16 @@ def _detections(seq: int, stamp_ns: int) -> bytes:
     )
 
 
+def _mover(seq: int, stamp_ns: int, x_m: float) -> bytes:
+    """p0's detections of a frame: a 1.2 × 0.8 m box centred at (x_m, 2.0), 1.1 m tall."""
+    box = DetectionRecord(
+        center_m=(x_m, 2.0), size_m=(1.2, 0.8), yaw_rad=0.0, top_m=1.1, points=900, partial=False
+    )
+    return encode(
+        DETECTIONS_KIND, DetectionsHeader(pair="p0", seq=seq, stamp_ns=stamp_ns, detections=[box])
+    )
+
+
 def _tracked(bus: Bus) -> list[TrackedObject]:
     try:
         return list(objects(bus.session, timeout_s=2).objects)
@@ -179,17 +189,8 @@ def test_a_movers_top_is_served_occupied_until_captures_stop(bus: Bus, tmp_path:
     for seq in range(8):
         stamp_ns = time.time_ns()
         x_m = 1.0 + 0.6 * seq
-        box = DetectionRecord(
-            center_m=(x_m, 2.0),
-            size_m=(1.2, 0.8),
-            yaw_rad=0.0,
-            top_m=1.1,
-            points=900,
-            partial=False,
-        )
         tiles.put(tile_payload("p0", floor, 0.0, seq=seq, stamp_ns=stamp_ns, arrays=arrays))
-        header = DetectionsHeader(pair="p0", seq=seq, stamp_ns=stamp_ns, detections=[box])
-        detections.put(encode(DETECTIONS_KIND, header))
+        detections.put(_mover(seq, stamp_ns, x_m))
         time.sleep(0.3)
     top = (int(2.0 / 0.05), int(x_m / 0.05))  # (row, col) of the box's centre now
     left = (int(2.0 / 0.05), int((x_m - 1.2) / 0.05))  # its centre two captures before
@@ -236,16 +237,7 @@ def test_a_capture_is_published_with_its_objects(bus: Bus, tmp_path: Path) -> No
         arrays["count"][box], arrays["logodds"][box] = 0, 0.0  # its plain top: no reading
         tiles.put(tile_payload("p0", floor, 0.0, seq=seq, stamp_ns=stamp_ns, arrays=arrays))
         time.sleep(0.3)
-        found = DetectionRecord(
-            center_m=(x_m, 2.0),
-            size_m=(1.2, 0.8),
-            yaw_rad=0.0,
-            top_m=1.1,
-            points=900,
-            partial=False,
-        )
-        header = DetectionsHeader(pair="p0", seq=seq, stamp_ns=stamp_ns, detections=[found])
-        detections.put(encode(DETECTIONS_KIND, header))
+        detections.put(_mover(seq, stamp_ns, x_m))
         centres[stamp_ns] = x_m
         time.sleep(0.2)
     follower.close()
