@@ -15,7 +15,7 @@ import subprocess
 import sys
 import time
 import zipfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -494,6 +494,31 @@ def _window_m(x0: float, y0: float, x1: float, y1: float) -> Window:
     return Window.covering(x0, y0, x1, y1, RESOLUTION_M)
 
 
+Lander = Callable[..., None]
+"""``land(window, logodds, height_m=0.0)``: one tile of p0 over ``window``, in order."""
+
+
+def _lander(bus: Bus) -> Lander:
+    tiles = bus.session.declare_publisher(
+        "depth/p0/tile", encoding=WIRE_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
+    )
+    seq = iter(range(10_000))
+
+    def land(window: Window, logodds: float, height_m: float = 0.0) -> None:
+        tiles.put(tile_payload("p0", window, logodds, seq=next(seq), height_m=height_m))
+
+    return land
+
+
+def _box_on_free_floor(bus: Bus, land: Lander) -> bool:
+    """Free floor over 0.5–5.5 × 0.5–4.5 m and a 1.2 m box at 2.0–2.6 m, landed; whether fusion
+    shows the box (until fusion's subscription reaches the router, puts go nowhere)."""
+    land(_window_m(0.5, 0.5, 5.5, 4.5), -2.0)
+    land(_window_m(2.0, 2.0, 2.6, 2.6), 3.0, height_m=1.2)
+    time.sleep(0.2)
+    return (_value_at(bus.session, 2.3, 2.3) or 0) > 65
+
+
 def _rgb(page: Any, x_m: float, y_m: float) -> tuple[int, int, int]:
     r, g, b, _ = page.evaluate(f"window.overgridView.pixelAt({x_m}, {y_m})")
     return (r, g, b)
@@ -563,23 +588,9 @@ def test_the_page_follows_the_live_map(bus: Bus, tmp_path: Path, browser_page: A
     depth = bus.start("depth", "--pair", "p0", log_path=tmp_path / "depth.log")
     port = free_port()
     bus.start("view", "--http-port", str(port), log_path=tmp_path / "view.log")
-    tiles = bus.session.declare_publisher(
-        "depth/p0/tile", encoding=WIRE_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
-    )
-    seq = iter(range(10_000))
-
-    def land(window: Window, logodds: float, height_m: float = 0.0) -> None:
-        tiles.put(tile_payload("p0", window, logodds, seq=next(seq), height_m=height_m))
-
+    land = _lander(bus)
     wait_for(lambda: _value_at(bus.session, 0.0, 0.0) is not None, 60, "fusion")
-
-    def scene_fused() -> bool:  # until fusion's subscription reaches the router, puts go nowhere
-        land(_window_m(0.5, 0.5, 5.5, 4.5), -2.0)  # free floor
-        land(_window_m(2.0, 2.0, 2.6, 2.6), 3.0, height_m=1.2)  # a box
-        time.sleep(0.2)
-        return (_value_at(bus.session, 2.3, 2.3) or 0) > 65
-
-    wait_for(scene_fused, 20, "the box in the map")
+    wait_for(lambda: _box_on_free_floor(bus, land), 20, "the box in the map")
 
     page.goto(f"http://127.0.0.1:{port}/")
     page.wait_for_function(_drawn_as(page, 2.3, 2.3, "occupied"))
@@ -801,15 +812,11 @@ def test_a_fusion_that_lost_its_map_is_followed_anew(
     bus: Bus, tmp_path: Path, browser_page: Any
 ) -> None:
     page = browser_page
-    tiles = bus.session.declare_publisher(
-        "depth/p0/tile", encoding=WIRE_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
-    )
-    seq = iter(range(10_000))
+    land = _lander(bus)
 
     def fused(x0: float, y0: float, logodds: float, versions: int) -> bool:
         for _ in range(versions):
-            window = _window_m(x0, y0, x0 + 0.5, y0 + 0.5)
-            tiles.put(tile_payload("p0", window, logodds, seq=next(seq)))
+            land(_window_m(x0, y0, x0 + 0.5, y0 + 0.5), logodds)
             time.sleep(0.05)
         return (_value_at(bus.session, x0 + 0.25, y0 + 0.25) or 0) > 65
 
@@ -847,19 +854,8 @@ def test_a_phone_shows_a_sharp_map_and_pinches_it(bus: Bus, tmp_path: Path) -> N
     bus.start("fusion", "--state-dir", str(tmp_path / "state"), log_path=tmp_path / "fusion.log")
     port = free_port()
     bus.start("view", "--http-port", str(port), log_path=tmp_path / "view.log")
-    tiles = bus.session.declare_publisher(
-        "depth/p0/tile", encoding=WIRE_ENCODING, congestion_control=zenoh.CongestionControl.BLOCK
-    )
-    seq = iter(range(10_000))
-
-    def scene_fused() -> bool:
-        tiles.put(tile_payload("p0", _window_m(0.5, 0.5, 5.5, 4.5), -2.0, seq=next(seq)))
-        box = _window_m(2.0, 2.0, 2.6, 2.6)
-        tiles.put(tile_payload("p0", box, 3.0, seq=next(seq), height_m=1.2))
-        time.sleep(0.2)
-        return (_value_at(bus.session, 2.3, 2.3) or 0) > 65
-
-    wait_for(scene_fused, 60, "the box in the map")
+    land = _lander(bus)
+    wait_for(lambda: _box_on_free_floor(bus, land), 60, "the box in the map")
     phone = {"width": 390, "height": 844}
     with _browser(
         tmp_path, viewport=phone, device_scale_factor=3, is_mobile=True, has_touch=True

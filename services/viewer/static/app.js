@@ -687,11 +687,12 @@
   }
 
   canvas.addEventListener("pointerdown", (event) => {
-    pressed.set(event.pointerId, onCanvas(event));
+    const at = onCanvas(event);
+    pressed.set(event.pointerId, at);
     pinch = pressed.size >= 2 ? pinchOf() : null;
     canvas.setPointerCapture(event.pointerId);
     canvas.classList.add("dragging");
-    state.pointer = onCanvas(event); // a tap reads the cell out too
+    state.pointer = at; // a tap reads the cell out too
     renderReadout();
   });
   canvas.addEventListener("pointermove", (event) => {
