@@ -166,6 +166,9 @@ def test_an_update_that_does_not_step_the_version_forward_is_refused(bus: Bus) -
         updates.put(_update(first, 0))  # version 0 after version 0
         wait_for(lambda: follower.rejected == {"version_order": 1}, 5, "the update refused")
         genuine = _map(first.window, 100, version=1)
+        updates.put(_update(genuine, 0, final_version=0))  # a chain that ends before it
+        wait_for(lambda: follower.rejected == {"version_order": 2}, 5, "that refused too")
+        assert follower.map.version == 0 and follower.reached == (EPOCH, 0)
         updates.put(_update(genuine, 0))
         wait_for(lambda: follower.map.revision == (EPOCH, 1), 5, "the genuine update applied")
         follower.close()
