@@ -33,7 +33,7 @@ import numpy.typing as npt
 
 from common.lattice import reframe
 from common.mapfiles import OCCUPIED_MIN, free_cells
-from common.messages import TruthObject
+from common.messages import TrackedObject, TruthObject
 from common.occupancy_map import UNKNOWN
 from services.camera_sim import truth as scene_truth
 from services.camera_sim.capture import StereoCapture
@@ -111,6 +111,7 @@ def run(
     snapshots: list[dict[str, float]] = []
     steps_s = sim.lighting().steps_s(start_s, start_s + frames / rate_hz)
     timeline: list[TimelineScore] = []  # every frame's map, with lighting steps: as eval's
+    mover_history: list[tuple[list[TrackedObject], list[TruthObject]]] = []
     started = time.perf_counter()
     for k in range(frames):
         stamp_ns = int((start_s + k / rate_hz) * 1e9)
@@ -126,6 +127,8 @@ def run(
         if tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures}):
             outlined, tops, _ = serve_tracks(grid, tracker, outline_static)  # as fusion does
             grid.set_predicted(outlined + tops)
+            if k >= frames // 3:
+                mover_history.append((tracker.objects(), scene.truth_objects(stamp_ns / 1e9)))
         grid.decay(stamp_ns / 1e9, 1.0 / rate_hz)  # as the fusion service does, on scene time
         scored = k == frames - 1 or (k >= frames // 3 and (frames - 1 - k) % every == 0)
         if scored or steps_s:
@@ -173,9 +176,27 @@ def run(
         "objects": breakdown["objects"],
         "lighting_steps": step_phases(steps_s, timeline),
         **tracked,
+        **mover_figures(mover_history),
         "seconds": time.perf_counter() - started,
     }
     return figures, (occupancy, truth, seen)
+
+
+def mover_figures(
+    history: list[tuple[list[TrackedObject], list[TruthObject]]],
+) -> dict[str, object]:
+    """The movers' tracks over every capture after the warm-up, as ``overgrid eval`` scores the
+    ``map/objects`` puts: id switches (counts), the share of captures each mover was tracked
+    moving, the velocity error's median and the share of captures with a phantom mover."""
+    scores = object_scores.score_movers(history)
+    return {
+        "id_switches": scores.id_switches,
+        "movers_tracked_share": {k: round(v, 3) for k, v in scores.tracked_share.items()},
+        "velocity_error_p50_mps": float(np.median(scores.velocity_error_mps))
+        if scores.velocity_error_mps
+        else None,
+        "phantom_movers_share": round(scores.phantom_share, 3),
+    }
 
 
 def object_sizes(
@@ -282,6 +303,12 @@ def main() -> None:
         f"{result['length_error_max_pct_in_view']:.1f} % over {result['objects_in_view']}), "
         f"found {result['static_found']}, "
         f"split {result['static_split']}, merged {result['static_merged']}"
+    )
+    print(
+        f"movers: id switches {result['id_switches']}, tracked moving "
+        f"{result['movers_tracked_share']}, velocity error p50 "
+        f"{result['velocity_error_p50_mps']}, captures with a phantom mover "
+        f"{result['phantom_movers_share']:.1%}"
     )
     for step in result["lighting_steps"]:  # type: ignore[attr-defined]
         print(

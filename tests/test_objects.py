@@ -1144,16 +1144,43 @@ def test_eval_matches_static_objects_and_counts_splits_and_id_switches() -> None
     scores = score_movers(history)
     assert scores.id_switches == {"m": 1} and scores.tracked_share == {"m": 1.0}
     assert max(scores.velocity_error_mps) < 0.11
+    assert scores.phantom_share == 0.0
+    # A moving track 1.5 m from the mover, in one list of five: a phantom mover.
+    history.append(([_track(8, (2.0, 2.0), True), _track(9, (3.5, 2.0), True)], mover))
+    assert score_movers(history).phantom_share == 0.2
 
 
-def test_a_mover_missed_by_the_last_frames_is_not_swept() -> None:
+def test_a_mover_missed_by_the_last_frames_is_neither_swept_nor_reported() -> None:
+    """Where it went is a guess: the map does not sweep it and ``map/objects`` does not list it
+    (a fleet planner would steer around a person who reversed a second ago at the place it
+    turned); the tracker keeps it, and it comes back under its id when seen again."""
     tracker = ObjectTracker()
     _run_mover(tracker, (2.0, 2.0), (2.0, 0.0), 6, np.random.default_rng(8))
     seen_ns = tracker.stamp_ns
     assert tracker.sweep(0.05, seen_ns, seen_ns + FRAME_NS)
-    for k in range(1, 3):  # two captures without it
-        tracker.add("p0", seen_ns + k * FRAME_NS, [], 0.0)
-        tracker.flush(0.0, {"p0"})
+    (mover,) = [o for o in tracker.objects() if o.object_class == "moving"]
+    tracker.add("p0", seen_ns + FRAME_NS, [], 0.0)  # one capture without it: still followed
+    tracker.flush(0.0, {"p0"})
+    assert [o.id for o in tracker.objects()] == [mover.id]
+    tracker.add("p0", seen_ns + 2 * FRAME_NS, [], 0.0)  # two
+    tracker.flush(0.0, {"p0"})
+    assert tracker.sweep(0.05, tracker.stamp_ns, tracker.stamp_ns + FRAME_NS) == []
+    assert tracker.objects() == []
+    x = 2.0 + 2.0 * 8 * FRAME_NS / 1e9  # seen again where its motion carried it
+    tracker.add("p0", seen_ns + 3 * FRAME_NS, [_record((x, 2.0), (1.2, 0.8))], 0.0)
+    tracker.flush(0.0, {"p0"})
+    assert [(o.id, o.object_class) for o in tracker.objects()] == [(mover.id, "moving")]
+
+
+def test_a_track_faster_than_a_mover_drives_is_not_reported() -> None:
+    """A track whose velocity no warehouse mover reaches joined two objects (or pieces of
+    things) frame to frame: it is not swept, nor reported as an object."""
+    tracker = ObjectTracker()
+    _run_mover(tracker, (1.0, 2.0), (2.0, 0.0), 6, np.random.default_rng(9))
+    assert [o.object_class for o in tracker.objects()] == ["moving"]
+    (track,) = tracker.tracks
+    track.state[2] = tracker.config.sweep_max_speed_mps + 0.5
+    assert tracker.objects() == []
     assert tracker.sweep(0.05, tracker.stamp_ns, tracker.stamp_ns + FRAME_NS) == []
 
 

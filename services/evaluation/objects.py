@@ -154,20 +154,31 @@ class MoverScores:
     id_switches: dict[str, int]
     tracked_share: dict[str, float]
     """Per mover, the share of object lists in which a moving track followed it."""
+    phantom_share: float
+    """The share of object lists holding a moving track that follows no mover (none within
+    ``MOVER_MATCH_M``): a static object's pieces, or a wall's, taken for one that drives, which a
+    fleet planner would steer around as if it came at it."""
 
 
 def score_movers(
     history: Sequence[tuple[Sequence[TrackedObject], Sequence[TruthObject]]],
 ) -> MoverScores:
     """Over a sequence of (object list, truth at its stamp): per mover, the nearest moving track's
-    velocity error and how often the track following it changed id."""
+    velocity error and how often the track following it changed id; and how often a list holds
+    a moving track no mover is near."""
     errors: list[float] = []
     last_id: dict[str, int] = {}
     switches: dict[str, int] = {}
     seen: dict[str, int] = {}
     total: dict[str, int] = {}
+    phantom_lists = 0
     for tracks, truth in history:
         moving = [t for t in tracks if t.object_class == "moving"]
+        movers = [obj for obj in truth if obj.moving]
+        phantom_lists += any(
+            all(math.dist(t.center_m, obj.center_m[:2]) > MOVER_MATCH_M for obj in movers)
+            for t in moving
+        )
         for obj in truth:
             if not obj.moving:
                 continue
@@ -197,5 +208,8 @@ def score_movers(
                 switches[obj.name] += 1
             last_id[obj.name] = nearest.id
     return MoverScores(
-        errors, switches, {name: seen.get(name, 0) / n for name, n in total.items() if n}
+        errors,
+        switches,
+        {name: seen.get(name, 0) / n for name, n in total.items() if n},
+        phantom_lists / len(history) if history else 0.0,
     )

@@ -366,6 +366,7 @@ class Evaluator:
             "velocity_error_mps": metrics.percentiles(scores.velocity_error_mps),
             "id_switches": per_minute(scores.id_switches, object_lists),
             "movers_tracked_share": scores.tracked_share,
+            "phantom_movers_share": scores.phantom_share,
         }
 
     def ticks(self, camera_s: dict[int, npt.NDArray[np.float32]]) -> list[metrics.Tick]:
@@ -564,6 +565,10 @@ def table(result: dict[str, Any]) -> str:
         switches = ", ".join(f"{k} {n:.1f}" for k, n in result["id_switches"].items())
         lines.append(f"{'velocity_error_mps p50/p99':<28}{v['p50']:>6.2f}/{v['p99']:<5.2f}")
         lines.append(f"{'id_switches per minute':<28}  {switches}")
+        lines.append(
+            f"{'lists with a phantom mover':<28}{result['phantom_movers_share']:>6.1%}"
+            "  (a moving track on no mover)"
+        )
     for title, key, where in (
         ("object (map/objects)", "tracked_objects", "not tracked"),
         ("object (raster)", "objects", "not found in the map"),

@@ -735,7 +735,9 @@ class ObjectTracker:
         (:func:`services.fusion.seams.join_across_seams`)."""
         out = []
         for t in self.tracks:
-            if t.detections < self.config.confirm_detections:
+            if t.detections < self.config.confirm_detections or (
+                t.moving and not self._followed(t)
+            ):
                 continue
             length, width, yaw, top, partial, unsure, round_ = t.size(self.config)
             moving = t.moving
@@ -774,11 +776,9 @@ class ObjectTracker:
         until ``until_ns`` along its velocity: where it is while the map that shows it is read."""
         out = []
         for t in self.tracks:
-            velocity = t.state[2:4]
-            if not t.moving or math.hypot(*velocity) > self.config.sweep_max_speed_mps:
+            if not t.moving or not self._followed(t):
                 continue
-            if self.stamp_ns - t.stamp_ns > self.config.sweep_missed_frames * self.ahead_s() * 1e9:
-                continue  # missed by the last frames: where it went is a guess, not a prediction
+            velocity = t.state[2:4]
             (length, width), yaw = self._footprint(t)
             if max(length, width) > self.config.max_size_m:
                 continue  # a broken detection's: no sweep, as no wake
@@ -789,6 +789,17 @@ class ObjectTracker:
             b = corners(tuple(t.state[:2] + velocity * end_s), (length, width), yaw)
             out.append(polygon_cells(convex_hull(np.vstack([a, b])), resolution_m))
         return out
+
+    def _followed(self, track: Track) -> bool:
+        """Whether a moving track follows its mover: seen by the last ``sweep_missed_frames``
+        frame intervals (else where it went is a guess, not a prediction: a person that reversed
+        goes on as another track while this one waits out ``lost_after_s``), at no more than
+        ``sweep_max_speed_mps``. Only such a track is swept and reported."""
+        return (
+            math.hypot(*track.state[2:4]) <= self.config.sweep_max_speed_mps
+            and self.stamp_ns - track.stamp_ns
+            <= self.config.sweep_missed_frames * self.ahead_s() * 1e9
+        )
 
     def movers_now(self, resolution_m: float) -> list[tuple[Window, npt.NDArray[np.bool_]]]:
         """The cells of each moving track's footprint at the newest capture (a track missed by
