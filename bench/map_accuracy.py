@@ -122,8 +122,10 @@ def run(
             if tile.window.cols:
                 grid.integrate_tile(tile, stamp_ns)
             pair = capture.calibration.pair
-            found = detections_header(pipeline.detect_objects(result), pair, k, stamp_ns).detections
-            tracker.add(pair, stamp_ns, list(found), k / rate_hz)
+            found = detections_header(
+                pipeline.detect_objects(result), pair, k, stamp_ns, pipeline.camera_m
+            )
+            tracker.add(pair, stamp_ns, list(found.detections), k / rate_hz, found.camera_m)
         if tracker.flush(k / rate_hz, {capture.calibration.pair for capture in captures}):
             outlined, tops, _ = serve_tracks(grid, tracker, outline_static)  # as fusion does
             grid.set_predicted(outlined + tops)

@@ -249,11 +249,25 @@ class DetectionsHeader(_Header):
     seq: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
     detections: list[DetectionRecord] = Field(max_length=MAX_DETECTIONS)
+    camera_m: tuple[float, float, float] | None = Field(
+        default=None,
+        description="where the camera the points were measured from stands (world x, y, z): a "
+        "top measured too low lies on its pixels' rays, larger about this camera's nadir",
+    )
 
     @field_validator("pair")
     @classmethod
     def _pair_id(cls, pair: str) -> str:
         return check_pair_id(pair)
+
+    @field_validator("camera_m")
+    @classmethod
+    def _finite_camera(
+        cls, camera_m: tuple[float, float, float] | None
+    ) -> tuple[float, float, float] | None:
+        if camera_m is not None and not all(math.isfinite(v) for v in camera_m):
+            raise ValueError("camera position values must be finite")
+        return camera_m
 
 
 class TrackedObject(Footprint):

@@ -8,11 +8,17 @@ import math
 import random
 import time
 
+import numpy as np
 import pytest
 
 from common.footprints import polygons_overlap
 from common.messages import MAX_DETECTIONS, DetectionRecord
-from services.fusion.capture_merge import merge_capture, merge_groups, observation_polygon
+from services.fusion.capture_merge import (
+    at_top,
+    merge_capture,
+    merge_groups,
+    observation_polygon,
+)
 
 GAP_M = 0.1
 
@@ -91,3 +97,36 @@ def test_a_capture_of_many_detections_is_merged_at_once() -> None:
     start_s = time.perf_counter()
     merge_capture(detections, GAP_M)
     assert time.perf_counter() - start_s < 2.0
+
+
+def test_a_top_measured_low_is_put_back_on_its_rays() -> None:
+    """A 1.2 × 0.8 m top 1.1 m up, 0.5 m from the nadir of a camera 6 m up, measured at 0.19 m:
+    its pixels' rays meet 0.19 m at (6 − 0.19) / (6 − 1.1) times the distances from the nadir.
+    Put back at 1.1 m, it is the top again, outline and all."""
+    camera = (3.0, 2.0, 6.0)
+    scale = (6.0 - 0.19) / (6.0 - 1.1)
+    true_center = (3.5, 2.0)
+
+    def seen(point: tuple[float, float]) -> tuple[float, float]:
+        return camera[0] + (point[0] - camera[0]) * scale, camera[1] + (
+            point[1] - camera[1]
+        ) * scale
+
+    corners_true = [(2.9, 1.6), (4.1, 1.6), (4.1, 2.4), (2.9, 2.4)]
+    low = DetectionRecord(
+        center_m=seen(true_center),
+        size_m=(1.2 * scale, 0.8 * scale),
+        yaw_rad=0.0,
+        top_m=0.19,
+        points=3000,
+        partial=False,
+        low=True,
+        outline_m=tuple(seen(c) for c in corners_true),
+    )
+    lifted = at_top(low, camera, 1.1)
+    assert lifted.top_m == 1.1 and not lifted.low
+    assert math.dist(lifted.center_m, true_center) < 1e-9
+    assert lifted.size_m == pytest.approx((1.2, 0.8))
+    assert np.allclose(lifted.outline_m, corners_true)
+    assert at_top(low, (3.0, 2.0, 1.0), 1.1) is low  # a camera below the top: no rays to follow
+    assert at_top(low, (3.0, 2.0, 1.3), 1.1) is low  # shrunk to a fifth: a wrong camera

@@ -222,6 +222,34 @@ def test_detections_with_a_bad_value_are_rejected(field: str, value: object, rea
     assert rejected.value.reason == reason
 
 
+@pytest.mark.parametrize(
+    ("camera", "reason"),
+    [
+        ([2.0, 3.0, 6.0], None),
+        ([1500.0, 3.0, 6.0], None),  # a wall-mounted camera beside the site
+        ([1e30, 3.0, 6.0], "camera"),  # a mover lifted toward it would be carried there
+        ([2.0, 3.0, 0.0], "camera"),
+        ([2.0, 3.0, 1e6], "camera"),
+        ([2.0, math.inf, 6.0], "malformed"),
+        ([2.0, 3.0], "malformed"),
+    ],
+)
+def test_detections_say_where_their_camera_stands_over_the_site(
+    camera: list[float], reason: str | None
+) -> None:
+    envelope = msgpack.unpackb(encode(DETECTIONS_KIND, _detections()))
+    envelope["header"]["camera_m"] = camera
+    payload = msgpack.packb(envelope)
+    gate = TileGate(resolution_m=0.05, max_age_s=2.0, max_bytes=1_000_000, site=SITE)
+    if reason is None:
+        header = decode_detections(payload, "depth/p0/objects", time.time_ns(), gate)
+        assert header.camera_m == tuple(camera)
+        return
+    with pytest.raises(Rejected) as rejected:
+        decode_detections(payload, "depth/p0/objects", time.time_ns(), gate)
+    assert rejected.value.reason == reason
+
+
 def test_more_detections_than_a_frame_holds_are_rejected() -> None:
     """Thousands in one message (a broken or forged pair) stalled the tracker for minutes."""
     now_ns = time.time_ns()

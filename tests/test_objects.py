@@ -1172,6 +1172,43 @@ def test_a_mover_missed_by_the_last_frames_is_neither_swept_nor_reported() -> No
     assert [(o.id, o.object_class) for o in tracker.objects()] == [(mover.id, "moving")]
 
 
+@pytest.mark.parametrize(
+    ("camera", "partial", "lifted"),
+    [(True, False, True), (False, False, False), (True, True, False)],
+)
+def test_a_movers_view_measured_low_under_a_camera_is_put_back_at_its_top(
+    camera: bool, partial: bool, lifted: bool
+) -> None:
+    """Near a pair's nadir a plain top is matched nowhere and filled at the fattened floor's
+    height: a forklift (1.2 × 0.8 m, 1 m up) measured at 0.19 m lies 1.16 times as large about
+    that nadir. Its moving track, measured whole at 1 m, puts the view back on its rays, to its
+    size and place; not without the camera's place, nor a partial view (a view's edge may have
+    cut the top off)."""
+    tracker = ObjectTracker()
+    _run_mover(tracker, (2.0, 2.0), (2.0, 0.0), 8, np.random.default_rng(11))
+    (track,) = tracker.tracks
+    assert track.moving
+    stamp = T0_NS + 8 * FRAME_NS
+    true_xy = (2.0 + 2.0 * 8 * FRAME_NS / 1e9, 2.0)
+    nadir = (true_xy[0] + 0.4, true_xy[1] - 0.2, 6.0)
+    scale = (6.0 - 0.19) / (6.0 - 1.0)
+    seen_xy = (
+        nadir[0] + (true_xy[0] - nadir[0]) * scale,
+        nadir[1] + (true_xy[1] - nadir[1]) * scale,
+    )
+    low = _record(seen_xy, (1.2 * scale, 0.8 * scale), partial=partial, top=0.19, low=True)
+    tracker.add("p0", stamp, [low], 0.0, nadir if camera else None)
+    tracker.flush(0.0, {"p0"})
+    view = tracker.wake_footprints[-1]
+    assert view.stamp_ns == stamp
+    x, y, length, width, _ = view.rectangle
+    if lifted:
+        assert math.dist((x, y), true_xy) < 1e-6
+        assert (length, width) == pytest.approx((1.2, 0.8))
+    else:
+        assert length == pytest.approx(1.2 * scale)
+
+
 def test_a_track_faster_than_a_mover_drives_is_not_reported() -> None:
     """A track whose velocity no warehouse mover reaches joined two objects (or pieces of
     things) frame to frame: it is not swept, nor reported as an object."""

@@ -315,16 +315,21 @@ def detect_objects(
 
 
 def detections_header(
-    detections: list[Detection], pair: str, seq: int, stamp_ns: int
+    detections: list[Detection],
+    pair: str,
+    seq: int,
+    stamp_ns: int,
+    camera_m: tuple[float, float, float] | None = None,
 ) -> DetectionsHeader:
-    """``depth/{pair}/objects`` of one frame: the tile's pair, seq and capture stamp; beyond
-    MAX_DETECTIONS objects, those measured from the most points."""
+    """``depth/{pair}/objects`` of one frame: the tile's pair, seq and capture stamp, and where
+    its camera stands; beyond MAX_DETECTIONS objects, those measured from the most points."""
     if len(detections) > MAX_DETECTIONS:
         detections = sorted(detections, key=lambda d: d.points, reverse=True)[:MAX_DETECTIONS]
     return DetectionsHeader(
         pair=pair,
         seq=seq,
         stamp_ns=stamp_ns,
+        camera_m=camera_m,
         detections=[
             DetectionRecord(
                 center_m=d.center_xy_m,

@@ -316,6 +316,13 @@ class DepthPipeline:
         )
         return refine_on_edges(found, result.left_rect, self.image_view)
 
+    @property
+    def camera_m(self) -> tuple[float, float, float]:
+        """Where the camera the points are measured from stands (world x, y, z): sent with the
+        frame's objects (``DetectionsHeader.camera_m``)."""
+        x, y, z = (float(v) for v in self.rectifier.C_world)
+        return x, y, z
+
     def floor_health(self) -> dict[str, object]:
         """The floor model's state for ``depth/{pair}/health``."""
         model = self.floor_model

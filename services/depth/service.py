@@ -229,7 +229,10 @@ class TilePublisher:
         started = time.perf_counter()
         detections = pipeline.detect_objects(result)
         self._objects.put(
-            encode(DETECTIONS_KIND, detections_header(detections, self.pair, seq, stamp_ns))
+            encode(
+                DETECTIONS_KIND,
+                detections_header(detections, self.pair, seq, stamp_ns, pipeline.camera_m),
+            )
         )
         stage_ms["objects"] = (time.perf_counter() - started) * 1e3
         self.stage_ms_sum.update(stage_ms)

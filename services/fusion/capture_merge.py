@@ -67,6 +67,35 @@ def _around(views: list[F64]) -> tuple[tuple[float, float], tuple[float, float],
     return (cx, cy), (length, width), yaw, hull
 
 
+def at_top(
+    record: DetectionRecord, camera_m: tuple[float, float, float], top_m: float
+) -> DetectionRecord:
+    """``record`` with its top put at ``top_m`` on the same rays from the camera at ``camera_m``
+    that measured it: a top measured too low lies farther along them, larger about the camera's
+    nadir by (camera height − ``top_m``) / (camera height − its top). Unchanged if the camera
+    is not above both heights, or if that would shrink it by more than half (no top is measured
+    so far off: a wrong camera, or a wrong track)."""
+    x, y, z = camera_m
+    if z <= max(top_m, record.top_m):
+        return record
+    scale = (z - top_m) / (z - record.top_m)
+    if scale < 0.5:
+        return record
+
+    def moved(point: tuple[float, float]) -> tuple[float, float]:
+        return x + (point[0] - x) * scale, y + (point[1] - y) * scale
+
+    return record.model_copy(
+        update={
+            "center_m": moved(record.center_m),
+            "size_m": (record.size_m[0] * scale, record.size_m[1] * scale),
+            "top_m": top_m,
+            "low": False,
+            "outline_m": tuple(moved(vertex) for vertex in record.outline_m),
+        }
+    )
+
+
 def merge_capture(detections: list[tuple[str, DetectionRecord]], gap_m: float) -> list[Observation]:
     """Detections of one capture from every pair → one observation per object
     (:func:`merge_groups`): a complete view wins; partial views alone are joined into the

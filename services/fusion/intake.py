@@ -37,6 +37,7 @@ REASONS = (
     "future",
     "out_of_order",
     "pair",
+    "camera",
     "outside_map",
     "outside_extent",
     "growth",
@@ -220,8 +221,29 @@ def decode_detections(payload: bytes, key: str, now_ns: int, gate: TileGate) -> 
         if site is not None:
             check_on_site(detection, site, gate.resolution_m, gate.bounded)
         check_footprint(detection, longest_m)
+    if header.camera_m is not None:
+        check_camera(header.camera_m, site, gate.resolution_m, longest_m)
     check_stamp(header.stamp_ns, now_ns, gate.max_age_ns)
     return header
+
+
+def check_camera(
+    camera_m: tuple[float, float, float], site: Window | None, resolution_m: float, reach_m: float
+) -> None:
+    """A pair's camera above the floor (up to :data:`HEIGHT_RANGE_M`) and over the site or
+    within ``reach_m`` of it: the tracker moves a view measured too low along the rays from it
+    (``ObjectTracker._at_mover_top``), and one forged 1e30 m away would carry a mover there."""
+    x, y, z = camera_m
+    if not 0.0 < z <= HEIGHT_RANGE_M[1]:
+        raise Rejected("camera", f"a camera {z:.6g} m up is not above the floor by 0 … 100 m")
+    if site is None:
+        return
+    x0, y0, x1, y1 = site.bounds_m(resolution_m)
+    off_m = math.hypot(max(x0 - x, 0.0, x - x1), max(y0 - y, 0.0, y - y1))
+    if off_m > reach_m:
+        raise Rejected(
+            "camera", f"a camera at ({x:.6g}, {y:.6g}) m stands {off_m:.6g} m off the site"
+        )
 
 
 def check_on_site(

@@ -65,6 +65,7 @@ from common.lattice import Window
 from common.messages import DetectionRecord, TrackedObject
 from services.fusion.capture_merge import (
     Observation,
+    at_top,
     join_pieces,
     merge_capture,
     observation_polygon,
@@ -121,6 +122,13 @@ class TrackerConfig:
     """A track turns only onto a view no larger than this times its size along an axis (a person
     is not a forklift), nor smaller along both (a forklift is not a person; a piece of it may
     be): :meth:`ObjectTracker._fits`."""
+    mover_top_drop_m: float = 0.3
+    """A pair's detection of a moving track whose top reads this much or more below the track's
+    (measured whole) is put back at the track's top on its rays (:func:`at_top`): a plain top
+    within a metre of a pair's nadir, its sides hidden, matched nowhere and filled at the height
+    of the fattened floor around it (the forklift's at 0.19–0.45 m), lies larger about that
+    nadir (1.4–1.55 × 0.96–1.18 m for 1.2 × 0.8). Offline, 20 s: the default scene's forklift
+    views so put back at its true top raised IoU 0.889 → 0.894, ``--seed 2`` 0.820 → 0.830."""
     sweep_max_s: float = 1.5
     """A sweep reaches at most this far past the track's last capture."""
     sweep_missed_frames: float = 1.5
@@ -398,11 +406,21 @@ class ObjectTracker:
     late: Counter[str] = field(default_factory=Counter)
     """Per live pair, detections dropped as late: their capture came after a later one was
     tracked (a filter steps forward in time only)."""
+    cameras_m: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    """Per pair, where its camera stands (``DetectionsHeader.camera_m``), as it last said."""
 
     def add(
-        self, pair: str, stamp_ns: int, detections: list[DetectionRecord], now_s: float
+        self,
+        pair: str,
+        stamp_ns: int,
+        detections: list[DetectionRecord],
+        now_s: float,
+        camera_m: tuple[float, float, float] | None = None,
     ) -> None:
-        """One pair's detections of one frame (an empty list says it saw nothing: still counts)."""
+        """One pair's detections of one frame (an empty list says it saw nothing: still counts),
+        and where its camera stands if it says."""
+        if camera_m is not None:
+            self.cameras_m[pair] = camera_m
         self.captures.add(pair, stamp_ns, detections, now_s)
 
     def flush(self, now_s: float, live_pairs: set[str]) -> bool:
@@ -412,9 +430,32 @@ class ObjectTracker:
             if group <= self.stamp_ns:  # older than a capture already processed
                 self.late.update(pair for pair, _ in detections if pair in live_pairs)
                 continue
-            self.update(group, merge_capture(detections, self.config.merge_gap_m))
+            lifted = [(pair, self._at_mover_top(pair, d, group)) for pair, d in detections]
+            self.update(group, merge_capture(lifted, self.config.merge_gap_m))
             changed = True
         return changed
+
+    def _at_mover_top(self, pair: str, record: DetectionRecord, stamp_ns: int) -> DetectionRecord:
+        """``record`` put back at the top of the moving track it is a view of, where it reads
+        ``mover_top_drop_m`` or more below it (:attr:`TrackerConfig.mover_top_drop_m`): the
+        track's size from complete views, the record complete (a partial one's top may be where
+        the image's edge cut the object: the person's lower half at a seam, lifted, went 0.4 m
+        off), of that size (:meth:`_fits`; not a neighbour's, nor a piece) and within
+        ``gate_min_m`` of where the track is predicted at ``stamp_ns``."""
+        camera_m = self.cameras_m.get(pair)
+        if camera_m is None or record.partial:  # a view's edge may cut a tall object's top off
+            return record
+        for track in self.tracks:
+            if not track.moving or not self._followed(track):
+                continue
+            _, _, _, top_m, partial, *_ = track.size(self.config)
+            if partial or record.top_m > top_m - self.config.mover_top_drop_m:
+                continue
+            state, _ = self._predict(track, stamp_ns)
+            near = math.dist(record.center_m, (float(state[0]), float(state[1])))
+            if near <= self.config.gate_min_m and self._fits(track.size(self.config), record):
+                return at_top(record, camera_m, top_m)
+        return record
 
     def forget(self) -> None:
         """Every track ends: no capture has come for longer than the map keeps evidence. The gap
@@ -602,7 +643,7 @@ class ObjectTracker:
         """How far the track's velocity carries it from its last centre to ``stamp_ns``."""
         return math.hypot(*track.state[2:4]) * track.unseen_s(stamp_ns)
 
-    def _fits(self, size: TrackSize, obs: Observation) -> bool:
+    def _fits(self, size: TrackSize, obs: Observation | DetectionRecord) -> bool:
         """Whether ``obs`` is the object of a track of ``size`` (``size_ratio``): neither larger
         along an axis nor smaller along both."""
         length, width, *_ = size

@@ -276,7 +276,7 @@ class FusionState:
     def _detections(self, delivery: Delivery) -> None:
         """One pair's objects of one frame: held until the rest of the capture arrives."""
         h = decode_detections(delivery.payload, delivery.key, delivery.arrival_ns, self.gate)
-        self.tracker.add(h.pair, h.stamp_ns, list(h.detections), time.monotonic())
+        self.tracker.add(h.pair, h.stamp_ns, list(h.detections), time.monotonic(), h.camera_m)
 
     def _presence(self, delivery: Delivery) -> None:
         presence = decode_presence(delivery.key, delivery.alive)
