@@ -19,7 +19,15 @@ import zenoh
 from common import keys
 from common.camera import StereoCalibration
 from common.codec import WIRE_ENCODING, decode, encode
-from common.messages import CALIB_KIND, STEREO_KIND, TILE_KIND, StereoFrameHeader, TileHeader
+from common.messages import (
+    CALIB_KIND,
+    DETECTIONS_KIND,
+    STEREO_KIND,
+    TILE_KIND,
+    DetectionsHeader,
+    StereoFrameHeader,
+    TileHeader,
+)
 from common.png import encode_png
 from services.camera_sim.render import SceneRenderer
 from services.camera_sim.rig import RigSpec, layout_pairs
@@ -64,6 +72,13 @@ def _alive(session: zenoh.Session) -> set[str]:
 
 def test_depth_turns_frames_into_tiles_and_survives_bad_frames(bus: Bus) -> None:
     sink = TileSink(bus.session)
+    objects: list[DetectionsHeader] = []
+    objects_sub = bus.session.declare_subscriber(
+        "depth/p0/objects",
+        lambda s: objects.append(
+            decode(s.payload.to_bytes(), DETECTIONS_KIND, DetectionsHeader).header
+        ),
+    )
     bus.start("camera-sim", "--pair-count", "1", "--rate-hz", "4", "--frames", "400")
     depth = bus.start("depth", "--pair", "p0")
     wait_for(lambda: sink.count() >= 3, 60, "three tiles from the depth process")
@@ -71,6 +86,13 @@ def test_depth_turns_frames_into_tiles_and_survives_bad_frames(bus: Bus) -> None
     assert first.pair == "p0" and first.resolution_m == 0.05
     assert {"rectify", "disparity", "projection", "model", "encode"} <= set(first.stage_ms)
     assert "p0" in _alive(bus.session)
+    # Each frame's objects say where the pair's camera stands (fusion lifts a mover's view
+    # measured too low along its rays): over the floor the sim's one pair watches, 6 m up.
+    wait_for(lambda: bool(objects), 30, "the objects of a frame")
+    (calib,) = layout_pairs(RigSpec(pair_count=1), generate_scene(0).floor_size_m)
+    # (The sim publishes its calibration with a realistic error of a few millimetres.)
+    assert objects[0].camera_m == pytest.approx(tuple(calib.left.position_world), abs=0.05)
+    objects_sub.undeclare()
 
     # Malformed input on the pair's key: random bytes, a wrong-typed header, a frame of the wrong size.
     # Blocking, as the camera sim publishes: zenoh's default drops a put when its queue is
