@@ -92,7 +92,7 @@ def test_depth_turns_frames_into_tiles_and_survives_bad_frames(bus: Bus) -> None
     (calib,) = layout_pairs(RigSpec(pair_count=1), generate_scene(0).floor_size_m)
     # (The sim publishes its calibration with a realistic error of a few millimetres.)
     assert objects[0].camera_m == pytest.approx(tuple(calib.left.position_world), abs=0.05)
-    objects_sub.undeclare()
+    objects_sub.undeclare()  # type: ignore[no-untyped-call]
 
     # Malformed input on the pair's key: random bytes, a wrong-typed header, a frame of the wrong size.
     # Blocking, as the camera sim publishes: zenoh's default drops a put when its queue is
