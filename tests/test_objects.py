@@ -1207,6 +1207,9 @@ def test_a_movers_view_measured_low_under_a_camera_is_put_back_at_its_top(
         assert (length, width) == pytest.approx((1.2, 0.8))
     else:
         assert length == pytest.approx(1.2 * scale)
+    assert ("p0" in tracker.cameras_m) is camera
+    tracker.flush(0.0, set())  # the pair left: where its camera stood is forgotten
+    assert tracker.cameras_m == {}
 
 
 def test_a_track_faster_than_a_mover_drives_is_not_reported() -> None:

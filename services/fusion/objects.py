@@ -407,7 +407,7 @@ class ObjectTracker:
     """Per live pair, detections dropped as late: their capture came after a later one was
     tracked (a filter steps forward in time only)."""
     cameras_m: dict[str, tuple[float, float, float]] = field(default_factory=dict)
-    """Per pair, where its camera stands (``DetectionsHeader.camera_m``), as it last said."""
+    """Per live pair, where its camera stands (``DetectionsHeader.camera_m``), as it last said."""
 
     def add(
         self,
@@ -425,6 +425,8 @@ class ObjectTracker:
 
     def flush(self, now_s: float, live_pairs: set[str]) -> bool:
         """Process every complete (or waited-for) capture in stamp order; True if tracks changed."""
+        for gone in set(self.cameras_m) - live_pairs:  # a pair that left, or a forged one
+            del self.cameras_m[gone]
         changed = False
         for group, detections in self.captures.ready(now_s, live_pairs):
             if group <= self.stamp_ns:  # older than a capture already processed
