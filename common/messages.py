@@ -275,8 +275,8 @@ class TrackedObject(Footprint):
     static until it is seen to move, and ``settled`` once it has stood still for the tracker's
     ``static_after_s``: a settled object never becomes moving (a moved one ends and a new track
     begins), while one not yet settled may (a mover entering a view reads static for its first
-    second). The footprint is where it was last measured (``last_seen_ns``): for a mover out of
-    view since, its velocity says where it has gone."""
+    second). The footprint is where it was last measured (``last_seen_ns``): for a mover a frame
+    missed since, its velocity says where it has gone (one missed longer is not listed)."""
 
     model_config = ConfigDict(**SERVED, validate_by_name=True, serialize_by_alias=True)
 
