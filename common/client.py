@@ -152,6 +152,12 @@ CHAIN_END_WAIT_S = 0.5
 """How long a copy waits for the rest of a chain of updates (fusion sends one within
 milliseconds) before it fetches ``map/latest``: the end was lost (updates are sent best effort)
 and nothing may come after it while the map stands still."""
+SETTLE_S = 1.0
+"""A follower fetches ``map/latest`` once more this long after it began, unless an update came
+first: an update sent while its subscription was on its way to fusion never reaches it, the
+snapshot it fetched may be older than that update (fusion builds snapshots at a pace), and on a
+map that then stands still no later update shows the gap (a viewer started as a box landed
+drew the floor without it for good)."""
 CHAIN_POLL_S = 0.02
 UPDATES_BACKLOG = 64
 """Updates a follower keeps: waiting to be applied, and the recent ones it may replay onto a map it
@@ -187,8 +193,10 @@ class MapFollower:
 
     It subscribes before it fetches and keeps the recent updates, so a fetched map older than the
     newest update is brought up to date by replaying them (fusion builds ``map/latest`` snapshots
-    at a pace bounded by their cost, while updates go out at once). Updates are applied on the
-    follower's own thread (a ring channel hands them over): a fetch never blocks a Zenoh callback.
+    at a pace bounded by their cost, while updates go out at once); and it fetches once more when
+    its subscription has surely reached fusion (``SETTLE_S``), for an update sent on the way.
+    Updates are applied on the follower's own thread (a ring channel hands them over): a fetch
+    never blocks a Zenoh callback.
 
     One change of the map goes out as a chain of updates (one per group of changed chunks); the
     copy moves to the chain's end only (``final_version``), so it is never part one capture, part
@@ -263,8 +271,9 @@ class MapFollower:
     def _run(self) -> None:
         samples = iter(self._subscriber)  # ends when the subscriber is undeclared
         chain_since_s: float | None = None  # waiting for the rest of a chain since
+        settle_at_s: float | None = time.monotonic() + SETTLE_S  # the fetch after subscribing
         while True:
-            if chain_since_s is None:
+            if chain_since_s is None and settle_at_s is None:
                 sample = next(samples, None)
                 if sample is None:
                     return
@@ -273,12 +282,16 @@ class MapFollower:
                     sample = self._subscriber.handler.try_recv()
                 except zenoh.ZError:  # undeclared: closed
                     return
-                if sample is None and time.monotonic() - chain_since_s < CHAIN_END_WAIT_S:
+                wait_until_s = (
+                    settle_at_s if chain_since_s is None else chain_since_s + CHAIN_END_WAIT_S
+                )
+                if sample is None and wait_until_s is not None and time.monotonic() < wait_until_s:
                     time.sleep(CHAIN_POLL_S)
                     continue
+            settle_at_s = None  # an update came (a gap before it shows), or the settle fetch
             arrival_s = time.time()
             try:
-                if sample is None:  # the chain's end was lost: fetch past it
+                if sample is None:  # the chain's end was lost, or settling: fetch past it
                     changed = self._catch_up()
                 else:
                     changed = self._on_update(sample.payload.to_bytes())

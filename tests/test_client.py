@@ -103,6 +103,31 @@ def test_a_follower_behind_a_grown_map_fetches_until_it_has_the_newest(bus: Bus)
     queryable.undeclare()  # type: ignore[no-untyped-call]
 
 
+@pytest.mark.process
+def test_a_follower_started_as_the_map_changed_settles_on_it(bus: Bus) -> None:
+    """The last update before the map stood still went out while the follower's subscription was
+    on its way (it never arrives), and the first snapshot it fetched was older (fusion builds
+    them at a pace): with no later update to show the gap, one more fetch after it settles
+    finds the newer map."""
+    before = _map(Window(0, 0, 4, 4), 0, version=1)
+    after = _map(Window(0, 0, 4, 4), 100, version=2)
+    answers = [before]
+
+    def answer(query: zenoh.Query) -> None:
+        current = answers.pop(0) if len(answers) > 1 else answers[0]
+        query.reply("map/latest", current.to_msgpack(), encoding=WIRE_ENCODING)
+
+    queryable = bus.session.declare_queryable("map/latest", answer)
+    answers.append(after)  # the first answer is the old snapshot, every later one the new
+    with _peer(bus) as session:
+        follower = MapFollower(session, timeout_s=5)
+        assert follower.map.revision == (EPOCH, 1)
+        wait_for(lambda: follower.map.revision == (EPOCH, 2), 2 * client.SETTLE_S + 3, "settled")
+        assert follower.refetches == 1
+        follower.close()
+    queryable.undeclare()  # type: ignore[no-untyped-call]
+
+
 def test_a_closed_session_is_the_clients_own_error() -> None:
     """After ``session.close()`` the calls raised zenoh.ZError, not MapUnavailable."""
     config = zenoh.Config()
