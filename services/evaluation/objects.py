@@ -179,9 +179,7 @@ def score_movers(
             all(math.dist(t.center_m, obj.center_m[:2]) > MOVER_MATCH_M for obj in movers)
             for t in moving
         )
-        for obj in truth:
-            if not obj.moving:
-                continue
+        for obj in movers:
             total[obj.name] = total.get(obj.name, 0) + 1
             switches.setdefault(obj.name, 0)
             if not moving:

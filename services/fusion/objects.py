@@ -433,31 +433,47 @@ class ObjectTracker:
             if group <= self.stamp_ns:  # older than a capture already processed
                 self.late.update(pair for pair, _ in detections if pair in live_pairs)
                 continue
-            lifted = [(pair, self._at_mover_top(pair, d, group)) for pair, d in detections]
+            movers = self._movers_at(group)
+            lifted = [(pair, self._at_mover_top(pair, d, movers)) for pair, d in detections]
             self.update(group, merge_capture(lifted, self.config.merge_gap_m))
             changed = True
         return changed
 
-    def _at_mover_top(self, pair: str, record: DetectionRecord, stamp_ns: int) -> DetectionRecord:
-        """``record`` put back at the top of the moving track it is a view of, where it reads
-        ``mover_top_drop_m`` or more below it (:attr:`TrackerConfig.mover_top_drop_m`): the
-        track's size from complete views, the record complete (a partial one's top may be where
-        the image's edge cut the object: the person's lower half at a seam, lifted, went 0.4 m
-        off), of that size (:meth:`_fits`; not a neighbour's, nor a piece) and within
-        ``gate_min_m`` of where the track is predicted at ``stamp_ns``."""
-        camera_m = self.cameras_m.get(pair)
-        if camera_m is None or record.partial:  # a view's edge may cut a tall object's top off
-            return record
+    def _movers_at(self, stamp_ns: int) -> list[tuple[TrackSize, tuple[float, float]]]:
+        """The followed moving tracks sized from complete views: each size and where it is
+        predicted at ``stamp_ns`` (once a capture, for :meth:`_at_mover_top`)."""
+        out = []
         for track in self.tracks:
             if not track.moving or not self._followed(track):
                 continue
             size = track.size(self.config)
-            top_m, partial = size[3], size[4]
-            if partial or record.top_m > top_m - self.config.mover_top_drop_m:
-                continue
-            state, _ = self._predict(track, stamp_ns)
-            near = math.dist(record.center_m, (float(state[0]), float(state[1])))
-            if near <= self.config.gate_min_m and self._fits(size, record):
+            if not size[4]:
+                state, _ = self._predict(track, stamp_ns)
+                out.append((size, (float(state[0]), float(state[1]))))
+        return out
+
+    def _at_mover_top(
+        self,
+        pair: str,
+        record: DetectionRecord,
+        movers: list[tuple[TrackSize, tuple[float, float]]],
+    ) -> DetectionRecord:
+        """``record`` put back at the top of the moving track it is a view of (``movers``:
+        :meth:`_movers_at`), where it reads ``mover_top_drop_m`` or more below it
+        (:attr:`TrackerConfig.mover_top_drop_m`): the record complete (a partial one's top may be
+        where the image's edge cut the object: the person's lower half at a seam, lifted, went
+        0.4 m off), of the track's size (:meth:`_fits`; not a neighbour's, nor a piece) and
+        within ``gate_min_m`` of where the track is predicted."""
+        camera_m = self.cameras_m.get(pair)
+        if camera_m is None or record.partial:  # a view's edge may cut a tall object's top off
+            return record
+        for size, centre in movers:
+            top_m = size[3]
+            if (
+                record.top_m <= top_m - self.config.mover_top_drop_m
+                and math.dist(record.center_m, centre) <= self.config.gate_min_m
+                and self._fits(size, record)
+            ):
                 return at_top(record, camera_m, top_m)
         return record
 
