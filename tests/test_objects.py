@@ -851,7 +851,8 @@ def test_the_cells_just_outside_a_static_objects_footprint_are_its_fringe() -> N
     the map shows: ``partial``), and a box every view of which is cut by the image border at its
     right side (its size a lower bound), which the map shows going on past that side. The whole
     box's ring is its fringe, served unknown, out to ``fringe_reach_m`` (a streak of fattening 25
-    cm long, and the small box's ring within that reach) less the small box's cells; the cut
+    cm long, a stray hit apart from it, and the small box's ring within that reach) less the
+    small box's cells; the cut
     box's ring is its fringe only where free floor lies beyond it within its shorter reach, not
     past its cut side; the floor two cells out stays free and the boxes' own cells stay
     occupied, as does the streak beyond the reach."""
@@ -867,6 +868,8 @@ def test_the_cells_just_outside_a_static_objects_footprint_are_its_fringe() -> N
     put(Window(99, 23, 14, 10), 4.0)  # partial box x 5.0–5.6, y 1.2–1.6, and a cell round it
     put(Window(113, 24, 3, 8), 4.0)  # … going on past its cut side to x = 5.8
     put(Window(22, 17, 1, 6), 4.0)  # a streak below the whole box at x 1.1–1.15, y 0.85–1.15
+    put(Window(26, 35, 1, 1), 4.0)  # stray hits above it, free floor between: 17.5 cm out …
+    put(Window(26, 38, 1, 1), 4.0)  # … and 32.5 cm out
     tracker = ObjectTracker()
     views = [
         _record((1.3, 1.4), (0.6, 0.4)),
@@ -882,8 +885,10 @@ def test_the_cells_just_outside_a_static_objects_footprint_are_its_fringe() -> N
 
     fringe = [(0.975, 1.4), (1.3, 1.175), (1.3, 1.625), (0.975, 1.175), (1.625, 1.225)]
     fringe += [(1.125, 1.125), (1.125, 0.975), (1.825, 1.4)]  # 7.5, 22.5 cm out; the small box's
+    fringe += [(1.325, 1.775)]  # a stray hit, not connected to the box
     fringe += [(4.975, 1.4), (5.3, 1.625), (4.975, 1.175)]  # the cut box's, free floor beyond
-    beyond = [(5.625, 1.4), (1.125, 0.925), (1.125, 0.875)]  # past the cut side; 27.5, 32.5 cm
+    beyond = [(5.625, 1.4), (1.125, 0.925), (1.125, 0.875), (1.325, 1.925)]  # past the cut
+    # side; 27.5, 32.5 cm out
     tops = [(1.3, 1.4), (1.625, 1.4), (1.7, 1.4), (5.3, 1.4)]  # (1.625, 1.4): the small box's
     floor = [(0.925, 1.4), (1.3, 1.675)]
     assert all(served(*cell) >= OCCUPIED_MIN for cell in fringe)  # the frames' verdict

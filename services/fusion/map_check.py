@@ -106,6 +106,8 @@ class ConnectedCells:
 
     window: Window
     connected: Mask
+    occupied: Mask
+    """Every occupied cell of the window, connected or not."""
     along_m: F64
     across_m: F64
     """Every cell's centre along the footprint's yaw and across it, from its centre."""
@@ -143,17 +145,18 @@ class ConnectedCells:
         reach_m: float,
         free_beyond: Mask | None = None,
     ) -> tuple[Window, Mask]:
-        """The connected cells whose centres lie more than ``margin_m`` and at most ``reach_m``
+        """The occupied cells whose centres lie more than ``margin_m`` and at most ``reach_m``
         outside the footprint. A cell is the object's by its centre; the frames make one occupied
         by a share of its pixels, which its side faces (tens of points on one line) and a pixel
-        or two of fattening reach from beside it. Given ``free_beyond`` (the cells the frames
+        or two of fattening reach from beside it, and the scatter of its faces' points a cell or
+        two off its ring (connected to it or not). Given ``free_beyond`` (the cells the frames
         call free, over the window: for a footprint that is a lower bound), only the cells with
         free floor beyond them, outward through other such cells: where the object goes on past
         its footprint (a side cut by the image's border, the rest of it seen by another pair)
         the cells beyond are occupied or unknown, but for the ring's cells at that side's ends,
         which can reach free floor beside the part that goes on."""
         outside_m = self.outside_m(footprint)
-        fringe = self.connected & (outside_m > margin_m) & (outside_m <= reach_m)
+        fringe = self.occupied & (outside_m > margin_m) & (outside_m <= reach_m)
         if free_beyond is not None:
             fringe &= _open_outward(free_beyond, fringe, outside_m)
         return self.window, fringe
@@ -227,6 +230,7 @@ def connected_cells(
     return ConnectedCells(
         window=window,
         connected=np.isin(labels, touched),
+        occupied=labels > 0,
         along_m=(x_m - x) * c + (y_m - y) * s,
         across_m=(y_m - y) * c - (x_m - x) * s,
         footprint_cells=(inner_window, inner),
