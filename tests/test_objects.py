@@ -852,10 +852,9 @@ def test_the_cells_just_outside_a_static_objects_footprint_are_its_fringe() -> N
     right side (its size a lower bound), which the map shows going on past that side. The whole
     box's ring is its fringe, served unknown, out to ``fringe_reach_m`` (a streak of fattening 25
     cm long, a stray hit apart from it, and the small box's ring within that reach) less the
-    small box's cells; the cut
-    box's ring is its fringe only where free floor lies beyond it within its shorter reach, not
-    past its cut side; the floor two cells out stays free and the boxes' own cells stay
-    occupied, as does the streak beyond the reach."""
+    small box's cells; the cut box's ring is its fringe only where free floor lies beyond it
+    within its shorter reach, not past its cut side; the floor two cells out stays free and the
+    boxes' own cells stay occupied, as do the streak and the hits beyond the reach."""
     resolution = 0.05
     grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 200, 100)))
 
@@ -887,8 +886,8 @@ def test_the_cells_just_outside_a_static_objects_footprint_are_its_fringe() -> N
     fringe += [(1.125, 1.125), (1.125, 0.975), (1.825, 1.4)]  # 7.5, 22.5 cm out; the small box's
     fringe += [(1.325, 1.775)]  # a stray hit, not connected to the box
     fringe += [(4.975, 1.4), (5.3, 1.625), (4.975, 1.175)]  # the cut box's, free floor beyond
-    beyond = [(5.625, 1.4), (1.125, 0.925), (1.125, 0.875), (1.325, 1.925)]  # past the cut
-    # side; 27.5, 32.5 cm out
+    # Past the cut side; the streak 27.5 and 32.5 cm out; a stray hit 32.5 cm out.
+    beyond = [(5.625, 1.4), (1.125, 0.925), (1.125, 0.875), (1.325, 1.925)]
     tops = [(1.3, 1.4), (1.625, 1.4), (1.7, 1.4), (5.3, 1.4)]  # (1.625, 1.4): the small box's
     floor = [(0.925, 1.4), (1.3, 1.675)]
     assert all(served(*cell) >= OCCUPIED_MIN for cell in fringe)  # the frames' verdict

@@ -32,8 +32,8 @@ Rules that shape the tracks:
   rectangle its connected cells span is handed to the grid as contested (:meth:`check_against`);
   around a static object the frames agree with, its occupied cells 1–25 cm outside its
   footprint (less every track's footprint) are handed over as its fringe (of a ``partial`` one,
-  those 1–10 cm out with free floor beyond them; of a ``size_unsure`` one, none); the cells within 1 cm
-  outside any static object's footprint, its rim, as contested (``Outline.rim``);
+  those 1–10 cm out with free floor beyond them; of a ``size_unsure`` one, none); the cells
+  within 1 cm outside any static object's footprint, its rim, as contested (``Outline.rim``);
 - a size is the median of the views seen whole; fewer than four of them, or views that disagree,
   make it ``size_unsure`` (:func:`_views_unsure`);
 - the object list (not the tracks, nor the map's outlines) joins static partial tracks a seam's
