@@ -239,11 +239,7 @@ class DepthPipeline:
             self.config.model,
             self.config.min_cell_pixels,
             self._hidden_floor_xy(valid_px, points),
-            (
-                float(self.rectifier.C_world[0]),
-                float(self.rectifier.C_world[1]),
-                float(self.rectifier.C_world[2]),
-            ),
+            self.camera_m,
             self.top_out_of_view[valid_px],
             None if self.floor_model is None else self.floor_model.inferred.ravel()[valid_px],
         )

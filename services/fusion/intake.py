@@ -235,7 +235,9 @@ def check_camera(
     (``ObjectTracker._at_mover_top``), and one forged 1e30 m away would carry a mover there."""
     x, y, z = camera_m
     if not 0.0 < z <= HEIGHT_RANGE_M[1]:
-        raise Rejected("camera", f"a camera {z:.6g} m up is not 0 … 100 m above the floor")
+        raise Rejected(
+            "camera", f"a camera {z:.6g} m up is not 0 … {HEIGHT_RANGE_M[1]:g} m above the floor"
+        )
     if site is None:
         return
     x0, y0, x1, y1 = site.bounds_m(resolution_m)

@@ -219,7 +219,8 @@ def connected_cells(
     reach = reach_m
     (x0, y0), (x1, y1) = outline.min(axis=0) - reach, outline.max(axis=0) + reach
     window = Window.covering(float(x0), float(y0), float(x1), float(y1), resolution_m)
-    labels, _ = label(cells.occupied_in(window), structure=np.ones((3, 3), np.int8))
+    occupied = cells.occupied_in(window)
+    labels, _ = label(occupied, structure=np.ones((3, 3), np.int8))
     part = inner_window.intersect(window)
     touched = labels[part.slices_in(window)][inner[part.slices_in(inner_window)]]
     touched = np.unique(touched[touched > 0])
@@ -230,7 +231,7 @@ def connected_cells(
     return ConnectedCells(
         window=window,
         connected=np.isin(labels, touched),
-        occupied=labels > 0,
+        occupied=occupied,
         along_m=(x_m - x) * c + (y_m - y) * s,
         across_m=(y_m - y) * c - (x_m - x) * s,
         footprint_cells=(inner_window, inner),
