@@ -67,7 +67,10 @@ Evidence rules (what :meth:`FloorModel.update` returns as the disparity the tile
    upper quartile's height: a plain top whose one measured edge cannot bridge it (the other lies
    beside the occlusion). Measurements above the band (the matcher's picks at the top of its
    search) do not count. Like 6 and 7, it only ever adds obstacles or takes evidence away, never
-   clears a cell. Not in a frame that re-learns: there the whole image departs.
+   clears a cell. Not in a frame that re-learns: there the whole image departs. Nor, on a
+   textured floor, where the left image shows its floor's grey with texture along x: there the
+   right camera cannot see the floor past a top's image-left edge (the left-occluded band),
+   which the left one shows.
    What 7 and 8 infer stands on the footprint it hides: where the image shows floor (observed,
    or measured low, over a pixel and its neighbours) straight below the inferred point, that
    point is a face below a top's edge, not the top. It takes the highest of a few lower heights
@@ -777,7 +780,7 @@ class FloorModel:
             disparity - self.matcher_offset_px,
         ).astype(np.float32)
 
-        both_match, departed, covered, grey_alike = self._match(left, warped, inside)
+        both_match, departed, covered, grey_alike, left_alike = self._match(left, warped, inside)
         height_now = self.geometry.height_m(measured)
         # Rule 12: where something was put down, the background vouches for nothing.
         put_down = self._put_down_tops(test, height_now)
@@ -834,7 +837,10 @@ class FloorModel:
         filled = (
             np.zeros_like(departs)
             if relearn
-            else self._fill_departed_regions(measured, ~np.isfinite(measured) & ~observed & departs)
+            else self._fill_departed_regions(
+                measured,
+                ~np.isfinite(measured) & ~observed & departs & ~self._left_floor(test, left_alike),
+            )
         )
         fallen = self._keep_standing(measured, bridged | filled, floor_seen)
         observed |= self._paint(matches, test, inside & ~np.isfinite(measured) & ~fallen)  # 11
@@ -956,11 +962,11 @@ class FloorModel:
         fields = gain_fields(ratios, sample, step, left.shape)
         return fields[0], fields[1]
 
-    def _match(self, left: F32, warped: F32, inside: Mask) -> tuple[Mask, float, Mask, Mask]:
+    def _match(self, left: F32, warped: F32, inside: Mask) -> tuple[Mask, float, Mask, Mask, Mask]:
         """Whether both cameras match their backgrounds at each pixel after gain normalisation
         (their grey and texture: :func:`texture_checks`); the share of modelled pixels that
-        departs (for the re-learn decision); where the left background's texture is gone; and
-        whether both match in grey alone."""
+        departs (for the re-learn decision); where the left background's texture is gone;
+        whether both match in grey alone; and whether the left one does."""
         modelled = self._modelled & inside
         self._gain = self._gains(left, warped, modelled)
         normalised = [
@@ -978,7 +984,21 @@ class FloorModel:
         )
         count = int(np.count_nonzero(modelled))
         departed = 0.0 if count < MIN_FIT_PIXELS else 1.0 - float(np.count_nonzero(both)) / count
-        return both & kept, departed, gone, both
+        return both & kept, departed, gone, both, alike[0]
+
+    def _left_floor(self, test: FloorTest, left_alike: Mask) -> Mask:
+        """Rule 8's exception: pixels where the left image shows its floor's grey with texture
+        along x, on a textured floor (a plain floor's background has no texture to show). Among
+        rule 8's holes (the right camera's floor-homography partner departs) that is the floor
+        beside a top's image-left edge which the right camera cannot see past the top, the
+        left-occluded band: baseline · top / camera height wide (9 cm beside the forklift under
+        6 m cameras 0.5 m apart). A textured pixel's measurement was dropped there (the edge
+        filter, rule 6), and filling it at the top's height stood the movers' views 10–30 cm
+        long on that side (docs/accuracy-journal.md, "The floor the right camera cannot see")."""
+        if self.plain_floor:
+            return np.zeros(self.shape, np.bool_)
+        seen: Mask = test.matchable & left_alike
+        return seen
 
     def _in_band(self, height_m: F32) -> Mask:
         """Heights in the obstacle band (NaN: not). Above it is no surface to fill or bridge with:
