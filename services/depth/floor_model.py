@@ -992,8 +992,8 @@ class FloorModel:
         rule 8's holes (the right camera's floor-homography partner departs) that is the floor
         beside a top's image-left edge which the right camera cannot see past the top, the
         left-occluded band: baseline · top / camera height wide (9 cm beside the forklift under
-        6 m cameras 0.5 m apart). A textured pixel's measurement was dropped there (the edge
-        filter, rule 6), and filling it at the top's height stood the movers' views 10–30 cm
+        6 m cameras 0.5 m apart), where the disparity chain leaves most pixels unmeasured
+        (beside a depth edge); filled at the top's height, it stood the movers' views 10–30 cm
         long on that side (docs/accuracy-journal.md, "The floor the right camera cannot see")."""
         if self.plain_floor:
             return np.zeros(self.shape, np.bool_)
