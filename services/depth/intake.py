@@ -113,10 +113,10 @@ def _encoded_image(
     _check_size(side, size, image_size)
     if encoding == "jpeg" and not jpeg_complete(blob):
         raise _Refused("undecodable", f"{side} jpeg image is cut short (no end-of-image marker)")
-    image = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
+    image = decoded_image(blob)
     if image is None:
         raise _Refused("undecodable", f"{side} {encoding} image does not decode")
-    return np.asarray(image)
+    return image
 
 
 def _check_size(side: str, size: tuple[int, int], image_size: tuple[int, int]) -> None:
@@ -125,6 +125,13 @@ def _check_size(side: str, size: tuple[int, int], image_size: tuple[int, int]) -
             "wrong_size",
             f"{side} image is {size[0]}×{size[1]}, calibration says {image_size[0]}×{image_size[1]}",
         )
+
+
+def decoded_image(blob: bytes) -> np.ndarray | None:
+    """An image file's pixels, unchanged (no colour conversion, 16 bits kept); None if it does
+    not decode. A JPEG cut short is the caller's to refuse first (:func:`jpeg_complete`)."""
+    image = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
+    return None if image is None else np.asarray(image)
 
 
 def jpeg_complete(blob: bytes) -> bool:

@@ -22,7 +22,7 @@ from pydantic import ValidationError
 
 from common.camera import StereoCalibration
 from common.setting_files import data_of, setting_file_text
-from services.depth.intake import Rejection, check_images, jpeg_complete
+from services.depth.intake import Rejection, check_images, decoded_image, jpeg_complete
 from services.depth.pipeline import DepthPipeline
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm"}
@@ -177,8 +177,7 @@ def _read_image(path: Path) -> np.ndarray | None:
         return None
     if path.suffix.lower() in (".jpg", ".jpeg") and not jpeg_complete(blob):
         return None
-    image = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_UNCHANGED)
-    return None if image is None else np.asarray(image)
+    return decoded_image(blob)
 
 
 def recorded_frames(
