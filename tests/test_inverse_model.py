@@ -260,6 +260,45 @@ def test_points_a_taller_top_hides_from_the_camera_give_no_reading() -> None:
     assert seen[32] == everything[32]  # every point of the box's cell kept
 
 
+def test_mixed_pixels_whose_rays_graze_a_taller_top_give_no_reading() -> None:
+    """A camera 3 m over the origin; a 1 m tall top over x 2.0–2.6 m (y 0–0.8 m), floor before it.
+    Past the top's shadow the matcher's mixed pixels put points at 0.5 m at x 3.30–3.34 (cell 66,
+    0.7 m beyond the top's edge): their rays pass 3–4 cm over that edge. Those points are on no
+    surface (the pixels see the floor beyond, at a disparity between the floor's and the top's),
+    and their cell gives no reading. A 0.8 m top at x 3.0–3.2 (y 0.5–0.8 m), whose rays pass
+    0.15 m over the 1 m top but which stands only 0.2 m lower (a low top's own scatter stands that
+    high beside it), and the 1 m top itself read occupied."""
+    xs: list[float] = []
+    ys: list[float] = []
+    heights: list[float] = []
+    surfaces = ((1.5, 2.0, 0.0, 0.0), (2.0, 2.6, 0.0, 1.0), (3.0, 3.2, 0.5, 0.8))
+    for start_m, end_m, from_y_m, height_m in surfaces:
+        for y_m in np.arange(from_y_m, 0.8, 0.01):  # surfaces, not lines: the rays run aslant
+            surface = [*np.arange(start_m, end_m, 0.005)]
+            xs += surface
+            ys += [y_m] * len(surface)
+            heights += [height_m] * len(surface)
+    mixed = [3.302 + 0.003 * k for k in range(12)]
+    xs += mixed
+    ys += [ROW_Y_M] * len(mixed)
+    heights += [0.5] * len(mixed)
+    points = WorldPoints(
+        x_m=np.array(xs, np.float32),
+        y_m=np.array(ys, np.float32),
+        height_m=np.array(heights, np.float32),
+        height_sigma_m=np.full(len(xs), 0.02, np.float32),
+    )
+    tile = build_tile(points, R, SensorModelParams(), 3, None, (0.0, 0.0, 3.0))
+
+    def update(i: int, j: int) -> tuple[float, int]:
+        cell = j - tile.window.j0, i - tile.window.i0
+        return float(tile.logodds[cell]), int(tile.count[cell])
+
+    assert update(66, 3) == (0.0, 0)
+    assert update(50, 3)[0] > 0.0  # the 1 m top
+    assert all(update(i, 13)[0] > 0.0 for i in (60, 61, 62, 63))  # the 0.8 m top, every cell
+
+
 def test_an_inferred_height_over_floor_the_frame_measures_gives_no_hit() -> None:
     """Band points whose height the floor model carried in (rules 7 and 8: a plain face below a
     top's edge takes the top's height and lands out over the floor in front of it) are left out

@@ -193,6 +193,11 @@ the camera, the highest points of two cells or more (not its own) stand more tha
 ray (the matcher's scatter on a top, a few centimetres; one cell is a stray: a face's upper
 points scattered a few centimetres in front of it hid its lower points, and live runs read more
 false-free) …"""
+GRAZE_M = 0.3
+"""… or where the ray passes less than this over a surface that stands …"""
+GRAZE_TALLER_M = 0.3
+"""… this much or more above the point (a depth edge that tall; below it, a low top's own scatter
+of 0.1–0.2 m, a pallet's deck beside its raised edge cells, took its points) …"""
 BEHIND_FROM_M = 0.05
 """… from this far back along the ray …"""
 BEHIND_REACH_M = 1.0
@@ -212,16 +217,21 @@ def _behind_taller(
     camera_m: tuple[float, float, float],
     band_min_m: float,
 ) -> npt.NDArray[np.bool_]:
-    """The band points that a taller surface of the same frame hides from the camera. A camera
-    cannot see a point its own measurement of a surface nearer along the ray blocks; such points
-    are a depth edge's mixed pixels: the matcher's window straddles a top's edge and the floor
-    beyond it and returns a disparity between the two, a point part way down the ray into the
-    top's shadow (a forklift's rear edge put them 15–20 cm behind it, at 0.3 m). Walks back
-    along each point's ray, half a cell a step, over the cells' highest points (``top_m``: of
-    the points the model keeps, so a surface above the band, out of its range, hides nothing).
-    Offline, thirteen scenes (20 s): IoU −0.0001 to +0.0027, precision up to +0.3 points,
-    false-free the same or lower; one blocking cell enough, +0.0000 to +0.0051 offline but live
-    more false-free (docs/accuracy-journal.md, "Points a taller top hides from the camera")."""
+    """The band points that a taller surface of the same frame hides from the camera, or whose
+    ray grazes one. A camera cannot see a point its own measurement of a surface nearer along the
+    ray blocks; such points are a depth edge's mixed pixels: the matcher's window straddles a
+    top's edge and the floor beyond it and returns a disparity between the two, a point part way
+    down the ray into the top's shadow (a forklift's rear edge put them 15–20 cm behind it, at
+    0.3 m). The same edge's mixed pixels just past the shadow, which see the floor beyond, have
+    rays that pass over the top's edge (by 0.1–0.3 m where traced), and their points stand on no
+    surface: a line of false-occupied cells along the shadow's edge beyond a 1.46 m box on a
+    plain floor, at 0.3–0.45 m. Walks back along each point's ray, half a cell a
+    step, over the cells' highest points (``top_m``: of the points the model keeps, so a surface
+    above the band, out of its range, hides nothing). Offline, thirteen scenes (20 s): IoU
+    −0.0001 to +0.0027 for hidden points, precision up to +0.3 points, false-free the same or
+    lower; one blocking cell enough, +0.0000 to +0.0051 offline but live more false-free
+    (docs/accuracy-journal.md, "Points a taller top hides from the camera"); grazed ones as well,
+    +0.0003 to +0.0054, false-free the same (docs/accuracy-journal.md, "Rays that graze a top")."""
     i0, j0, cols, rows = window_ij
     camera_x, camera_y, camera_z = camera_m
     behind = np.zeros(flat.size, np.bool_)
@@ -237,7 +247,7 @@ def _behind_taller(
             continue
         rise = (camera_z - height) / distance_m
         # Past where the ray clears the frame's highest point, nothing can stand above it.
-        reach_m = min(BEHIND_REACH_M, distance_m, (highest_m - BEHIND_MARGIN_M - height) / rise)
+        reach_m = min(BEHIND_REACH_M, distance_m, (highest_m + GRAZE_M - height) / rise)
         along_m = BEHIND_FROM_M
         first_cell = -1  # a surface hides the point from two cells on: one is a stray point
         while along_m < reach_m:
@@ -249,7 +259,11 @@ def _behind_taller(
             if cell == flat[k]:  # its own cell holds its own object's top
                 along_m += step_m
                 continue
-            if top_m[cell] > height + rise * along_m + BEHIND_MARGIN_M and cell != first_cell:
+            ray_m = height + rise * along_m
+            # Hidden (the surface stands over the ray), or grazed: the ray passes just over a
+            # surface taller than the point, a mixed pixel of that surface's edge.
+            over_m = min(ray_m + BEHIND_MARGIN_M, max(ray_m - GRAZE_M, height + GRAZE_TALLER_M))
+            if top_m[cell] > over_m and cell != first_cell:
                 if first_cell >= 0:
                     behind[k] = True
                     break
