@@ -263,10 +263,10 @@ def test_points_a_taller_top_hides_from_the_camera_give_no_reading() -> None:
 def test_mixed_pixels_whose_rays_graze_a_taller_top_give_no_reading() -> None:
     """A camera 3 m over the origin; a 1 m tall top over x 2.0–2.6 m (y 0–0.8 m), floor before it.
     Past the top's shadow the matcher's mixed pixels put points at 0.5 m at x 3.30–3.34 (cell 66,
-    0.7 m beyond the top's edge): their rays pass 3–4 cm over that edge. Those points are on no
+    0.7 m beyond the top's edge): their rays pass 3–5 cm over that edge. Those points are on no
     surface (the pixels see the floor beyond, at a disparity between the floor's and the top's),
     and their cell gives no reading. A 0.8 m top at x 3.0–3.2 (y 0.5–0.8 m), whose rays pass
-    0.15 m over the 1 m top but which stands only 0.2 m lower (a low top's own scatter stands that
+    about 0.15 m over the 1 m top but which stands only 0.2 m lower (a low top's own scatter stands that
     high beside it), and the 1 m top itself read occupied."""
     xs: list[float] = []
     ys: list[float] = []

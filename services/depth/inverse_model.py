@@ -225,13 +225,13 @@ def _behind_taller(
     0.3 m). The same edge's mixed pixels just past the shadow, which see the floor beyond, have
     rays that pass over the top's edge (by 0.1–0.3 m where traced), and their points stand on no
     surface: a line of false-occupied cells along the shadow's edge beyond a 1.46 m box on a
-    plain floor, at 0.3–0.45 m. Walks back along each point's ray, half a cell a
-    step, over the cells' highest points (``top_m``: of the points the model keeps, so a surface
-    above the band, out of its range, hides nothing). Offline, thirteen scenes (20 s): IoU
-    −0.0001 to +0.0027 for hidden points, precision up to +0.3 points, false-free the same or
-    lower; one blocking cell enough, +0.0000 to +0.0051 offline but live more false-free
-    (docs/accuracy-journal.md, "Points a taller top hides from the camera"); grazed ones as well,
-    +0.0003 to +0.0054, false-free the same (docs/accuracy-journal.md, "Rays that graze a top")."""
+    plain floor, at 0.3–0.45 m. Walks back along each point's ray, half a cell a step, over the
+    cells' highest points (``top_m``: of the points the model keeps, so a surface above the band,
+    out of its range, hides nothing). Offline, thirteen scenes (20 s): IoU −0.0001 to +0.0027 for
+    hidden points, precision up to +0.3 points, false-free the same or lower; one blocking cell
+    enough, +0.0000 to +0.0051 offline but live more false-free (docs/accuracy-journal.md, "Points
+    a taller top hides from the camera"); grazed ones as well, +0.0003 to +0.0054, false-free the
+    same (docs/accuracy-journal.md, "Rays that graze a top")."""
     i0, j0, cols, rows = window_ij
     camera_x, camera_y, camera_z = camera_m
     behind = np.zeros(flat.size, np.bool_)
