@@ -122,6 +122,29 @@ def _along_the_row(xs: list[float], heights: list[float]) -> WorldPoints:
     )
 
 
+def _surfaces_and_row(
+    surfaces: list[tuple[float, float, float, float, float]], row: list[tuple[float, float]]
+) -> WorldPoints:
+    """Flat surfaces (x from, x to, y from, y to, height; points 5 mm apart along x and 1 cm
+    along y: surfaces, not lines, since the rays to a camera run aslant) and points (x, height)
+    along the row of cells ``ROW_Y_M``."""
+    xs = [x for x, _ in row]
+    ys = [ROW_Y_M] * len(row)
+    heights = [h for _, h in row]
+    for start_m, end_m, from_y_m, to_y_m, height_m in surfaces:
+        for y_m in np.arange(from_y_m, to_y_m, 0.01):
+            surface = [*np.arange(start_m, end_m, 0.005)]
+            xs += surface
+            ys += [y_m] * len(surface)
+            heights += [height_m] * len(surface)
+    return WorldPoints(
+        x_m=np.array(xs, np.float32),
+        y_m=np.array(ys, np.float32),
+        height_m=np.array(heights, np.float32),
+        height_sigma_m=np.full(len(xs), 0.02, np.float32),
+    )
+
+
 def _box_edge(face_x_m: float, face_points: int = 30, top_from_m: float = 0.005) -> WorldPoints:
     """What a camera over the origin measures of a box standing at x > ``face_x_m``, 1 m tall,
     along one row of cells: the floor before its near face (a point a centimetre), its face
@@ -219,26 +242,11 @@ def test_points_a_taller_top_hides_from_the_camera_give_no_reading() -> None:
     along their rays and the cell gives no reading, neither occupied nor free. A 0.3 m box at x
     1.6–1.8, past the shadow, and the top itself read occupied either way; a stray point at 1.2 m
     just before the box (a face's scatter) is one cell, no surface, and hides nothing."""
-    xs = [*np.arange(0.3, 0.6, 0.01), *np.arange(1.5, 1.6, 0.01), *np.arange(1.8, 2.0, 0.01)]
-    ys, heights = [ROW_Y_M] * len(xs), [0.0] * len(xs)
-    for start_m, end_m, height_m in ((0.6, 1.0, 1.0), (1.6, 1.8, 0.3)):
-        for y_m in np.arange(0.0, 0.3, 0.01):  # surfaces, not lines: the rays run aslant
-            surface = [*np.arange(start_m, end_m, 0.005)]
-            xs += surface
-            ys += [y_m] * len(surface)
-            heights += [height_m] * len(surface)
-    xs += [1.11 + 0.003 * k for k in range(10)] + [1.12, 1.13, 1.14]
-    ys += [ROW_Y_M] * 13
-    heights += [0.3] * 10 + [0.0] * 3
-    xs.append(1.57)  # one stray point at 1.2 m
-    ys.append(ROW_Y_M)
-    heights.append(1.2)
-    points = WorldPoints(
-        x_m=np.array(xs, np.float32),
-        y_m=np.array(ys, np.float32),
-        height_m=np.array(heights, np.float32),
-        height_sigma_m=np.full(len(xs), 0.02, np.float32),
-    )
+    floor = [*np.arange(0.3, 0.6, 0.01), *np.arange(1.5, 1.6, 0.01), *np.arange(1.8, 2.0, 0.01)]
+    row = [(float(x), 0.0) for x in floor]
+    row += [(1.11 + 0.003 * k, 0.3) for k in range(10)] + [(1.12, 0.0), (1.13, 0.0), (1.14, 0.0)]
+    row.append((1.57, 1.2))  # one stray point at 1.2 m
+    points = _surfaces_and_row([(0.6, 1.0, 0.0, 0.3, 1.0), (1.6, 1.8, 0.0, 0.3, 0.3)], row)
     params = SensorModelParams()
 
     def cells(camera_m: tuple[float, float, float] | None) -> dict[int, tuple[float, int]]:
@@ -266,28 +274,11 @@ def test_mixed_pixels_whose_rays_graze_a_taller_top_give_no_reading() -> None:
     0.7 m beyond the top's edge): their rays pass 3–5 cm over that edge. Those points are on no
     surface (the pixels see the floor beyond, at a disparity between the floor's and the top's),
     and their cell gives no reading. A 0.8 m top at x 3.0–3.2 (y 0.5–0.8 m), whose rays pass
-    about 0.15 m over the 1 m top but which stands only 0.2 m lower (a low top's own scatter stands that
-    high beside it), and the 1 m top itself read occupied."""
-    xs: list[float] = []
-    ys: list[float] = []
-    heights: list[float] = []
-    surfaces = ((1.5, 2.0, 0.0, 0.0), (2.0, 2.6, 0.0, 1.0), (3.0, 3.2, 0.5, 0.8))
-    for start_m, end_m, from_y_m, height_m in surfaces:
-        for y_m in np.arange(from_y_m, 0.8, 0.01):  # surfaces, not lines: the rays run aslant
-            surface = [*np.arange(start_m, end_m, 0.005)]
-            xs += surface
-            ys += [y_m] * len(surface)
-            heights += [height_m] * len(surface)
-    mixed = [3.302 + 0.003 * k for k in range(12)]
-    xs += mixed
-    ys += [ROW_Y_M] * len(mixed)
-    heights += [0.5] * len(mixed)
-    points = WorldPoints(
-        x_m=np.array(xs, np.float32),
-        y_m=np.array(ys, np.float32),
-        height_m=np.array(heights, np.float32),
-        height_sigma_m=np.full(len(xs), 0.02, np.float32),
-    )
+    about 0.15 m over the 1 m top but which stands only 0.2 m lower (a low top's own scatter
+    stands that high beside it), and the 1 m top itself read occupied."""
+    surfaces = [(1.5, 2.0, 0.0, 0.8, 0.0), (2.0, 2.6, 0.0, 0.8, 1.0), (3.0, 3.2, 0.5, 0.8, 0.8)]
+    mixed = [(3.302 + 0.003 * k, 0.5) for k in range(12)]
+    points = _surfaces_and_row(surfaces, mixed)
     tile = build_tile(points, R, SensorModelParams(), 3, None, (0.0, 0.0, 3.0))
 
     def update(i: int, j: int) -> tuple[float, int]:
