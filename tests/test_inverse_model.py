@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from common.sensor_model import SensorModelParams
-from services.depth.inverse_model import build_tile
+from services.depth.inverse_model import build_tile, thin_band_points
 from services.depth.projection import WorldPoints
 
 R = 0.05
@@ -312,3 +312,42 @@ def test_an_inferred_height_over_floor_the_frame_measures_gives_no_hit() -> None
     assert with_rule[2] < 0  # … and without them the floor there reads free
     assert min(with_rule[[0, 1, 3, 4, 5]]) > 0  # tops, strays and measured points stand
     assert with_rule[4] == pytest.approx(without[4]) and with_rule[5] == pytest.approx(without[5])
+
+
+def test_band_pixels_in_a_line_one_or_two_pixels_wide_are_thin() -> None:
+    """An image of 20 × 30 pixels: floor, a 1 m top 6 pixels square, a 3-pixel square at 0.3 m
+    (the smallest thing standing the map keeps), and two lines in the band, one pixel wide
+    (diagonal, a box's silhouette mixed against the floor beyond) and two wide (along a row, a
+    top's edge). The lines' pixels are thin, the top's and the square's are not, nor is any
+    floor pixel."""
+    height_m = np.zeros((20, 30), np.float32)
+    height_m[2:8, 2:8] = 1.0
+    height_m[12:15, 3:6] = 0.3
+    for k in range(8):
+        height_m[3 + k, 12 + k] = 0.3
+    height_m[16:18, 10:28] = 0.4
+    valid = np.ones(height_m.shape, np.bool_)
+    valid[0, :] = False  # a row the matcher left without a disparity
+    valid_px = np.flatnonzero(valid)
+    thin = thin_band_points(valid_px, height_m.ravel()[valid_px], height_m.shape, 0.1)
+    expected = np.zeros(height_m.shape, np.bool_)
+    expected[[3 + k for k in range(8)], [12 + k for k in range(8)]] = True
+    expected[16:18, 10:28] = True
+    assert np.array_equal(thin, expected.ravel()[valid_px])
+
+
+def test_thin_band_points_give_no_reading() -> None:
+    """A cell of floor points and a line's band points (thin) reads occupied on all its points;
+    with the thin points left out it gives no reading at all, not free: its floor points are
+    the same depth edge's floor. A cell of band points that are not thin reads occupied either
+    way."""
+    points = _points([(0, 3, 0.0), (0, 6, 0.3), (1, 8, 0.0), (2, 6, 0.5)])
+    thin = np.array([False] * 3 + [True] * 6 + [False] * 8 + [False] * 6)
+    params = SensorModelParams()
+    everything = build_tile(points, R, params, 3)
+    without_lines = build_tile(points, R, params, 3, thin=thin)
+    assert everything.logodds[0, 0] > 0.0
+    assert without_lines.logodds[0, 0] == 0.0 and without_lines.count[0, 0] == 0
+    assert without_lines.logodds[0, 1] < 0.0  # floor alone
+    assert everything.logodds[0, 2] > 0.0
+    assert without_lines.logodds[0, 2] == pytest.approx(everything.logodds[0, 2])

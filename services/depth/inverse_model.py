@@ -272,6 +272,37 @@ def _behind_taller(
     return behind
 
 
+THIN_BAND_PX = 3
+"""A band point whose pixel lies in no square of this many pixels a side of band pixels is left out
+(:func:`thin_band_points`)."""
+
+
+def thin_band_points(
+    valid_px: npt.NDArray[np.intp],
+    height_m: npt.NDArray[np.float32],
+    shape_px: tuple[int, int],
+    band_min_m: float,
+) -> npt.NDArray[np.bool_]:
+    """The band points (heights ``height_m``, pixels ``valid_px``, flat in an image of
+    ``shape_px``) whose pixel lies in no ``THIN_BAND_PX`` square of band pixels: a morphological
+    opening of the image's band mask removes them. Something standing fills an area of the image
+    (an object 5 cm across or more covers 3 pixels at 5 m at the processing resolution); a line
+    one or two pixels wide in the band is a depth edge's mixed pixels: along the silhouette of a
+    box against the floor beyond it, where the matcher's window straddles both and its disparity
+    lies between them (a diagonal line of points at 0.1–0.45 m beside a 1.46 m box on a plain
+    floor, in the map for the whole run), or along a top's edge and a wall's foot. Offline,
+    thirteen scenes (docs/accuracy-journal.md, "Lines of band pixels"), for the figures and the
+    thin objects it costs."""
+    rows, cols = shape_px
+    band = np.zeros(rows * cols, np.uint8)
+    band[valid_px] = height_m >= band_min_m
+    image = band.reshape(rows, cols)
+    square = np.ones((THIN_BAND_PX, THIN_BAND_PX), np.uint8)
+    opened = cv2.morphologyEx(image, cv2.MORPH_OPEN, square)
+    thin: npt.NDArray[np.bool_] = ((image > opened).ravel())[valid_px]
+    return thin
+
+
 def _tops(
     flat: npt.NDArray[np.int64], height_m: npt.NDArray[np.float32], size: int
 ) -> npt.NDArray[np.float32]:
@@ -327,6 +358,7 @@ def build_tile(
     camera_m: tuple[float, float, float] | None = None,
     top_out_of_view: npt.NDArray[np.bool_] | None = None,
     inferred: npt.NDArray[np.bool_] | None = None,
+    thin: npt.NDArray[np.bool_] | None = None,
 ) -> Tile:
     """The frame's tile. ``hidden_xy_m`` (2 × N): floor points of the pixels whose floor is
     hidden; a cell holding at least ``min_cell_pixels`` of them, and at least as many as its
@@ -339,7 +371,9 @@ def build_tile(
     out of that cell's share and pixel count (:func:`_faces_beyond_centre`), judged so without a
     top seen above it for the points flagged in ``top_out_of_view`` (one per point). The points
     flagged in ``inferred`` (one per point: a height the floor model carried in, not measured) are
-    left out of a cell where the frame measures the floor (:func:`inferred_over_floor`)."""
+    left out of a cell where the frame measures the floor (:func:`inferred_over_floor`). The
+    points flagged in ``thin`` (one per point: :func:`thin_band_points`) are left out as hidden
+    ones are, and the cells that held them give no free reading either."""
     keep = in_model_range(points.height_m, points.height_sigma_m, params)
     cell_ij = cell_of(points.x_m, resolution_m), cell_of(points.y_m, resolution_m)  # 1-D each
     if inferred is not None:
@@ -349,6 +383,7 @@ def build_tile(
     x, y = points.x_m[keep], points.y_m[keep]
     height, sigma = points.height_m[keep], points.height_sigma_m[keep]
     out_of_view = None if top_out_of_view is None else top_out_of_view[keep]
+    thin_kept = None if thin is None else thin[keep]
     hidden_x, hidden_y = np.zeros((2, 0), np.float32) if hidden_xy_m is None else hidden_xy_m
     i, j = cell_ij[0][keep], cell_ij[1][keep]
     hidden_i, hidden_j = cell_of(hidden_x, resolution_m), cell_of(hidden_y, resolution_m)
@@ -375,9 +410,9 @@ def build_tile(
 
     weights = obstacle_likelihood(height, sigma, params)
     top = _tops(flat, height, size)
-    behind_in = np.zeros(size, np.bool_)
+    behind = np.zeros(flat.size, np.bool_) if thin_kept is None else thin_kept.copy()
     if camera_m is not None:
-        behind = _behind_taller(
+        behind |= _behind_taller(
             flat,
             x,
             y,
@@ -388,12 +423,14 @@ def build_tile(
             camera_m,
             params.obstacle_min_m,
         )
-        if behind.any():
-            behind_in[flat[behind]] = True
-            seen = ~behind
-            flat, x, y, height, weights = flat[seen], x[seen], y[seen], height[seen], weights[seen]
-            out_of_view = None if out_of_view is None else out_of_view[seen]
-            top = _tops(flat, height, size)
+    behind_in = np.zeros(size, np.bool_)
+    if behind.any():
+        behind_in[flat[behind]] = True
+        seen = ~behind
+        flat, x, y, height, weights = flat[seen], x[seen], y[seen], height[seen], weights[seen]
+        out_of_view = None if out_of_view is None else out_of_view[seen]
+        top = _tops(flat, height, size)
+    if camera_m is not None:
         left_out = _faces_beyond_centre(
             flat,
             x,

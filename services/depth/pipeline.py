@@ -23,7 +23,7 @@ from common.sensor_model import SensorModelParams
 from services.depth.floor_config import FloorModelConfig
 from services.depth.floor_geometry import FloorGeometry
 from services.depth.floor_model import FloorModel
-from services.depth.inverse_model import Tile, build_tile
+from services.depth.inverse_model import Tile, build_tile, thin_band_points
 from services.depth.low_band import LowBand
 from services.depth.object_edges import ImageView, refine_on_edges
 from services.depth.objects import Detection, PixelGrid, detect_objects
@@ -242,6 +242,9 @@ class DepthPipeline:
             self.camera_m,
             self.top_out_of_view[valid_px],
             None if self.floor_model is None else self.floor_model.inferred.ravel()[valid_px],
+            thin_band_points(
+                valid_px, points.height_m, evidence.shape, self.config.model.obstacle_min_m
+            ),
         )
         times.append(time.perf_counter())
         # "disparity" is the whole chain: matcher and its optional stages (stereo.DisparityChain).
