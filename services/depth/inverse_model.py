@@ -290,9 +290,9 @@ def thin_band_points(
     one or two pixels wide in the band is a depth edge's mixed pixels: along the silhouette of a
     box against the floor beyond it, where the matcher's window straddles both and its disparity
     lies between them (a diagonal line of points at 0.1–0.45 m beside a 1.46 m box on a plain
-    floor, in the map for the whole run), or along a top's edge and a wall's foot. Offline,
-    thirteen scenes (docs/accuracy-journal.md, "Lines of band pixels"), for the figures and the
-    thin objects it costs."""
+    floor, in the map for the whole run), or along a wall's foot at the view's edge. Offline,
+    thirteen scenes: docs/accuracy-journal.md, "Lines of band pixels", for the figures and for
+    what it costs (a thing under 3 pixels wide is not mapped)."""
     rows, cols = shape_px
     band = np.zeros(rows * cols, np.uint8)
     band[valid_px] = height_m >= band_min_m
@@ -410,9 +410,10 @@ def build_tile(
 
     weights = obstacle_likelihood(height, sigma, params)
     top = _tops(flat, height, size)
-    behind = np.zeros(flat.size, np.bool_) if thin_kept is None else thin_kept.copy()
+    # Points left out, their cells giving no free reading: thin ones, and those a top hides.
+    dropped = np.zeros(flat.size, np.bool_) if thin_kept is None else thin_kept.copy()
     if camera_m is not None:
-        behind |= _behind_taller(
+        dropped |= _behind_taller(
             flat,
             x,
             y,
@@ -423,10 +424,10 @@ def build_tile(
             camera_m,
             params.obstacle_min_m,
         )
-    behind_in = np.zeros(size, np.bool_)
-    if behind.any():
-        behind_in[flat[behind]] = True
-        seen = ~behind
+    dropped_in = np.zeros(size, np.bool_)
+    if dropped.any():
+        dropped_in[flat[dropped]] = True
+        seen = ~dropped
         flat, x, y, height, weights = flat[seen], x[seen], y[seen], height[seen], weights[seen]
         out_of_view = None if out_of_view is None else out_of_view[seen]
         top = _tops(flat, height, size)
@@ -468,7 +469,7 @@ def build_tile(
     ).ravel()
     update = np.where(sparse_free, logodds(params.p_miss), update)
     updated |= sparse_free
-    updated &= ~(behind_in & (update < 0.0))
+    updated &= ~(dropped_in & (update < 0.0))
     updated &= ~_lone_hits(
         (updated & (update > 0.0)).reshape(rows, cols), pixels.reshape(rows, cols)
     ).ravel()
