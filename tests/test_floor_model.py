@@ -1285,10 +1285,11 @@ def test_a_passing_forklift_grown_into_at_a_learning_frame_is_never_its_backgrou
     came near (rule 8; on a live run, a blob at the map's clamp). Now a pixel not yet modelled
     whose image departs from what it was confirmed as starts again at that learning frame, and
     again when the forklift has gone: with and without the stale restart
-    (``stale_learning_frames`` never reached), 35 and 42 obstacle cells over the 52 frames where
-    the code before left 164 and 257 (53 and 60 before a lone hit gave no update). A twin
-    modelled on one confirmation, without the stale restart, shows that this instant still meets
-    the case (119; 153 before lone hits)."""
+    (``stale_learning_frames`` never reached), 30 and 34 obstacle cells over the 52 frames where
+    the code before left 164 and 257 (53 and 60 before a lone hit gave no update, 35 and 42
+    before low lines of band pixels were left out). A twin modelled on one confirmation, without
+    the stale restart, shows that this instant still meets the case (102; 153 before lone hits,
+    119 before the lines)."""
     pair, scene = _site_pair({}, "p0")
     pair.t_s = FORKLIFT_OVER_LEARNING_S - 0.5
     config = PipelineConfig()
@@ -1322,8 +1323,8 @@ def test_a_passing_forklift_grown_into_at_a_learning_frame_is_never_its_backgrou
     pair.close()
     agreeing, without_stale, one_confirmation = phantoms
     assert pipelines[0].floor_model is not None and pipelines[0].floor_model.disagreed > 0
-    assert one_confirmation > 100, phantoms  # the instant still puts the forklift over the learning
-    assert max(agreeing, without_stale) < 100, phantoms
+    assert one_confirmation > 80, phantoms  # the instant still puts the forklift over the learning
+    assert max(agreeing, without_stale) < 60, phantoms
 
 
 def test_a_floor_reading_where_the_floors_texture_is_gone_is_no_floor_but_under_a_shadow_is() -> (

@@ -316,16 +316,17 @@ def test_an_inferred_height_over_floor_the_frame_measures_gives_no_hit() -> None
 
 def test_band_pixels_in_a_line_one_or_two_pixels_wide_are_thin() -> None:
     """An image of 20 × 30 pixels: floor, a 1 m top 6 pixels square, a 3-pixel square at 0.3 m
-    (the smallest thing standing the map keeps), and two lines in the band, one pixel wide
+    (the smallest thing standing the map keeps), two low lines in the band, one pixel wide
     (diagonal, a box's silhouette mixed against the floor beyond) and two wide (along a row, a
-    top's edge). The lines' pixels are thin, the top's and the square's are not, nor is any
-    floor pixel."""
+    wall's foot), and a line one pixel wide at 1.2 m (a plain top's edge). The low lines' pixels
+    are thin; the top's, the square's and the high line's are not, nor is any floor pixel."""
     height_m = np.zeros((20, 30), np.float32)
     height_m[2:8, 2:8] = 1.0
     height_m[12:15, 3:6] = 0.3
     for k in range(8):
         height_m[3 + k, 12 + k] = 0.3
     height_m[16:18, 10:28] = 0.4
+    height_m[1:12, 26] = 1.2
     valid = np.ones(height_m.shape, np.bool_)
     valid[0, :] = False  # a row the matcher left without a disparity
     valid_px = np.flatnonzero(valid)

@@ -273,8 +273,9 @@ def _behind_taller(
 
 
 THIN_BAND_PX = 3
-"""A band point whose pixel lies in no square of this many pixels a side of band pixels is left out
-(:func:`thin_band_points`)."""
+"""A band point whose pixel lies in no square of this many pixels a side of band pixels …"""
+THIN_BELOW_M = 0.5
+"""… and that stands lower than this is left out (:func:`thin_band_points`)."""
 
 
 def thin_band_points(
@@ -284,22 +285,25 @@ def thin_band_points(
     band_min_m: float,
 ) -> npt.NDArray[np.bool_]:
     """The band points (heights ``height_m``, pixels ``valid_px``, flat in an image of
-    ``shape_px``) whose pixel lies in no ``THIN_BAND_PX`` square of band pixels: a morphological
-    opening of the image's band mask removes them. Something standing fills an area of the image
-    (an object 5 cm across or more covers 3 pixels at 5 m at the processing resolution); a line
-    one or two pixels wide in the band is a depth edge's mixed pixels: along the silhouette of a
-    box against the floor beyond it, where the matcher's window straddles both and its disparity
-    lies between them (a diagonal line of points at 0.1–0.45 m beside a 1.46 m box on a plain
-    floor, in the map for the whole run), or along a wall's foot at the view's edge. Offline,
-    thirteen scenes: docs/accuracy-journal.md, "Lines of band pixels", for the figures and for
-    what it costs (a thing under 3 pixels wide is not mapped)."""
+    ``shape_px``) whose pixel lies in no ``THIN_BAND_PX`` square of band pixels (a morphological
+    opening of the image's band mask removes them) and that stand lower than ``THIN_BELOW_M``.
+    Something standing fills an area of the image (an object 5 cm across or more covers 3 pixels
+    at 5 m at the processing resolution); a low line one or two pixels wide in the band is a
+    depth edge's mixed pixels: along the silhouette of a box against the floor beyond it, where
+    the matcher's window straddles both and its disparity lies between them (a diagonal line of
+    points at 0.1–0.45 m beside a 1.46 m box on a plain floor, in the map for the whole run), or
+    along a wall's foot at the view's edge (0.1–0.25 m). Higher up, such a line is more often a
+    plain top's edge, all the matcher measures of it (a plain wall 1.2 m tall lost a third of its
+    cells to unknown without the height limit). Offline, thirteen scenes: docs/accuracy-journal.md,
+    "Lines of band pixels", for the figures and for what it costs (a low thing under 3 pixels
+    wide is not mapped)."""
     rows, cols = shape_px
     band = np.zeros(rows * cols, np.uint8)
     band[valid_px] = height_m >= band_min_m
     image = band.reshape(rows, cols)
     square = np.ones((THIN_BAND_PX, THIN_BAND_PX), np.uint8)
     opened = cv2.morphologyEx(image, cv2.MORPH_OPEN, square)
-    thin: npt.NDArray[np.bool_] = ((image > opened).ravel())[valid_px]
+    thin: npt.NDArray[np.bool_] = ((image > opened).ravel())[valid_px] & (height_m < THIN_BELOW_M)
     return thin
 
 
