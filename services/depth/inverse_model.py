@@ -294,9 +294,9 @@ def thin_band_points(
     points at 0.1–0.45 m beside a 1.46 m box on a plain floor, in the map for the whole run), or
     along a wall's foot at the view's edge (0.1–0.25 m). Higher up, such a line is more often a
     plain top's edge, all the matcher measures of it (a plain wall 1.2 m tall lost a quarter of
-    its occupied cells to unknown without the height limit). Offline, thirteen scenes: docs/accuracy-journal.md,
-    "Lines of band pixels", for the figures and for what it costs (a low thing under 3 pixels
-    wide is not mapped)."""
+    its occupied cells to unknown without the height limit). Offline, thirteen scenes:
+    docs/accuracy-journal.md, "Lines of band pixels", for the figures and for what it costs (a
+    low thing under 3 pixels wide is not mapped)."""
     rows, cols = shape_px
     band = np.zeros(rows * cols, np.uint8)
     band[valid_px] = height_m >= band_min_m
