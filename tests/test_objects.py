@@ -897,6 +897,36 @@ def test_the_cells_just_outside_a_static_objects_footprint_are_its_fringe() -> N
     assert all(0 <= served(*cell) <= 25 for cell in floor)
 
 
+@pytest.mark.parametrize("unsure", [False, True])
+def test_an_unsure_objects_fringe_starts_half_its_views_spread_outside_it(unsure: bool) -> None:
+    """A box at x 1.0–1.6, y 1.2–1.6 m whose frames call three rings of cells round it occupied
+    (their centres 2.5, 7.5 and 12.5 cm out). Its views agree on 0.6 × 0.4 m, or their widths
+    spread 8 cm (interquartile range: ``size_unsure``, the median still 0.4): a sure size's
+    fringe starts 1 cm out, all three rings served unknown; an unsure one's 4 cm out, half the
+    spread, the inner ring left to the frames (occupied), the outer two served unknown."""
+    resolution = 0.05
+    grid = FusedGrid(GridParams(resolution_m=resolution, bounds=Window(0, 0, 60, 60)))
+    measure(grid, Window(0, 0, 60, 60), -2.0, T0_NS)  # the floor: free
+    measure(grid, Window(17, 21, 18, 14), 4.0, T0_NS)  # x 0.85–1.75, y 1.05–1.75
+    widths = (0.30, 0.50, 0.40, 0.36, 0.44, 0.40, 0.32, 0.48, 0.40) if unsure else (0.40,) * 9
+    tracker = ObjectTracker()
+    for k, width in enumerate(widths):  # 4 s at 2 Hz: static
+        tracker.add("p0", T0_NS + k * FRAME_NS, [_record((1.3, 1.4), (0.6, width))], now_s=0.0)
+        tracker.flush(now_s=0.0, live_pairs={"p0"})
+    (obj,) = tracker.objects()
+    assert obj.size_unsure is unsure and obj.size_m[1] == pytest.approx(0.4)
+    assert grid.set_fringe(tracker.check_against(grid).fringes)
+
+    def served(x: float, y: float) -> int:
+        return int(grid.served_occupancy()[int(y / resolution), int(x / resolution)])
+
+    inner, outer = [(0.975, 1.4), (1.3, 1.625)], [(0.925, 1.4), (1.3, 1.725), (1.725, 1.4)]
+    assert all(served(*cell) == -1 for cell in outer)
+    assert all((served(*cell) >= OCCUPIED_MIN) is unsure for cell in inner)
+    assert all(served(*cell) == -1 for cell in inner) is not unsure
+    assert served(1.3, 1.4) >= OCCUPIED_MIN  # the box
+
+
 def _static_box_served(
     center: tuple[float, float],
     size: tuple[float, float],

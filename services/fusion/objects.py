@@ -32,7 +32,8 @@ Rules that shape the tracks:
   rectangle its connected cells span is handed to the grid as contested (:meth:`check_against`);
   around a static object the frames agree with, its occupied cells 1–25 cm outside its
   footprint (less every track's footprint) are handed over as its fringe (of a ``partial`` one,
-  those 1–10 cm out with free floor beyond them; of a ``size_unsure`` one, none); the cells
+  those 1–10 cm out with free floor beyond them; of a ``size_unsure`` one, from half its views'
+  spread out); the cells
   within 1 cm outside any static object's footprint, its rim, as contested (``Outline.rim``);
 - a size is the median of the views seen whole; fewer than four of them, or views that disagree,
   make it ``size_unsure`` (:func:`_views_unsure`);
@@ -183,9 +184,10 @@ class TrackerConfig:
     measured to a centimetre or two, does not hold. Offline, nine scenes (20 s), served unknown:
     IoU +0.007 to +0.025 on eight, false-free unchanged (docs/accuracy-journal.md). A
     ``partial`` object's (its size a lower bound) only where free floor lies beyond it; a
-    ``size_unsure`` one has none. The matcher carries a top's disparity over a plain floor, and
-    over a plain face below the top's edge, further than a cell: lines of false obstacles 10 cm
-    out along a side facing a camera at a slant (``--floor plain``, box_0). Reaching 0.25 m
+    ``size_unsure`` one's from farther out (``unsure_fringe_spread``). The matcher carries a
+    top's disparity over a plain floor, and over a plain face below the top's edge, further than
+    a cell: lines of false obstacles 10 cm out along a side facing a camera at a slant
+    (``--floor plain``, box_0). Reaching 0.25 m
     rather than 0.1 (a partial object's: 0.1), thirteen scenes (20 s): IoU +0.0006 (default) to
     +0.0084 (``--floor plain --seed 4``), +0.0068 on ``--floor plain``, 0 on ``--floor
     speckle``; false-free and recall the same to the digit, unknown up to +0.08 points. Its
@@ -196,6 +198,16 @@ class TrackerConfig:
     """… and a ``partial`` object's: past a cut side the object goes on, and where it ends on free
     floor within a reach as wide as a whole one's, the rest of it is served unknown (with 0.25
     m, ``--floor plain --seed 2`` recall 0.9613 → 0.9592)."""
+    unsure_fringe_spread: float = 0.5
+    """A ``size_unsure`` object's fringe starts this share of its views' spread outside its
+    footprint (:meth:`Track.spread_m`; ``fringe_margin_m`` at least): its size is their median, off
+    by about that much. With none, an object kept its ring of false obstacles while its views
+    disagreed (``--floor plain``: crate_0's 40–50 cells 1–17 cm out, its first 11 s). Offline,
+    thirteen scenes (20 s), IoU +0.0019 to +0.0223 on eleven (``--floor plain`` +0.0063),
+    −0.0007 on ``--floor speckle``, −0.0033 on ``--seed 4`` (a crate measured 19 cm narrow:
+    its cells 5–10 cm out served unknown); false-free the same to the digit. With the whole
+    spread, IoU −0.0005 to +0.0134; with a fixed 5 cm, ``--seed 4`` −0.0047
+    (docs/accuracy-journal.md, "An unsure size's fringe")."""
     default_frame_interval_s: float = 0.5
     wake_s: float = 3.0
     """Where a moving track was seen in the last this-many seconds, and is not now, is its
@@ -280,8 +292,9 @@ class Track:
     low_views: int = 0
     """Views (partial ones too) that saw it all top (a pallet): a track is low where they are
     most of its detections; its sides stand within ``low_margin_m`` either way."""
-    _size: tuple[TrackerConfig, TrackSize] | None = field(default=None, repr=False)
-    """The size of the views as they are (:meth:`size`): asked for several times a capture."""
+    _size: tuple[TrackerConfig, TrackSize, float] | None = field(default=None, repr=False)
+    """The size of the views as they are and their spread (:meth:`size`, :meth:`spread_m`): asked
+    for several times a capture."""
 
     def add_view(self, view: View, partial: bool, low: bool) -> None:
         """A view of the object, complete or ``partial``, ``low`` or not; the size is worked out
@@ -355,8 +368,23 @@ class Track:
             complete and _views_unsure(array[:, :2], config),
             round_,
         )
-        self._size = (config, size)
+        self._size = (config, size, _spread_m(array[:, :2]))
         return size
+
+    def spread_m(self, config: TrackerConfig) -> float:
+        """The interquartile range of the lengths or widths (the wider) of the views :meth:`size`
+        takes its size from, in metres: how far a ``size_unsure`` footprint may be off."""
+        self.size(config)
+        assert self._size is not None
+        return self._size[2]
+
+
+def _spread_m(sizes_m: F64) -> float:
+    """The interquartile range of views' lengths and widths (the wider; 0 for one view)."""
+    if not len(sizes_m):
+        return 0.0
+    low, high = np.quantile(sizes_m, (0.25, 0.75), axis=0)
+    return float((high - low).max())
 
 
 def _views_unsure(sizes_m: F64, config: TrackerConfig) -> bool:
@@ -1001,7 +1029,7 @@ class ObjectTracker:
         model may have taken for floor. Two objects that touch are one part of the map: both are
         pieces of it, and both enclose the pair. A static track the frames agree with hands over
         its fringe instead (:meth:`ConnectedCells.fringe`, less every track's footprint; of a
-        partial one, only where free floor lies beyond; an unsure one hands over none), which
+        partial one, only where free floor lies beyond; an unsure one's from farther out), which
         fusion serves unknown (the fringe layer); so does each whole view of a moving track in
         the newest capture (:meth:`_mover_fringes`)."""
         config, resolution_m = self.config, cells.resolution_m
@@ -1022,11 +1050,14 @@ class ObjectTracker:
                 pieces.add(track.id)
             if track.static and (piece or not cells.agrees(*connected.footprint_cells)):
                 enclosures.append(connected.enclosure(footprint, resolution_m))
-            elif track.static and not unsure:
+            elif track.static:
+                margin_m = config.fringe_margin_m
+                if unsure:
+                    margin_m = max(margin_m, config.unsure_fringe_spread * track.spread_m(config))
                 fringes.append(
                     connected.fringe(
                         footprint,
-                        config.fringe_margin_m,
+                        margin_m,
                         config.partial_fringe_reach_m if partial else config.fringe_reach_m,
                         free_beyond=cells.free_in(connected.window) if partial else None,
                     )
