@@ -33,8 +33,8 @@ Rules that shape the tracks:
   around a static object the frames agree with, its occupied cells 1–25 cm outside its
   footprint (less every track's footprint) are handed over as its fringe (of a ``partial`` one,
   those 1–10 cm out with free floor beyond them; of a ``size_unsure`` one, from half its views'
-  spread out); the cells
-  within 1 cm outside any static object's footprint, its rim, as contested (``Outline.rim``);
+  spread out); the cells within 1 cm outside any static object's footprint, its rim, as
+  contested (``Outline.rim``);
 - a size is the median of the views seen whole; fewer than four of them, or views that disagree,
   make it ``size_unsure`` (:func:`_views_unsure`);
 - the object list (not the tracks, nor the map's outlines) joins static partial tracks a seam's
@@ -187,8 +187,8 @@ class TrackerConfig:
     ``size_unsure`` one's from farther out (``unsure_fringe_spread``). The matcher carries a
     top's disparity over a plain floor, and over a plain face below the top's edge, further than
     a cell: lines of false obstacles 10 cm out along a side facing a camera at a slant
-    (``--floor plain``, box_0). Reaching 0.25 m
-    rather than 0.1 (a partial object's: 0.1), thirteen scenes (20 s): IoU +0.0006 (default) to
+    (``--floor plain``, box_0). Reaching 0.25 m rather than 0.1 (a partial object's: 0.1),
+    thirteen scenes (20 s): IoU +0.0006 (default) to
     +0.0084 (``--floor plain --seed 4``), +0.0068 on ``--floor plain``, 0 on ``--floor
     speckle``; false-free and recall the same to the digit, unknown up to +0.08 points. Its
     occupied cells, not only those connected to it: the scatter of its faces' points lands a
@@ -293,8 +293,8 @@ class Track:
     """Views (partial ones too) that saw it all top (a pallet): a track is low where they are
     most of its detections; its sides stand within ``low_margin_m`` either way."""
     _size: tuple[TrackerConfig, TrackSize, float] | None = field(default=None, repr=False)
-    """The size of the views as they are and their spread (:meth:`size`, :meth:`spread_m`): asked
-    for several times a capture."""
+    """The size of the views as they are and their spread (:meth:`_measured`): asked for several
+    times a capture."""
 
     def add_view(self, view: View, partial: bool, low: bool) -> None:
         """A view of the object, complete or ``partial``, ``low`` or not; the size is worked out
@@ -322,19 +322,28 @@ class Track:
         return self.static or (not self.moving and self.still_detections >= 2)
 
     def size(self, config: TrackerConfig) -> TrackSize:
-        """:data:`TrackSize`: over the complete views with ``best_view_share`` of the best one's
-        points or more (partial views joined from pieces add up their points, not their
-        measure), else over the partial ones (a lower bound).
-        Complete views shorter or narrower than ``piece_share`` of what the partial views saw
-        (their median) are pieces of the object, not all of it (a fragment of a plain top, the
-        corner of a box a taller neighbour hides) where the partial views of the same time (since
-        the oldest complete view kept) outnumber them; where they do not, the partial views are
-        what is wrong (another object's, taken once). A static track's complete views older than
-        every partial view of a full history, too few or too spread to agree on a size, are stale:
-        a pair that sees a standing object whole sees it so every frame (the cameras stand still),
-        so such views were the first frames' or a merge's."""
+        """:data:`TrackSize` (:meth:`_measured`)."""
+        return self._measured(config)[0]
+
+    def spread_m(self, config: TrackerConfig) -> float:
+        """The interquartile range of the lengths or widths (the wider) of the views :meth:`size`
+        takes its size from, in metres: how far a ``size_unsure`` footprint may be off."""
+        return self._measured(config)[1]
+
+    def _measured(self, config: TrackerConfig) -> tuple[TrackSize, float]:
+        """The size and the spread of the views it is taken from: the size over the complete views
+        with ``best_view_share`` of the best one's points or more (partial views joined from pieces
+        add up their points, not their measure), else over the partial ones (a lower bound).
+        Complete views shorter or narrower than ``piece_share`` of what the partial views saw (their
+        median) are pieces of the object, not all of it (a fragment of a plain top, the corner of a
+        box a taller neighbour hides) where the partial views of the same time (since the oldest
+        complete view kept) outnumber them; where they do not, the partial views are what is wrong
+        (another object's, taken once). A static track's complete views older than every partial
+        view of a full history, too few or too spread to agree on a size, are stale: a pair that
+        sees a standing object whole sees it so every frame (the cameras stand still), so such views
+        were the first frames' or a merge's."""
         if self._size is not None and self._size[0] is config:
-            return self._size[1]
+            return self._size[1], self._size[2]
         views = np.asarray(self.sizes, np.float64).reshape(-1, 7)
         partial = np.asarray(self.partial_sizes, np.float64).reshape(-1, 7)
         if self.static and len(self.partial_sizes) == self.partial_sizes.maxlen:
@@ -369,14 +378,7 @@ class Track:
             round_,
         )
         self._size = (config, size, _spread_m(array[:, :2]))
-        return size
-
-    def spread_m(self, config: TrackerConfig) -> float:
-        """The interquartile range of the lengths or widths (the wider) of the views :meth:`size`
-        takes its size from, in metres: how far a ``size_unsure`` footprint may be off."""
-        self.size(config)
-        assert self._size is not None
-        return self._size[2]
+        return size, self._size[2]
 
 
 def _spread_m(sizes_m: F64) -> float:
