@@ -377,8 +377,9 @@ class Track:
             complete and _views_unsure(array[:, :2], config),
             round_,
         )
-        self._size = (config, size, _spread_m(array[:, :2]))
-        return size, self._size[2]
+        spread_m = _spread_m(array[:, :2])
+        self._size = (config, size, spread_m)
+        return size, spread_m
 
 
 def _spread_m(sizes_m: F64) -> float:
